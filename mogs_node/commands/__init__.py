@@ -1,0 +1,1 @@
+"""One module per ``mogs`` subcommand: ``HELP``, ``add_arguments(parser)``, ``command(args)``."""

@@ -1,0 +1,1 @@
+"""Evaluation: depth, trajectory and rendering metrics, and the `mogs eval` commands."""

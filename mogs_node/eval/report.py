@@ -1,0 +1,68 @@
+"""Writing figures: JSON for scripts, and one named section of docs/benchmarks.md per benchmark.
+
+Each benchmark owns the text between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in
+``docs/benchmarks.md``; re-running it replaces only that section, so benchmarks never overwrite
+each other's figures.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+__all__ = ["REPO_ROOT", "machine_line", "update_markdown_section", "write_json"]
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def write_json(path: str | Path | None, figures: dict[str, Any]) -> None:
+    """Write ``figures`` to ``path`` as indented JSON (no-op when ``path`` is None)."""
+    if path is None:
+        return
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(figures, indent=2, sort_keys=True, default=float) + "\n")
+
+
+def machine_line() -> str:
+    """One line naming the machine, for the record beside the figures."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        model = next(
+            line.split(":", 1)[1].strip()
+            for line in Path("/proc/cpuinfo").read_text().splitlines()
+            if line.startswith("model name")
+        )
+        cpu = model
+    except (OSError, StopIteration):
+        pass
+    try:
+        rev = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
+            capture_output=True, text=True, timeout=5,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        rev = ""
+    return f"{cpu}, Python {platform.python_version()}" + (f", commit {rev}" if rev else "")
+
+
+def update_markdown_section(
+    name: str, body_md: str, path: str | Path | None = None
+) -> Path:
+    """Replace (or append) the ``name`` section of ``docs/benchmarks.md`` with ``body_md``."""
+    p = Path(path) if path is not None else REPO_ROOT / "docs" / "benchmarks.md"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    text = p.read_text() if p.exists() else "# Benchmarks\n\nLatest figures; each section is written by the command shown in it.\n"
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    block = f"{begin}\n{body_md.rstrip()}\n{end}"
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = head + block + tail
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    p.write_text(text)
+    return p
