@@ -22,7 +22,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "broker": ("mogs_node.commands.broker", "run the XSUB/XPUB message broker"),
     "node": ("mogs_node.commands.node", "run one node (used by the launcher)"),
     "topic": ("mogs_node.commands.topic", "inspect live topics: list, echo, hz"),
-    "demo": ("mogs_node.commands.demo", "run the whole pipeline on the embedded synthetic sequence"),
+    "demo": (
+        "mogs_node.commands.demo",
+        "run the whole pipeline on the embedded synthetic sequence",
+    ),
     "sim": ("mogs_node.commands.sim", "generate a synthetic driving sequence with ground truth"),
     "eval": ("mogs_node.commands.eval", "evaluate depth, trajectory or map against ground truth"),
 }

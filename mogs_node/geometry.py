@@ -54,10 +54,11 @@ def check_array(
     Raises :class:`ShapeError` naming ``name`` on any mismatch.
     """
     a = np.asarray(arr)
-    if shape is not None:
-        if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-            want = "x".join("N" if s is None else str(s) for s in shape)
-            raise ShapeError(f"{name}: expected shape [{want}], got {list(a.shape)}")
+    if shape is not None and (
+        a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape))
+    ):
+        want = "x".join("N" if s is None else str(s) for s in shape)
+        raise ShapeError(f"{name}: expected shape [{want}], got {list(a.shape)}")
     if dtype is not None:
         kinds = dtype if isinstance(dtype, tuple) else (dtype,)
         if not any(np.issubdtype(a.dtype, k) for k in kinds):
@@ -100,7 +101,11 @@ def so3_log(R: FloatArray) -> FloatArray:
     v = q[..., 1:]
     sin_half = np.linalg.norm(v, axis=-1)
     theta = 2.0 * np.arctan2(sin_half, w)
-    scale = np.where(sin_half < 1e-10, 2.0 / np.where(np.abs(w) < _EPS, 1.0, w), theta / np.maximum(sin_half, 1e-300))
+    scale = np.where(
+        sin_half < 1e-10,
+        2.0 / np.where(np.abs(w) < _EPS, 1.0, w),
+        theta / np.maximum(sin_half, 1e-300),
+    )
     return v * scale[..., None]
 
 
@@ -131,10 +136,42 @@ def quat_wxyz_from_rotmat(R: FloatArray) -> FloatArray:
     tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     cand = np.stack(
         [
-            np.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
-            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1),
+            np.stack(
+                [
+                    1 + tr,
+                    m[..., 2, 1] - m[..., 1, 2],
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 1, 0] - m[..., 0, 1],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    m[..., 2, 1] - m[..., 1, 2],
+                    1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    m[..., 0, 2] + m[..., 2, 0],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+                    m[..., 1, 2] + m[..., 2, 1],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    m[..., 1, 0] - m[..., 0, 1],
+                    m[..., 0, 2] + m[..., 2, 0],
+                    m[..., 1, 2] + m[..., 2, 1],
+                    1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+                ],
+                -1,
+            ),
         ],
         -2,
     )  # [..., 4 (branch), 4 (q)]
@@ -148,7 +185,14 @@ def quat_wxyz_from_rotmat(R: FloatArray) -> FloatArray:
 def rotmat_from_rpy(roll: FloatArray, pitch: FloatArray, yaw: FloatArray) -> FloatArray:
     """``R = Rz(yaw) Ry(pitch) Rx(roll)`` as used by the KITTI OXTS devkit."""
     roll, pitch, yaw = (np.asarray(a, dtype=np.float64) for a in (roll, pitch, yaw))
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
     return np.stack(
         [
             np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
@@ -241,13 +285,20 @@ class PinholeCamera:
     @classmethod
     def from_K(cls, K: FloatArray, width: int, height: int) -> PinholeCamera:
         K = check_array("K", K, shape=(3, 3), finite=True)
-        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
+        return cls(
+            float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height)
+        )
 
     def scaled(self, width: int, height: int) -> PinholeCamera:
         """The same camera resampled to ``width x height`` (pixel-centre convention kept)."""
         sx, sy = width / self.width, height / self.height
         return PinholeCamera(
-            self.fx_px * sx, self.fy_px * sy, (self.cx_px + 0.5) * sx - 0.5, (self.cy_px + 0.5) * sy - 0.5, width, height
+            self.fx_px * sx,
+            self.fy_px * sy,
+            (self.cx_px + 0.5) * sx - 0.5,
+            (self.cy_px + 0.5) * sy - 0.5,
+            width,
+            height,
         )
 
     def project(self, points_cam: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -256,7 +307,9 @@ class PinholeCamera:
         z = P[:, 2]
         in_front = z > 1e-9
         zs = np.where(in_front, z, 1.0)
-        uv = np.stack([self.fx_px * P[:, 0] / zs + self.cx_px, self.fy_px * P[:, 1] / zs + self.cy_px], -1)
+        uv = np.stack(
+            [self.fx_px * P[:, 0] / zs + self.cx_px, self.fy_px * P[:, 1] / zs + self.cy_px], -1
+        )
         return uv, in_front
 
     def in_image(self, uv: FloatArray) -> NDArray[np.bool_]:
@@ -268,7 +321,12 @@ class PinholeCamera:
         """Rays ``[N, 3]`` with ``z = 1`` through pixels ``uv`` ``[N, 2]`` (camera frame)."""
         uv = check_array("uv", uv, shape=(None, 2))
         return np.stack(
-            [(uv[:, 0] - self.cx_px) / self.fx_px, (uv[:, 1] - self.cy_px) / self.fy_px, np.ones(len(uv))], -1
+            [
+                (uv[:, 0] - self.cx_px) / self.fx_px,
+                (uv[:, 1] - self.cy_px) / self.fy_px,
+                np.ones(len(uv)),
+            ],
+            -1,
         )
 
     def pixel_grid_rays(self, dtype: type = np.float64) -> NDArray:
@@ -288,7 +346,9 @@ class PinholeCamera:
     def backproject_depth(self, depth_m: FloatArray) -> FloatArray:
         """Point map ``[H, W, 3]`` from a z-depth image ``[H, W]``."""
         d = check_array("depth_m", depth_m, shape=(self.height, self.width))
-        return self.pixel_grid_rays(np.float64 if d.dtype == np.float64 else np.float32) * d[..., None]
+        return (
+            self.pixel_grid_rays(np.float64 if d.dtype == np.float64 else np.float32) * d[..., None]
+        )
 
 
 # ----------------------------------------------------------------------------------------- rays

@@ -23,14 +23,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     depth = sub.add_parser("depth", help="depth metrization ablation (AbsRel, RMSE, delta1)")
     depth.add_argument("--dataset", choices=sorted(DEPTH_DATASETS), default="sim")
-    depth.add_argument("--frames", type=int, default=None, help="number of keyframes (default per dataset)")
+    depth.add_argument(
+        "--frames", type=int, default=None, help="number of keyframes (default per dataset)"
+    )
     depth.add_argument("--seed", type=int, default=0)
-    depth.add_argument("--masks", choices=["oracle", "graph", "both"], default="both",
-                       help="instance masks on sim: ground truth, the graph segmenter, or both")
+    depth.add_argument(
+        "--masks",
+        choices=["oracle", "graph", "both"],
+        default="both",
+        help="instance masks on sim: ground truth, the graph segmenter, or both",
+    )
     depth.add_argument("--size", default=None, help="WxH render size for sim (default per dataset)")
-    depth.add_argument("--data", default=None, help="dataset folder (kitti78: default ../shared/data/...)")
-    depth.add_argument("--viz", default=None, metavar="DIR", help="write image|masks|prior|depth|error strips")
-    depth.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
+    depth.add_argument(
+        "--data", default=None, help="dataset folder (kitti78: default ../shared/data/...)"
+    )
+    depth.add_argument(
+        "--viz", default=None, metavar="DIR", help="write image|masks|prior|depth|error strips"
+    )
+    depth.add_argument(
+        "--json", default=None, metavar="PATH", help="also write the figures as JSON"
+    )
     depth.set_defaults(_eval="depth")
 
     traj = sub.add_parser("traj", help="run the frontend on a sequence; ATE/RPE with evo")
@@ -38,11 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     traj.add_argument("--seconds", type=float, default=None, help="sequence length (sim/oxts)")
     traj.add_argument("--seed", type=int, default=0)
     traj.add_argument("--data", default=None, help="dataset folder (default ../shared/data/...)")
-    traj.add_argument("--out", default=None, metavar="DIR", help="write TUM/KITTI trajectories here")
+    traj.add_argument(
+        "--out", default=None, metavar="DIR", help="write TUM/KITTI trajectories here"
+    )
     traj.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     traj.set_defaults(_eval="traj")
 
-    gmap = sub.add_parser("map", help="Gaussian map quality and convergence for three initialisations")
+    gmap = sub.add_parser(
+        "map", help="Gaussian map quality and convergence for three initialisations"
+    )
     gmap.add_argument("--dataset", choices=["sim"], default="sim")
     gmap.add_argument("--seed", type=int, default=0)
     gmap.add_argument("--iters", type=int, default=None, help="iteration budget")
@@ -62,7 +78,9 @@ def command(args: argparse.Namespace) -> int:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as err:
-        raise ConfigError(f"eval {args._eval} --dataset {args.dataset}: not available ({err})") from err
+        raise ConfigError(
+            f"eval {args._eval} --dataset {args.dataset}: not available ({err})"
+        ) from err
     figures = module.evaluate(args)
     json.dump(figures, sys.stdout, indent=2, default=float)
     sys.stdout.write("\n")

@@ -1,0 +1,519 @@
+"""ZeroMQ transport: broker, publisher, subscriber, security.
+
+Process graph: every publisher connects a socket to the broker's XSUB endpoint, every subscriber
+connects a SUB socket to the broker's XPUB endpoint; the broker forwards with ``zmq.proxy`` (C code,
+no per-message Python). Publishers use XPUB sockets so that they can see subscriptions arrive
+(``Publisher.wait_for_subscriber``) and avoid the PUB/SUB slow-joiner loss at start-up.
+
+Topic policies (DESIGN.md section 5):
+
+- ``reliable`` (keyframes, masks, depth, IMU): large high-water marks; per-topic sequence numbers
+  from every publisher session; the subscriber detects gaps and counts every lost message, so
+  nothing is lost silently.
+- ``best_effort`` (camera images, renders, diagnostics): small high-water marks; the node keeps the
+  latest message per topic and counts what it drops.
+
+Security: on tcp endpoints the broker can run as a CURVE server that accepts only client public keys
+found in an authorised-keys folder (ZAP via ``zmq.auth``); unauthenticated peers get nothing in or
+out. ``generate_keys`` writes key pairs in the ``zmq.auth`` certificate format.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+from mogs_node import msgs
+from mogs_node.errors import BusError, ConfigError, MessageError
+
+__all__ = [
+    "BusConfig",
+    "CurveConfig",
+    "Publisher",
+    "Subscriber",
+    "TopicStats",
+    "default_bus_config",
+    "generate_keys",
+    "run_broker",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CurveConfig:
+    """CURVE key files (``zmq.auth`` certificate format) for tcp endpoints."""
+
+    server_public_key: str  # broker's public certificate (clients need it)
+    client_secret_key: str = ""  # this client's secret certificate (nodes, tools)
+    server_secret_key: str = ""  # broker only
+    authorized_keys_dir: str = ""  # broker only: folder of accepted client public certificates
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], base_dir: Path | None = None) -> CurveConfig:
+        def p(key: str) -> str:
+            v = d.get(key, "")
+            if not v:
+                return ""
+            path = Path(v).expanduser()
+            if base_dir is not None and not path.is_absolute():
+                path = base_dir / path
+            return str(path)
+
+        unknown = set(d) - {
+            "server_public_key",
+            "client_secret_key",
+            "server_secret_key",
+            "authorized_keys_dir",
+        }
+        if unknown:
+            raise ConfigError(f"bus.curve: unknown key(s) {sorted(unknown)}")
+        if not d.get("server_public_key"):
+            raise ConfigError("bus.curve.server_public_key is required")
+        return CurveConfig(
+            server_public_key=p("server_public_key"),
+            client_secret_key=p("client_secret_key"),
+            server_secret_key=p("server_secret_key"),
+            authorized_keys_dir=p("authorized_keys_dir"),
+        )
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """Where the broker is and how sockets behave."""
+
+    pub_endpoint: str  # broker binds XSUB here; publishers connect
+    sub_endpoint: str  # broker binds XPUB here; subscribers connect
+    reliable_hwm: int = 100_000  # high-water mark (messages) of reliable topics
+    best_effort_hwm: int = 10  # high-water mark of best-effort sockets
+    max_message_bytes: int = msgs.DEFAULT_MAX_MESSAGE_BYTES
+    linger_ms: int = 2000  # how long closing sockets keep flushing queued messages
+    curve: CurveConfig | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {
+            k: getattr(self, k)
+            for k in (
+                "pub_endpoint",
+                "sub_endpoint",
+                "reliable_hwm",
+                "best_effort_hwm",
+                "max_message_bytes",
+                "linger_ms",
+            )
+        }
+        if self.curve is not None:
+            d["curve"] = {
+                k: getattr(self.curve, k)
+                for k in (
+                    "server_public_key",
+                    "client_secret_key",
+                    "server_secret_key",
+                    "authorized_keys_dir",
+                )
+            }
+        return d
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], base_dir: Path | None = None) -> BusConfig:
+        allowed = {
+            "pub_endpoint",
+            "sub_endpoint",
+            "reliable_hwm",
+            "best_effort_hwm",
+            "max_message_bytes",
+            "linger_ms",
+            "curve",
+        }
+        unknown = set(d) - allowed
+        if unknown:
+            raise ConfigError(f"bus: unknown key(s) {sorted(unknown)}; allowed {sorted(allowed)}")
+        for key in ("pub_endpoint", "sub_endpoint"):
+            v = d.get(key)
+            if not isinstance(v, str) or not v.startswith(("tcp://", "ipc://", "inproc://")):
+                raise ConfigError(
+                    f"bus.{key}: expected a tcp://, ipc:// or inproc:// endpoint, got {v!r}"
+                )
+        kwargs: dict[str, Any] = {
+            "pub_endpoint": d["pub_endpoint"],
+            "sub_endpoint": d["sub_endpoint"],
+        }
+        for key in ("reliable_hwm", "best_effort_hwm", "max_message_bytes", "linger_ms"):
+            if key in d:
+                v = d[key]
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise ConfigError(f"bus.{key}: expected a non-negative int, got {v!r}")
+                kwargs[key] = v
+        if d.get("curve"):
+            kwargs["curve"] = CurveConfig.from_dict(d["curve"], base_dir)
+        return BusConfig(**kwargs)
+
+
+def default_bus_config(name: str = "default") -> BusConfig:
+    """ipc endpoints in a per-user runtime folder; ``MOGS_BUS_DIR`` overrides the folder."""
+    base = Path(os.environ.get("MOGS_BUS_DIR") or f"/tmp/mogs-{os.getuid()}")
+    base.mkdir(mode=0o700, parents=True, exist_ok=True)
+    return BusConfig(
+        pub_endpoint=f"ipc://{base}/{name}-pub.ipc", sub_endpoint=f"ipc://{base}/{name}-sub.ipc"
+    )
+
+
+def generate_keys(
+    keys_dir: str | Path, names: Iterable[str] = ("broker", "client")
+) -> dict[str, Path]:
+    """Write a CURVE key pair per name into ``keys_dir`` (``NAME.key``, ``NAME.key_secret``).
+
+    Client public keys are also copied into ``keys_dir/authorized`` (the broker's accept list).
+    """
+    d = Path(keys_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    auth = d / "authorized"
+    auth.mkdir(exist_ok=True)
+    out = {}
+    for name in names:
+        public, secret = zmq.auth.create_certificates(str(d), name)
+        os.chmod(secret, 0o600)
+        out[name] = Path(secret)
+        if name != "broker":
+            (auth / Path(public).name).write_bytes(Path(public).read_bytes())
+    return out
+
+
+def _load_secret(path: str) -> tuple[bytes, bytes]:
+    try:
+        public, secret = zmq.auth.load_certificate(path)
+    except (OSError, ValueError) as err:
+        raise BusError(f"cannot read CURVE key {path}: {err}") from err
+    if secret is None:
+        raise BusError(f"{path} holds no secret key")
+    return public, secret
+
+
+def _load_public(path: str) -> bytes:
+    try:
+        public, _ = zmq.auth.load_certificate(path)
+    except (OSError, ValueError) as err:
+        raise BusError(f"cannot read CURVE key {path}: {err}") from err
+    return public
+
+
+def _apply_client_curve(sock: zmq.Socket, curve: CurveConfig | None, endpoint: str) -> None:
+    if curve is None:
+        return
+    if not curve.client_secret_key:
+        raise BusError("bus.curve.client_secret_key is required for a client on a CURVE bus")
+    public, secret = _load_secret(curve.client_secret_key)
+    sock.curve_publickey = public
+    sock.curve_secretkey = secret
+    sock.curve_serverkey = _load_public(curve.server_public_key)
+
+
+def _check_bind_address(endpoint: str, allow_remote: bool) -> None:
+    """Refuse to listen on a non-loopback tcp address unless configured to (DESIGN.md section 5)."""
+    if not endpoint.startswith("tcp://"):
+        return
+    host = endpoint[len("tcp://") :].rsplit(":", 1)[0].strip("[]")
+    if host in ("127.0.0.1", "localhost", "::1") or host.startswith("127."):
+        return
+    if not allow_remote:
+        raise BusError(
+            f"refusing to listen on non-loopback address {endpoint}; pass allow_remote (launch file "
+            "`bus.allow_remote: true`, with CURVE keys) to expose the bus"
+        )
+
+
+# ---------------------------------------------------------------------------------------- broker
+
+
+def run_broker(
+    config: BusConfig,
+    stop: threading.Event,
+    *,
+    allow_remote: bool = False,
+    ready: threading.Event | None = None,
+    context: zmq.Context | None = None,
+) -> None:
+    """Forward messages between publishers and subscribers until ``stop`` is set.
+
+    The forwarding itself is ``zmq.proxy_steerable`` in a thread; this function waits for ``stop``
+    and then terminates the proxy through its control socket.
+    """
+    ctx = context or zmq.Context()
+    auth: ThreadAuthenticator | None = None
+    xsub = ctx.socket(zmq.XSUB)
+    xpub = ctx.socket(zmq.XPUB)
+    ctl_addr = f"inproc://mogs-broker-ctl-{os.getpid()}-{random.getrandbits(32)}"
+    ctl_back = ctx.socket(zmq.PAIR)
+    ctl_back.bind(ctl_addr)
+    ctl_front = ctx.socket(zmq.PAIR)
+    ctl_front.connect(ctl_addr)
+    try:
+        if config.curve is not None:
+            if not (config.curve.server_secret_key and config.curve.authorized_keys_dir):
+                raise BusError(
+                    "broker on a CURVE bus needs server_secret_key and authorized_keys_dir"
+                )
+            auth = ThreadAuthenticator(ctx)
+            auth.start()
+            auth.configure_curve(domain="*", location=config.curve.authorized_keys_dir)
+            public, secret = _load_secret(config.curve.server_secret_key)
+            for s in (xsub, xpub):
+                s.curve_server = True
+                s.curve_publickey = public
+                s.curve_secretkey = secret
+        # The broker's queues are per peer: give reliable traffic room; subscribers set their own.
+        xpub.sndhwm = config.reliable_hwm
+        xsub.rcvhwm = config.reliable_hwm
+        for s, ep in ((xsub, config.pub_endpoint), (xpub, config.sub_endpoint)):
+            _check_bind_address(ep, allow_remote)
+            try:
+                s.bind(ep)
+            except zmq.ZMQError as err:
+                raise BusError(f"broker cannot bind {ep}: {err}") from err
+        log.info(
+            "broker up: publishers -> %s, subscribers <- %s%s",
+            config.pub_endpoint,
+            config.sub_endpoint,
+            " (CURVE)" if config.curve else "",
+        )
+        proxy = threading.Thread(
+            target=_proxy_thread, args=(xsub, xpub, ctl_back), name="mogs-proxy", daemon=True
+        )
+        proxy.start()
+        if ready is not None:
+            ready.set()
+        while not stop.wait(0.1):
+            if not proxy.is_alive():
+                raise BusError("broker proxy thread stopped unexpectedly")
+        ctl_front.send(b"TERMINATE")
+        proxy.join(timeout=2.0)
+    finally:
+        for s in (xsub, xpub, ctl_back, ctl_front):
+            s.close(linger=0)
+        if auth is not None:
+            auth.stop()
+        if context is None:
+            ctx.term()
+
+
+def _proxy_thread(xsub: zmq.Socket, xpub: zmq.Socket, control: zmq.Socket) -> None:
+    try:
+        zmq.proxy_steerable(xsub, xpub, None, control)
+    except zmq.ContextTerminated:
+        pass
+    except zmq.ZMQError as err:  # pragma: no cover - logged, the broker loop notices
+        log.error("proxy stopped: %s", err)
+
+
+# ---------------------------------------------------------------------------------------- pub
+
+
+class Publisher:
+    """Publishes typed messages on topics; stamps per-topic sequence numbers.
+
+    Arrays are sent zero-copy: do not modify an array after publishing it.
+    """
+
+    def __init__(
+        self, config: BusConfig, *, context: zmq.Context | None = None, hwm: int | None = None
+    ) -> None:
+        self._ctx = context or zmq.Context.instance()
+        self.config = config
+        self.src = random.getrandbits(62) or 1  # session id: seq restart detection at subscribers
+        self._seq: dict[str, int] = {}
+        self.published: dict[str, int] = {}
+        self.published_bytes = 0
+        self._subscribed: set[bytes] = set()
+        self._sock = self._ctx.socket(zmq.XPUB)
+        self._sock.sndhwm = config.reliable_hwm if hwm is None else hwm
+        self._sock.linger = config.linger_ms
+        _apply_client_curve(self._sock, config.curve, config.pub_endpoint)
+        try:
+            self._sock.connect(config.pub_endpoint)
+        except zmq.ZMQError as err:
+            raise BusError(f"cannot connect publisher to {config.pub_endpoint}: {err}") from err
+
+    def publish(self, topic: str, msg: msgs.Message) -> int:
+        """Send ``msg`` on ``topic``; returns its sequence number."""
+        seq = self._seq.get(topic, 0)
+        frames = msgs.encode(topic, msg, seq=seq, src=self.src)
+        self._seq[topic] = seq + 1
+        self._sock.send_multipart(frames, copy=False)
+        self.published[topic] = self.published.get(topic, 0) + 1
+        self.published_bytes += sum(len(f) if isinstance(f, bytes) else f.nbytes for f in frames)
+        return seq
+
+    def publish_frames(self, frames: list[Any]) -> None:
+        """Forward already-encoded frames unchanged (bag replay of recorded bus traffic, fuzzing)."""
+        self._sock.send_multipart(frames, copy=False)
+
+    def _drain_subscriptions(self) -> None:
+        while True:
+            try:
+                ev = self._sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if ev and ev[0] == 1:
+                self._subscribed.add(ev[1:])
+
+    def has_subscriber(self, topic: str) -> bool:
+        """Whether some subscriber's filter matches ``topic`` (as seen through the broker)."""
+        self._drain_subscriptions()
+        t = topic.encode()
+        return any(t.startswith(prefix) for prefix in self._subscribed)
+
+    def wait_for_subscriber(self, topic: str, timeout_s: float = 5.0) -> bool:
+        """Block until a subscription matching ``topic`` has reached this publisher."""
+        deadline = time.monotonic() + timeout_s
+        while not self.has_subscriber(topic):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            self._sock.poll(min(100, int(remaining * 1000) + 1), zmq.POLLIN)
+        return True
+
+    def close(self, linger_ms: int | None = None) -> None:
+        self._sock.close(linger=self.config.linger_ms if linger_ms is None else linger_ms)
+
+
+# ---------------------------------------------------------------------------------------- sub
+
+
+@dataclass
+class TopicStats:
+    """Receive-side counters of one topic."""
+
+    received: int = 0
+    received_bytes: int = 0
+    gaps: int = 0  # gap events
+    lost: int = 0  # messages missing between received sequence numbers
+    reordered: int = 0  # sequence number not after the last one of the same publisher session
+    dropped: int = 0  # dropped on purpose by a best-effort queue (latest wins)
+    malformed: int = 0
+    last_seq: dict[int, int] = field(default_factory=dict)  # src -> last seq
+
+    def as_dict(self) -> dict[str, int]:
+        return {
+            "received": self.received,
+            "received_bytes": self.received_bytes,
+            "gaps": self.gaps,
+            "lost": self.lost,
+            "reordered": self.reordered,
+            "dropped": self.dropped,
+            "malformed": self.malformed,
+        }
+
+
+class Subscriber:
+    """Receives and decodes messages of exact topics, with gap detection per publisher session."""
+
+    def __init__(
+        self,
+        config: BusConfig,
+        *,
+        context: zmq.Context | None = None,
+        hwm: int | None = None,
+    ) -> None:
+        self._ctx = context or zmq.Context.instance()
+        self.config = config
+        self._sock = self._ctx.socket(zmq.SUB)
+        self._sock.rcvhwm = config.reliable_hwm if hwm is None else hwm
+        self._sock.linger = 0
+        _apply_client_curve(self._sock, config.curve, config.sub_endpoint)
+        try:
+            self._sock.connect(config.sub_endpoint)
+        except zmq.ZMQError as err:
+            raise BusError(f"cannot connect subscriber to {config.sub_endpoint}: {err}") from err
+        self.topics: dict[str, bool] = {}  # topic -> reliable
+        self.stats: dict[str, TopicStats] = {}
+        self.malformed = 0  # frames that could not be attributed to a subscribed topic
+        self.last_error: str = ""
+        self.all_topics = False
+
+    @property
+    def socket(self) -> zmq.Socket:
+        return self._sock
+
+    def subscribe(self, topic: str, *, reliable: bool = True) -> None:
+        """Receive ``topic`` (exact name; ``"/"`` alone means every topic, for tools)."""
+        if not topic.startswith("/"):
+            raise ConfigError(f"topic {topic!r} must start with '/'")
+        self.topics[topic] = reliable
+        if topic == "/":
+            self.all_topics = True
+        self._sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
+
+    def _stats(self, topic: str) -> TopicStats:
+        st = self.stats.get(topic)
+        if st is None:
+            st = self.stats[topic] = TopicStats()
+        return st
+
+    def receive(self, timeout_ms: int | None = 0) -> msgs.Envelope | None:
+        """The next valid message of a subscribed topic, or None if none arrives in time.
+
+        Malformed messages are counted (per topic when the topic frame is readable) and skipped;
+        this never raises for bad input.
+        """
+        deadline = None if timeout_ms is None else time.monotonic() + timeout_ms / 1000
+        while True:
+            wait = -1 if deadline is None else max(0, int((deadline - time.monotonic()) * 1000))
+            if not self._sock.poll(wait, zmq.POLLIN):
+                return None
+            env = self.decode_frames(self._sock.recv_multipart(copy=False))
+            if env is not None:
+                return env
+
+    def decode_frames(self, frames: list[Any]) -> msgs.Envelope | None:
+        """Decode and account one received multipart message (None if it is rejected)."""
+        if not frames:
+            self.malformed += 1
+            return None
+        topic_bytes = bytes(frames[0].buffer) if hasattr(frames[0], "buffer") else bytes(frames[0])
+        try:
+            topic = topic_bytes.decode("utf-8")
+        except UnicodeDecodeError:
+            topic = ""
+        if not self.all_topics and topic not in self.topics:
+            if any(topic.startswith(t) for t in self.topics):
+                return None  # prefix match of another topic (e.g. /imu_raw for /imu): not ours
+            self.malformed += 1
+            return None
+        st = self._stats(topic)
+        try:
+            env = msgs.decode(frames, max_bytes=self.config.max_message_bytes)
+        except MessageError as err:
+            st.malformed += 1
+            self.last_error = f"{topic}: {err}"
+            log.debug("malformed message on %s: %s", topic, err)
+            return None
+        st.received += 1
+        st.received_bytes += env.nbytes
+        last = st.last_seq.get(env.src)
+        if last is not None:
+            if env.seq > last + 1:
+                st.gaps += 1
+                st.lost += env.seq - last - 1
+            elif env.seq <= last:
+                st.reordered += 1
+        st.last_seq[env.src] = env.seq if last is None else max(last, env.seq)
+        return env
+
+    def close(self) -> None:
+        self._sock.close(linger=0)
+
+
+def with_endpoints(config: BusConfig, pub_endpoint: str, sub_endpoint: str) -> BusConfig:
+    """A copy of ``config`` with other endpoints."""
+    return replace(config, pub_endpoint=pub_endpoint, sub_endpoint=sub_endpoint)

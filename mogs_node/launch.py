@@ -1,0 +1,346 @@
+"""Launch files and the launcher: the broker and every node as separate OS processes.
+
+A launch file (YAML)::
+
+    name: demo                      # names the default ipc endpoints
+    bus:                            # optional; default: ipc endpoints in /tmp/mogs-$UID
+      pub_endpoint: tcp://127.0.0.1:7700
+      sub_endpoint: tcp://127.0.0.1:7701
+      allow_remote: false           # listen on non-loopback addresses only if true
+      curve: {server_public_key: keys/broker.key, client_secret_key: keys/client.key_secret,
+              server_secret_key: keys/broker.key_secret, authorized_keys_dir: keys/authorized}
+    exit_when: [source]             # stop everything once these nodes have exited with code 0
+    nodes:
+      - name: source
+        class: mogs_node.demo_nodes:SyntheticSource   # module:Class, a Node subclass
+        params: {rate_hz: 10}
+        respawn: on_failure         # never | on_failure | always
+        max_respawns: 5
+        host: localhost             # only localhost is started by this launcher
+
+The launcher prefixes each child's log lines with its name, respawns crashed nodes by policy, and
+on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
+Children get PR_SET_PDEATHSIG so that they never outlive a killed launcher.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mogs_node.bus import BusConfig, default_bus_config
+from mogs_node.errors import ConfigError
+
+__all__ = ["LaunchFile", "Launcher", "NodeSpec", "load_launch_file"]
+
+log = logging.getLogger(__name__)
+
+RESPAWN_POLICIES = ("never", "on_failure", "always")
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of a launch file."""
+
+    name: str
+    cls: str  # "package.module:ClassName"
+    params: dict[str, Any] = field(default_factory=dict)
+    respawn: str = "on_failure"
+    max_respawns: int = 5
+    respawn_delay_s: float = 0.5
+    host: str = "localhost"
+    env: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LaunchFile:
+    name: str
+    bus: BusConfig
+    nodes: tuple[NodeSpec, ...]
+    exit_when: tuple[str, ...] = ()
+    allow_remote: bool = False
+    start_broker: bool = True
+    path: Path | None = None
+
+
+def _require(d: dict, key: str, types: type | tuple[type, ...], where: str) -> Any:
+    if key not in d:
+        raise ConfigError(f"{where}: missing key '{key}'")
+    if not isinstance(d[key], types):
+        raise ConfigError(f"{where}.{key}: expected {types}, got {d[key]!r}")
+    return d[key]
+
+
+def parse_launch(
+    data: Any, *, path: Path | None = None, overrides: dict[str, Any] | None = None
+) -> LaunchFile:
+    """Validate a launch file's parsed YAML; errors name the offending key."""
+    where = str(path) if path else "launch file"
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping at top level")
+    known = {"name", "bus", "nodes", "exit_when", "description"}
+    unknown = set(data) - known
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
+    name = data.get("name", path.stem if path else "default")
+    if not isinstance(name, str) or not name.replace("-", "").replace("_", "").isalnum():
+        raise ConfigError(f"{where}.name: expected a simple name, got {name!r}")
+    bus_d = dict(data.get("bus") or {})
+    allow_remote = bool(bus_d.pop("allow_remote", False))
+    start_broker = bool(bus_d.pop("start_broker", True))
+    if "pub_endpoint" not in bus_d and "sub_endpoint" not in bus_d:
+        default = default_bus_config(name)
+        bus_d.update(pub_endpoint=default.pub_endpoint, sub_endpoint=default.sub_endpoint)
+    bus = BusConfig.from_dict(bus_d, base_dir=path.parent if path else None)
+    nodes_raw = _require(data, "nodes", list, where)
+    nodes = []
+    seen = set()
+    for i, nd in enumerate(nodes_raw):
+        w = f"{where}.nodes[{i}]"
+        if not isinstance(nd, dict):
+            raise ConfigError(f"{w}: expected a mapping")
+        unknown = set(nd) - {
+            "name",
+            "class",
+            "params",
+            "respawn",
+            "max_respawns",
+            "respawn_delay_s",
+            "host",
+            "env",
+        }
+        if unknown:
+            raise ConfigError(f"{w}: unknown key(s) {sorted(unknown)}")
+        nname = _require(nd, "name", str, w)
+        if nname in seen or nname == "broker":
+            raise ConfigError(f"{w}.name: duplicate or reserved node name {nname!r}")
+        seen.add(nname)
+        cls = _require(nd, "class", str, w)
+        if ":" not in cls:
+            raise ConfigError(f"{w}.class: expected 'package.module:ClassName', got {cls!r}")
+        params = dict(nd.get("params") or {})
+        if overrides and nname in overrides:
+            params.update(overrides[nname])
+        respawn = nd.get("respawn", "on_failure")
+        if respawn not in RESPAWN_POLICIES:
+            raise ConfigError(f"{w}.respawn: expected one of {RESPAWN_POLICIES}, got {respawn!r}")
+        nodes.append(
+            NodeSpec(
+                name=nname,
+                cls=cls,
+                params=params,
+                respawn=respawn,
+                max_respawns=int(nd.get("max_respawns", 5)),
+                respawn_delay_s=float(nd.get("respawn_delay_s", 0.5)),
+                host=str(nd.get("host", "localhost")),
+                env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
+            )
+        )
+    exit_when = tuple(data.get("exit_when") or ())
+    for n in exit_when:
+        if n not in seen:
+            raise ConfigError(f"{where}.exit_when: no node named {n!r}")
+    return LaunchFile(
+        name=name,
+        bus=bus,
+        nodes=tuple(nodes),
+        exit_when=exit_when,
+        allow_remote=allow_remote,
+        start_broker=start_broker,
+        path=path,
+    )
+
+
+def load_launch_file(path: str | Path, overrides: dict[str, Any] | None = None) -> LaunchFile:
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as err:
+        raise ConfigError(f"cannot read launch file {p}: {err}") from err
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{p}: invalid YAML: {err}") from err
+    return parse_launch(data, path=p, overrides=overrides)
+
+
+def _set_pdeathsig() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class _Child:
+    name: str
+    argv: list[str]
+    env: dict[str, str]
+    spec: NodeSpec | None
+    proc: subprocess.Popen | None = None
+    respawns: int = 0
+    exited: int | None = None
+    restart_at: float | None = None
+    reader: threading.Thread | None = None
+
+
+class Launcher:
+    """Starts, supervises and stops the processes of a :class:`LaunchFile`."""
+
+    def __init__(self, launch: LaunchFile, *, out=None, grace_s: float = 3.0) -> None:
+        self.launch = launch
+        self.out = out or sys.stdout
+        self.grace_s = grace_s
+        self._stop = threading.Event()
+        self._out_lock = threading.Lock()
+        self.children: list[_Child] = []
+        bus_json = json.dumps(launch.bus.to_dict())
+        py = sys.executable
+        if launch.start_broker:
+            argv = [py, "-m", "mogs_node.cli", "broker", "--bus-json", bus_json]
+            if launch.allow_remote:
+                argv.append("--allow-remote")
+            self.children.append(_Child("broker", argv, {}, None))
+        for spec in launch.nodes:
+            if spec.host not in ("localhost", "127.0.0.1", os.uname().nodename):
+                log.info("node %s runs on host %s: not started here", spec.name, spec.host)
+                continue
+            argv = [
+                py,
+                "-m",
+                "mogs_node.cli",
+                "node",
+                spec.cls,
+                "--name",
+                spec.name,
+                "--params-json",
+                json.dumps(spec.params),
+                "--bus-json",
+                bus_json,
+            ]
+            self.children.append(_Child(spec.name, argv, spec.env, spec))
+
+    def _print(self, line: str) -> None:
+        with self._out_lock:
+            self.out.write(line if line.endswith("\n") else line + "\n")
+            self.out.flush()
+
+    def _pump(self, child: _Child, stream) -> None:
+        width = max(len(c.name) for c in self.children)
+        for raw in iter(stream.readline, b""):
+            self._print(f"[{child.name:<{width}}] {raw.decode(errors='replace').rstrip()}")
+        stream.close()
+
+    def _start(self, child: _Child) -> None:
+        env = dict(os.environ)
+        env.update(child.env)
+        env["PYTHONUNBUFFERED"] = "1"
+        child.proc = subprocess.Popen(
+            child.argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            start_new_session=True,
+            preexec_fn=_set_pdeathsig,
+        )
+        child.exited = None
+        child.restart_at = None
+        child.reader = threading.Thread(
+            target=self._pump, args=(child, child.proc.stdout), daemon=True
+        )
+        child.reader.start()
+        self._print(f"[launch] started {child.name} (pid {child.proc.pid})")
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def run(self, *, install_signal_handlers: bool = True, timeout_s: float | None = None) -> int:
+        """Run until a signal, ``exit_when`` nodes finished, or ``timeout_s``; returns exit code."""
+        if install_signal_handlers:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: self._stop.set())
+        end = None if timeout_s is None else time.monotonic() + timeout_s
+        code = 0
+        try:
+            for i, child in enumerate(self.children):
+                self._start(child)
+                if i == 0 and child.name == "broker":
+                    time.sleep(0.3)  # let the broker bind before nodes connect
+            while not self._stop.wait(0.1):
+                if end is not None and time.monotonic() > end:
+                    self._print("[launch] timeout reached")
+                    code = 124
+                    break
+                if self._supervise():
+                    break
+        finally:
+            self.shutdown()
+        return code
+
+    def _supervise(self) -> bool:
+        """Reap, respawn; True when the launch is complete (exit_when nodes done)."""
+        now = time.monotonic()
+        for child in self.children:
+            if child.proc is None:
+                continue
+            if child.exited is None:
+                rc = child.proc.poll()
+                if rc is None:
+                    continue
+                child.exited = rc
+                self._print(f"[launch] {child.name} exited with code {rc}")
+                policy = "always" if child.spec is None else child.spec.respawn
+                failed = rc != 0
+                max_r = 1000 if child.spec is None else child.spec.max_respawns
+                if (
+                    policy == "always" or (policy == "on_failure" and failed)
+                ) and child.respawns < max_r:
+                    delay = 0.2 if child.spec is None else child.spec.respawn_delay_s
+                    child.restart_at = now + delay
+                elif failed and child.spec is None:
+                    self._print("[launch] broker failed and cannot be respawned")
+            if child.restart_at is not None and now >= child.restart_at:
+                child.respawns += 1
+                self._print(f"[launch] respawning {child.name} ({child.respawns})")
+                self._start(child)
+        if self.launch.exit_when:
+            done = all(c.exited == 0 for c in self.children if c.name in self.launch.exit_when)
+            if done:
+                self._print("[launch] " + ", ".join(self.launch.exit_when) + " finished")
+                return True
+        return False
+
+    def shutdown(self) -> None:
+        """SIGINT to every node (broker last), SIGKILL what is left after the grace period."""
+        nodes = [c for c in self.children if c.name != "broker"]
+        broker = [c for c in self.children if c.name == "broker"]
+        for group in (nodes, broker):
+            live = [c for c in group if c.proc is not None and c.proc.poll() is None]
+            for c in live:
+                with contextlib.suppress(ProcessLookupError):
+                    c.proc.send_signal(signal.SIGINT)
+            deadline = time.monotonic() + self.grace_s
+            for c in live:
+                try:
+                    c.proc.wait(timeout=max(0.05, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    self._print(f"[launch] {c.name} did not stop in {self.grace_s} s: killing")
+                    c.proc.kill()
+                    c.proc.wait()
+        for c in self.children:
+            if c.reader is not None:
+                c.reader.join(timeout=1.0)
+        self._print("[launch] all processes stopped")

@@ -1,0 +1,713 @@
+"""Every message type and its wire codec, in one place.
+
+Wire format (DESIGN.md section 5): a multipart ZeroMQ message ``[topic, header, *buffers]``.
+
+- ``topic``: UTF-8 topic name, e.g. ``b"/frontend/keyframe"``.
+- ``header``: msgpack map ``{"t": type name, "v": schema version, "seq": per-topic sequence number,
+  "src": publisher session id, "f": {scalar fields}, "a": [[array name, dtype, shape], ...]}``.
+  ``stamp_ns`` and ``frame_id`` are ordinary scalar fields of every message.
+- ``buffers``: one raw C-contiguous little-endian buffer per array descriptor, in order. Arrays are
+  sent without a copy and decoded with ``np.frombuffer`` (read-only views of the received frames).
+
+Decoding is strict: anything not exactly as declared (unknown type or version, missing or extra
+field, wrong scalar type, non-whitelisted dtype, shape/size mismatch, inconsistent dimensions
+between arrays, non-finite values where forbidden, oversized message) raises :class:`MessageError`
+naming the field. Nothing is ever fixed silently and pickle is never used.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+import msgpack
+import numpy as np
+
+from mogs_node.errors import MessageError
+
+__all__ = [
+    "DEFAULT_MAX_MESSAGE_BYTES",
+    "MESSAGE_TYPES",
+    "ArraySpec",
+    "DepthMap",
+    "Diagnostics",
+    "Envelope",
+    "GaussianUpdate",
+    "Image",
+    "Imu",
+    "Keyframe",
+    "MapStats",
+    "Masks",
+    "Message",
+    "MessageError",
+    "Odometry",
+    "PoseStamped",
+    "Render",
+    "decode",
+    "encode",
+]
+
+DEFAULT_MAX_MESSAGE_BYTES = 256 * 1024 * 1024
+MAX_HEADER_BYTES = 64 * 1024
+MAX_DIM = 1 << 20  # no single dimension beyond 1M elements
+# dtypes that may travel; everything is little-endian on the wire.
+_WIRE_DTYPES = {
+    "|u1": np.dtype("u1"),
+    "|i1": np.dtype("i1"),
+    "|b1": np.dtype("?"),
+    "<u2": np.dtype("<u2"),
+    "<i2": np.dtype("<i2"),
+    "<i4": np.dtype("<i4"),
+    "<u4": np.dtype("<u4"),
+    "<i8": np.dtype("<i8"),
+    "<f4": np.dtype("<f4"),
+    "<f8": np.dtype("<f8"),
+}
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What an array field may be.
+
+    ``shapes`` lists accepted shape patterns; a pattern entry is an int (exact size) or a symbol
+    (str) bound consistently across all arrays of the message (e.g. ``"H"``, ``"N"``).
+    """
+
+    dtypes: tuple[str, ...]
+    shapes: tuple[tuple[int | str, ...], ...]
+    finite: bool = False
+    optional: bool = False
+
+
+# scalar kinds: "int", "float", "str", "bool", "vec3" (3 finite floats), "dict_num" (str -> number),
+# "dict_any" (str -> int/float/str/bool or nested dict of those, depth 2)
+_SCALAR_KINDS = {"int", "float", "str", "bool", "vec3", "dict_num", "dict_any", "float_or_nan"}
+
+
+class Message:
+    """Base of every message dataclass: ``TYPE``, ``VERSION``, scalar kinds and array specs."""
+
+    TYPE: ClassVar[str]
+    VERSION: ClassVar[int] = 1
+    SCALARS: ClassVar[dict[str, str]]
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
+
+    def validate(self) -> None:
+        """Check the message against its own spec (the same checks the decoder applies)."""
+        _validate_fields(type(self), {f.name: getattr(self, f.name) for f in fields(self)})  # type: ignore[arg-type]
+
+    def __eq__(self, other: object) -> bool:  # arrays compare by value
+        if type(other) is not type(self):
+            return NotImplemented
+        for f in fields(self):  # type: ignore[arg-type]
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if a is None or b is None or a.dtype != b.dtype or a.shape != b.shape:
+                    return False
+                if not np.array_equal(a, b, equal_nan=a.dtype.kind == "f"):
+                    return False
+            elif isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+                continue
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+_U8 = ("|u1",)
+_F32 = ("<f4",)
+_F64 = ("<f8",)
+_I32 = ("<i4",)
+_I64 = ("<i8",)
+_I8 = ("|i1",)
+_BASE = {"stamp_ns": "int", "frame_id": "str"}
+
+
+@dataclass(eq=False)
+class Image(Message):
+    """A camera image (``/camera/image``)."""
+
+    TYPE: ClassVar[str] = "Image"
+    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "encoding": "str"}
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "data": ArraySpec(_U8, (("H", "W"), ("H", "W", 3))),
+    }
+    ENCODINGS: ClassVar[tuple[str, ...]] = ("mono8", "rgb8", "bgr8")
+
+    stamp_ns: int
+    frame_id: str
+    encoding: str
+    data: np.ndarray
+
+
+@dataclass(eq=False)
+class Imu(Message):
+    """One IMU sample (``/imu``) in the IMU frame."""
+
+    TYPE: ClassVar[str] = "Imu"
+    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "gyro_rad_s": "vec3", "accel_m_s2": "vec3"}
+
+    stamp_ns: int
+    frame_id: str
+    gyro_rad_s: tuple[float, float, float]
+    accel_m_s2: tuple[float, float, float]
+
+
+@dataclass(eq=False)
+class Odometry(Message):
+    """Per-frame pose estimate of the frontend (``/frontend/odometry``)."""
+
+    TYPE: ClassVar[str] = "Odometry"
+    SCALARS: ClassVar[dict[str, str]] = {
+        **_BASE,
+        "frame_index": "int",
+        "velocity_world_m_s": "vec3",
+        "status": "str",
+    }
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "T_world_cam": ArraySpec(_F64, ((4, 4),), finite=True)
+    }
+
+    stamp_ns: int
+    frame_id: str
+    frame_index: int
+    T_world_cam: np.ndarray
+    velocity_world_m_s: tuple[float, float, float]
+    status: str
+
+
+@dataclass(eq=False)
+class Keyframe(Message):
+    """A keyframe with its metric pose and sparse metric points (``/frontend/keyframe``).
+
+    ``feature_xyz_cam_m`` are metric 3D points of tracked features in this keyframe's camera frame,
+    ``feature_weight`` their omega (track length and reprojection error).
+    """
+
+    TYPE: ClassVar[str] = "Keyframe"
+    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int"}
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "image": ArraySpec(_U8, (("H", "W", 3), ("H", "W"))),
+        "K": ArraySpec(_F64, ((3, 3),), finite=True),
+        "T_world_cam": ArraySpec(_F64, ((4, 4),), finite=True),
+        "feature_ids": ArraySpec(_I64, (("N",),)),
+        "feature_uv_px": ArraySpec(_F32, (("N", 2),), finite=True),
+        "feature_xyz_cam_m": ArraySpec(_F32, (("N", 3),), finite=True),
+        "feature_weight": ArraySpec(_F32, (("N",),), finite=True),
+    }
+
+    stamp_ns: int
+    frame_id: str
+    keyframe_id: int
+    image: np.ndarray
+    K: np.ndarray
+    T_world_cam: np.ndarray
+    feature_ids: np.ndarray
+    feature_uv_px: np.ndarray
+    feature_xyz_cam_m: np.ndarray
+    feature_weight: np.ndarray
+
+
+@dataclass(eq=False)
+class Masks(Message):
+    """Instance masks of a keyframe as one label image, -1 = no mask (``/seg/masks``)."""
+
+    TYPE: ClassVar[str] = "Masks"
+    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int", "backend": "str"}
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"labels": ArraySpec(_I32, (("H", "W"),))}
+
+    stamp_ns: int
+    frame_id: str
+    keyframe_id: int
+    labels: np.ndarray
+    backend: str
+
+
+@dataclass(eq=False)
+class DepthMap(Message):
+    """Dense depth of a keyframe with per-pixel confidence (``/prior/depth``, ``/metrizer/depth``).
+
+    ``depth`` is 0 where there is no value and always finite; ``confidence`` is in [0, 1].
+    ``object_labels`` / ``object_model`` (metrizer only) tell which shape model each object got:
+    0 none, 1 plane, 2 cylinder, 3 ellipsoid, indexed by object label.
+    """
+
+    TYPE: ClassVar[str] = "DepthMap"
+    SCALARS: ClassVar[dict[str, str]] = {
+        **_BASE,
+        "keyframe_id": "int",
+        "kind": "str",
+        "source": "str",
+    }
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "depth": ArraySpec(_F32, (("H", "W"),), finite=True),
+        "confidence": ArraySpec(_F32, (("H", "W"),), finite=True),
+        "object_labels": ArraySpec(_I32, (("H", "W"),), optional=True),
+        "object_model": ArraySpec(_I8, (("M",),), optional=True),
+    }
+    KINDS: ClassVar[tuple[str, ...]] = ("metric", "relative_depth", "relative_inverse_depth")
+
+    stamp_ns: int
+    frame_id: str
+    keyframe_id: int
+    kind: str
+    depth: np.ndarray
+    confidence: np.ndarray
+    source: str
+    object_labels: np.ndarray | None = None
+    object_model: np.ndarray | None = None
+
+
+@dataclass(eq=False)
+class MapStats(Message):
+    """Mapper statistics after a keyframe (``/mapper/stats``)."""
+
+    TYPE: ClassVar[str] = "MapStats"
+    SCALARS: ClassVar[dict[str, str]] = {
+        **_BASE,
+        "keyframe_id": "int",
+        "n_gaussians": "int",
+        "n_keyframes": "int",
+        "iterations": "int",
+        "loss": "float_or_nan",
+        "psnr_db": "float_or_nan",
+        "extra": "dict_num",
+    }
+
+    stamp_ns: int
+    frame_id: str
+    keyframe_id: int
+    n_gaussians: int
+    n_keyframes: int
+    iterations: int
+    loss: float
+    psnr_db: float
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class Render(Message):
+    """A rendered view of the map (``/mapper/render``)."""
+
+    TYPE: ClassVar[str] = "Render"
+    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int"}
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "image": ArraySpec(_U8, (("H", "W", 3),)),
+        "depth": ArraySpec(_F32, (("H", "W"),), finite=True, optional=True),
+    }
+
+    stamp_ns: int
+    frame_id: str
+    keyframe_id: int
+    image: np.ndarray
+    depth: np.ndarray | None = None
+
+
+@dataclass(eq=False)
+class GaussianUpdate(Message):
+    """Incremental map change: Gaussians added or changed (by id) and ids removed."""
+
+    TYPE: ClassVar[str] = "GaussianUpdate"
+    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int"}
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "ids": ArraySpec(_I64, (("N",),)),
+        "means": ArraySpec(_F32, (("N", 3),), finite=True),
+        "log_scales": ArraySpec(_F32, (("N", 3),), finite=True),
+        "quats_wxyz": ArraySpec(_F32, (("N", 4),), finite=True),
+        "opacity_logit": ArraySpec(_F32, (("N",),), finite=True),
+        "colors_rgb": ArraySpec(_F32, (("N", 3),), finite=True),
+        "removed_ids": ArraySpec(_I64, (("M",),)),
+    }
+
+    stamp_ns: int
+    frame_id: str
+    keyframe_id: int
+    ids: np.ndarray
+    means: np.ndarray
+    log_scales: np.ndarray
+    quats_wxyz: np.ndarray
+    opacity_logit: np.ndarray
+    colors_rgb: np.ndarray
+    removed_ids: np.ndarray
+
+
+@dataclass(eq=False)
+class PoseStamped(Message):
+    """A pose, e.g. ground truth on ``/groundtruth/pose``."""
+
+    TYPE: ClassVar[str] = "PoseStamped"
+    SCALARS: ClassVar[dict[str, str]] = dict(_BASE)
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "T_world_cam": ArraySpec(_F64, ((4, 4),), finite=True)
+    }
+
+    stamp_ns: int
+    frame_id: str
+    T_world_cam: np.ndarray
+
+
+@dataclass(eq=False)
+class Diagnostics(Message):
+    """Heartbeat and counters of one node (``/diagnostics``).
+
+    ``counters`` are node-wide figures (received, published, dropped, malformed, handler_errors,
+    queue_depth, loop_latency_ms, ...); ``topics`` maps topic -> its own counters.
+    """
+
+    TYPE: ClassVar[str] = "Diagnostics"
+    SCALARS: ClassVar[dict[str, str]] = {
+        **_BASE,
+        "node": "str",
+        "pid": "int",
+        "uptime_s": "float",
+        "status": "str",
+        "counters": "dict_num",
+        "topics": "dict_any",
+    }
+
+    stamp_ns: int
+    frame_id: str
+    node: str
+    pid: int
+    uptime_s: float
+    status: str
+    counters: dict[str, float] = field(default_factory=dict)
+    topics: dict[str, Any] = field(default_factory=dict)
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (
+        Image,
+        Imu,
+        Odometry,
+        Keyframe,
+        Masks,
+        DepthMap,
+        MapStats,
+        Render,
+        GaussianUpdate,
+        PoseStamped,
+        Diagnostics,
+    )
+}
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """A decoded message with its transport metadata."""
+
+    topic: str
+    seq: int
+    src: int
+    msg: Message
+    nbytes: int
+
+
+# ---------------------------------------------------------------------------------------- checks
+
+_INT_MIN, _INT_MAX = -(1 << 63), (1 << 63) - 1
+
+
+def _check_scalar(kind: str, name: str, value: Any) -> Any:
+    # fast paths for the common, valid cases (the codec runs per message on every topic)
+    tv = type(value)
+    if tv is int and kind == "int" and _INT_MIN <= value <= _INT_MAX:
+        return value
+    if tv is float and kind == "float" and math.isfinite(value):
+        return value
+    if tv is str and kind == "str" and len(value) <= 4096:
+        return value
+    if (tv is tuple or tv is list) and kind == "vec3" and len(value) == 3:
+        a, b, c = value
+        if type(a) is float and type(b) is float and type(c) is float and math.isfinite(a + b + c):
+            return (a, b, c)
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            raise MessageError(f"expected int, got {type(value).__name__}", field=name)
+        if not _INT_MIN <= int(value) <= _INT_MAX:
+            raise MessageError("integer out of int64 range", field=name)
+        return int(value)
+    if kind in ("float", "float_or_nan"):
+        if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+            raise MessageError(f"expected float, got {type(value).__name__}", field=name)
+        v = float(value)
+        if not math.isfinite(v) and not (kind == "float_or_nan" and math.isnan(v)):
+            raise MessageError("non-finite value", field=name)
+        return v
+    if kind == "str":
+        if not isinstance(value, str):
+            raise MessageError(f"expected str, got {type(value).__name__}", field=name)
+        if len(value) > 4096:
+            raise MessageError("string longer than 4096 characters", field=name)
+        return value
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise MessageError(f"expected bool, got {type(value).__name__}", field=name)
+        return value
+    if kind == "vec3":
+        if not isinstance(value, list | tuple | np.ndarray) or len(value) != 3:
+            raise MessageError("expected 3 floats", field=name)
+        out = tuple(_check_scalar("float", f"{name}[{i}]", v) for i, v in enumerate(value))
+        return out
+    if kind == "dict_num":
+        if not isinstance(value, dict) or len(value) > 4096:
+            raise MessageError("expected a dict of str -> number (at most 4096 keys)", field=name)
+        out_d: dict[str, float | int] = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise MessageError("dict key is not a str", field=name)
+            if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+                raise MessageError(f"value of {k!r} is not a number", field=name)
+            out_d[k] = v.item() if isinstance(v, np.generic) else v
+        return out_d
+    if kind == "dict_any":
+        return _check_dict_any(name, value, depth=0)
+    raise MessageError(f"unknown scalar kind {kind}", field=name)  # pragma: no cover
+
+
+def _check_dict_any(name: str, value: Any, depth: int) -> dict[str, Any]:
+    if not isinstance(value, dict) or len(value) > 4096 or depth > 2:
+        raise MessageError("expected a (nested, depth <= 2) dict of str -> scalars", field=name)
+    out: dict[str, Any] = {}
+    for k, v in value.items():
+        if not isinstance(k, str):
+            raise MessageError("dict key is not a str", field=name)
+        if isinstance(v, dict):
+            out[k] = _check_dict_any(f"{name}.{k}", v, depth + 1)
+        elif isinstance(v, bool | int | float | str):
+            out[k] = v
+        elif isinstance(v, np.generic):
+            out[k] = v.item()
+        else:
+            raise MessageError(
+                f"value of {k!r} has unsupported type {type(v).__name__}", field=name
+            )
+    return out
+
+
+def _match_shape(
+    name: str, spec: ArraySpec, shape: tuple[int, ...], symbols: dict[str, int]
+) -> None:
+    errors = []
+    for pattern in spec.shapes:
+        if len(pattern) != len(shape):
+            errors.append(f"ndim {len(shape)} != {len(pattern)}")
+            continue
+        bound = dict(symbols)
+        ok = True
+        for want, got in zip(pattern, shape):
+            if isinstance(want, int):
+                if want != got:
+                    ok = False
+                    errors.append(f"size {got} != {want}")
+                    break
+            elif want in bound and bound[want] != got:
+                ok = False
+                errors.append(f"{want}={got} disagrees with {want}={bound[want]} of another array")
+                break
+            else:
+                bound[want] = got
+        if ok:
+            symbols.update(bound)
+            return
+    pats = " or ".join("[" + ",".join(str(p) for p in pat) + "]" for pat in spec.shapes)
+    raise MessageError(
+        f"shape {list(shape)} does not match {pats} ({'; '.join(errors)})", field=name
+    )
+
+
+def _check_array(name: str, spec: ArraySpec, arr: Any, symbols: dict[str, int]) -> np.ndarray:
+    if not isinstance(arr, np.ndarray):
+        raise MessageError(f"expected a numpy array, got {type(arr).__name__}", field=name)
+    if arr.dtype.newbyteorder("<").str not in spec.dtypes and arr.dtype.str not in spec.dtypes:
+        raise MessageError(f"dtype {arr.dtype.str} not in {list(spec.dtypes)}", field=name)
+    _match_shape(name, spec, arr.shape, symbols)
+    if spec.finite and arr.size and arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        raise MessageError("contains NaN or inf", field=name)
+    return arr
+
+
+def _validate_fields(cls: type[Message], values: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, kind in cls.SCALARS.items():
+        if name not in values:
+            raise MessageError("missing field", field=name)
+        out[name] = _check_scalar(kind, name, values[name])
+    symbols: dict[str, int] = {}
+    for name, spec in cls.ARRAYS.items():
+        arr = values.get(name)
+        if arr is None:
+            if not spec.optional:
+                raise MessageError("missing array", field=name)
+            out[name] = None
+            continue
+        out[name] = _check_array(name, spec, arr, symbols)
+    enc = getattr(cls, "ENCODINGS", None)
+    if enc is not None and out.get("encoding") not in enc:
+        raise MessageError(
+            f"unknown encoding {out.get('encoding')!r}, expected one of {enc}", field="encoding"
+        )
+    kinds = getattr(cls, "KINDS", None)
+    if kinds is not None and out.get("kind") not in kinds:
+        raise MessageError(
+            f"unknown kind {out.get('kind')!r}, expected one of {kinds}", field="kind"
+        )
+    if cls is Image:
+        data = out["data"]
+        if (data.ndim == 3) != (out["encoding"] != "mono8"):
+            raise MessageError(
+                f"encoding {out['encoding']} does not fit shape {list(data.shape)}", field="data"
+            )
+    return out
+
+
+# ---------------------------------------------------------------------------------------- codec
+
+
+def encode(topic: str, msg: Message, *, seq: int = 0, src: int = 0) -> list[bytes | memoryview]:
+    """Encode ``msg`` for ``topic`` into multipart frames (arrays are not copied when contiguous).
+
+    Raises :class:`MessageError` if ``msg`` does not satisfy its own spec: a publisher never sends
+    what a subscriber would reject.
+    """
+    if type(msg).TYPE not in MESSAGE_TYPES:
+        raise MessageError(f"unknown message type {type(msg).__name__}", field="t")
+    values = _validate_fields(type(msg), msg.__dict__)
+    scalars = {name: values[name] for name in type(msg).SCALARS}
+    descs: list[list[Any]] = []
+    buffers: list[memoryview] = []
+    for name in type(msg).ARRAYS:
+        arr = values[name]
+        if arr is None:
+            continue
+        a = np.ascontiguousarray(arr)
+        if a.dtype.byteorder == ">":
+            a = a.astype(a.dtype.newbyteorder("<"))
+        descs.append([name, a.dtype.str, list(a.shape)])
+        buffers.append(memoryview(a).cast("B") if a.size else memoryview(b""))
+    header = msgpack.packb(
+        {
+            "t": type(msg).TYPE,
+            "v": type(msg).VERSION,
+            "seq": int(seq),
+            "src": int(src),
+            "f": scalars,
+            "a": descs,
+        },
+        use_bin_type=True,
+    )
+    return [topic.encode("utf-8"), header, *buffers]
+
+
+def _frame_bytes(frame: Any) -> memoryview:
+    if isinstance(frame, bytes | bytearray | memoryview):
+        return memoryview(frame)
+    buf = getattr(frame, "buffer", None)  # zmq.Frame
+    if buf is not None:
+        return memoryview(buf)
+    raise MessageError(f"frame of unsupported type {type(frame).__name__}", field="frame")
+
+
+def decode(frames: Sequence[Any], *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Envelope:
+    """Decode multipart ``frames`` into an :class:`Envelope`; strict, see the module docstring."""
+    if not isinstance(frames, list | tuple) or len(frames) < 2:
+        raise MessageError("expected at least [topic, header] frames", field="frames")
+    views = [_frame_bytes(f) for f in frames]
+    total = sum(v.nbytes for v in views)
+    if total > max_bytes:
+        raise MessageError(
+            f"message of {total} bytes exceeds the limit of {max_bytes}", field="size"
+        )
+    try:
+        topic = bytes(views[0]).decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise MessageError("topic is not UTF-8", field="topic") from err
+    if not topic.startswith("/") or len(topic) > 256:
+        raise MessageError(f"invalid topic name {topic[:64]!r}", field="topic")
+    if views[1].nbytes > MAX_HEADER_BYTES:
+        raise MessageError(
+            f"header of {views[1].nbytes} bytes exceeds {MAX_HEADER_BYTES}", field="header"
+        )
+    try:
+        header = msgpack.unpackb(
+            views[1],
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            max_str_len=MAX_HEADER_BYTES,
+            max_bin_len=0,
+            max_array_len=4096,
+            max_map_len=4096,
+            max_ext_len=0,
+        )
+    except Exception as err:  # msgpack raises several unrelated types on garbage
+        raise MessageError(
+            f"header is not valid msgpack ({type(err).__name__}: {err})", field="header"
+        ) from err
+    if not isinstance(header, dict):
+        raise MessageError("header is not a map", field="header")
+    expected_keys = {"t", "v", "seq", "src", "f", "a"}
+    if set(header) != expected_keys:
+        missing, extra = expected_keys - set(header), set(header) - expected_keys
+        raise MessageError(
+            f"header keys: missing {sorted(missing)}, unexpected {sorted(map(str, extra))}",
+            field="header",
+        )
+    type_name = header["t"]
+    cls = MESSAGE_TYPES.get(type_name) if isinstance(type_name, str) else None
+    if cls is None:
+        raise MessageError(f"unknown message type {type_name!r}", field="t")
+    if header["v"] != cls.VERSION or isinstance(header["v"], bool):
+        raise MessageError(f"{cls.TYPE} schema version {header['v']!r} != {cls.VERSION}", field="v")
+    seq = _check_scalar("int", "seq", header["seq"])
+    src = _check_scalar("int", "src", header["src"])
+    scalars = header["f"]
+    if not isinstance(scalars, dict):
+        raise MessageError("scalar fields are not a map", field="f")
+    extra = set(scalars) - set(cls.SCALARS)
+    if extra:
+        raise MessageError(
+            f"unexpected field(s) {sorted(map(str, extra))} for {cls.TYPE}",
+            field=str(sorted(map(str, extra))[0]),
+        )
+    descs = header["a"]
+    if not isinstance(descs, list):
+        raise MessageError("array descriptors are not a list", field="a")
+    if len(descs) != len(views) - 2:
+        raise MessageError(
+            f"{len(descs)} array descriptors but {len(views) - 2} buffers", field="a"
+        )
+    values: dict[str, Any] = dict(scalars)
+    for desc, view in zip(descs, views[2:]):
+        if not (isinstance(desc, list) and len(desc) == 3 and isinstance(desc[0], str)):
+            raise MessageError("array descriptor must be [name, dtype, shape]", field="a")
+        name, dtype_str, shape = desc
+        if name not in cls.ARRAYS:
+            raise MessageError(f"unexpected array for {cls.TYPE}", field=name)
+        if name in values:
+            raise MessageError("array given twice", field=name)
+        dtype = _WIRE_DTYPES.get(dtype_str) if isinstance(dtype_str, str) else None
+        if dtype is None:
+            raise MessageError(f"dtype {dtype_str!r} is not allowed on the wire", field=name)
+        if (
+            not isinstance(shape, list)
+            or len(shape) > 4
+            or not all(
+                isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_DIM for s in shape
+            )
+        ):
+            raise MessageError(f"invalid shape {shape!r}", field=name)
+        n_items = math.prod(shape)
+        if n_items * dtype.itemsize != view.nbytes:
+            raise MessageError(
+                f"buffer of {view.nbytes} bytes does not fit shape {shape} of {dtype.str}",
+                field=name,
+            )
+        values[name] = np.frombuffer(view, dtype=dtype).reshape(shape)
+    checked = _validate_fields(cls, values)
+    msg = cls(**checked)
+    return Envelope(topic=topic, seq=seq, src=src, msg=msg, nbytes=total)

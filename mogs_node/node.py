@@ -1,0 +1,398 @@
+"""The process shell every node shares: params, subscriptions, run loop, heartbeat, shutdown.
+
+A node is a subclass of :class:`Node` with a frozen ``Params`` dataclass; its ``setup`` declares
+subscriptions, and handlers publish results. The shell owns everything else:
+
+- one SUB socket for all subscriptions, blocked on with ``zmq.Poller`` and a timeout (no spinning);
+- per-topic queues in arrival order: reliable topics are handled one by one, in order; best-effort
+  topics keep only the latest message (older ones are dropped and counted);
+- handler exceptions are caught, logged and counted: a node never dies of bad input;
+- ``/diagnostics`` heartbeat with counters (received, published, dropped, lost, malformed,
+  handler_errors, queue_depth, loop_latency_ms) every ``diagnostics_period_s``;
+- clean shutdown on SIGINT/SIGTERM: stop reading, call ``teardown``, flush outgoing messages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import signal
+import threading
+import time
+import types
+import typing
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Publisher, Subscriber
+from mogs_node.errors import ConfigError, MogsError
+
+__all__ = ["EmptyParams", "Node", "parse_params"]
+
+log = logging.getLogger(__name__)
+
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+
+@dataclass(frozen=True)
+class EmptyParams:
+    """A node without parameters."""
+
+
+def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "params") -> Any:
+    """Build the frozen params dataclass ``cls`` from a mapping, strictly.
+
+    Unknown keys and values of the wrong type raise :class:`ConfigError` naming the key; ints are
+    accepted for float fields, lists for tuple fields.
+    """
+    if not dataclasses.is_dataclass(cls):
+        raise ConfigError(f"{where}: {cls!r} is not a dataclass")
+    values = dict(values or {})
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = set(values) - names
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown parameter(s) {sorted(unknown)}; known: {sorted(names)}"
+        )
+    kwargs = {}
+    for name, value in values.items():
+        kwargs[name] = _coerce(hints.get(name, Any), value, f"{where}.{name}")
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{where}: {err}") from err
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        for a in args:
+            try:
+                return _coerce(a, value, where)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{where}: {value!r} does not fit {tp}")
+    if tp is type(None):
+        if value is None:
+            return None
+        raise ConfigError(f"{where}: expected null, got {value!r}")
+    if origin is typing.Literal:
+        if value in args:
+            return value
+        raise ConfigError(f"{where}: {value!r} is not one of {list(args)}")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected a bool, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected an int, got {value!r}")
+    if tp is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(f"{where}: expected {len(args)} items, got {len(value)}")
+        return tuple(_coerce(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin in (list, dict) or tp in (list, dict):
+        if not isinstance(value, origin or tp):
+            raise ConfigError(f"{where}: expected a {(origin or tp).__name__}, got {value!r}")
+        return value
+    return value
+
+
+Handler = Callable[[msgs.Message], None]
+
+
+@dataclass
+class _Subscription:
+    topic: str
+    handler: Handler
+    reliable: bool
+    msg_type: type[msgs.Message] | None
+    queue_size: int
+    pending: int = 0
+
+
+class Node:
+    """Base class of every node process; see the module docstring."""
+
+    Params: ClassVar[type] = EmptyParams
+
+    def __init__(
+        self,
+        name: str,
+        params: Any = None,
+        bus: BusConfig | None = None,
+        *,
+        diagnostics_period_s: float = 1.0,
+        context: zmq.Context | None = None,
+    ) -> None:
+        if bus is None:
+            raise ConfigError(f"node {name}: no bus configuration")
+        self.name = name
+        self.params = (
+            params
+            if isinstance(params, self.Params)
+            else parse_params(self.Params, params, where=f"{name}.params")
+        )
+        self.bus = bus
+        self.log = logging.getLogger(f"mogs.{name}")
+        # A node owns its context unless given one: closing it then waits until every queued
+        # (zero-copy) outgoing frame is sent, before the interpreter frees the arrays behind them.
+        self._own_ctx = context is None
+        self._ctx = context or zmq.Context()
+        self._pub = Publisher(bus, context=self._ctx)
+        self._sub: Subscriber | None = None
+        self._subs: dict[str, _Subscription] = {}
+        self._queue: deque[tuple[_Subscription, msgs.Envelope]] = deque()
+        self._timers: list[list[Any]] = []  # [period_s, next_due, callback]
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+        self.counters: dict[str, float] = {
+            "received": 0,
+            "published": 0,
+            "dropped": 0,
+            "lost": 0,
+            "malformed": 0,
+            "handler_errors": 0,
+            "queue_depth": 0,
+            "loop_latency_ms": 0.0,
+            "handler_ms_max": 0.0,
+        }
+        self._latency_ewma_ms = 0.0
+        self.diagnostics_period_s = diagnostics_period_s
+        self.setup()
+        if diagnostics_period_s > 0:
+            self.every(diagnostics_period_s, self.publish_diagnostics)
+
+    # ------------------------------------------------------------------ API for subclasses
+
+    def setup(self) -> None:
+        """Declare subscriptions and timers (override)."""
+
+    def teardown(self) -> None:
+        """Release resources and write final outputs (override); called once on shutdown."""
+
+    def subscribe(
+        self,
+        topic: str,
+        handler: Handler,
+        *,
+        reliable: bool = True,
+        msg_type: type[msgs.Message] | None = None,
+        queue_size: int | None = None,
+    ) -> None:
+        """Call ``handler(msg)`` for each message of ``topic``.
+
+        Reliable topics are handled in order with a bounded queue (``queue_size``, default the
+        bus's reliable HWM); when it is full the node stops reading, ZeroMQ's own queue fills, and
+        any loss shows up as a sequence gap (counted, reported). Best-effort topics keep only the
+        latest message (``queue_size`` default 1), dropping and counting older ones.
+        """
+        if self._sub is None:
+            hwm = self.bus.reliable_hwm if reliable else self.bus.best_effort_hwm
+            self._sub = Subscriber(self.bus, context=self._ctx, hwm=hwm)
+        elif reliable:
+            self._sub.socket.rcvhwm = self.bus.reliable_hwm
+        qs = queue_size if queue_size is not None else (self.bus.reliable_hwm if reliable else 1)
+        self._subs[topic] = _Subscription(topic, handler, reliable, msg_type, max(1, qs))
+        self._sub.subscribe(topic, reliable=reliable)
+
+    def publish(self, topic: str, msg: msgs.Message) -> None:
+        """Publish ``msg``; an invalid message is a bug in this node and raises MessageError."""
+        self._pub.publish(topic, msg)
+        self.counters["published"] += 1
+
+    def every(self, period_s: float, callback: Callable[[], None]) -> None:
+        """Call ``callback`` every ``period_s`` seconds from the run loop."""
+        if period_s <= 0:
+            raise ConfigError(f"{self.name}: timer period must be > 0, got {period_s}")
+        self._timers.append([period_s, time.monotonic() + period_s, callback])
+
+    def wait_for_subscriber(self, topic: str, timeout_s: float = 5.0) -> bool:
+        """Block until someone subscribes to ``topic`` (sources use this before streaming)."""
+        return self._pub.wait_for_subscriber(topic, timeout_s)
+
+    def has_subscriber(self, topic: str) -> bool:
+        return self._pub.has_subscriber(topic)
+
+    def request_stop(self) -> None:
+        """Ask the run loop to finish (thread- and signal-safe)."""
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def topic_stats(self) -> dict[str, dict[str, int]]:
+        out: dict[str, dict[str, int]] = {}
+        if self._sub is not None:
+            for topic, st in self._sub.stats.items():
+                out[topic] = st.as_dict()
+        for topic, n in self._pub.published.items():
+            out.setdefault(topic, {})["published"] = n
+        return out
+
+    def diagnostics(self) -> msgs.Diagnostics:
+        stats = self.topic_stats()
+        c = self.counters
+        if self._sub is not None:
+            c["lost"] = sum(s.lost for s in self._sub.stats.values())
+            c["malformed"] = (
+                sum(s.malformed for s in self._sub.stats.values()) + self._sub.malformed
+            )
+            c["received"] = sum(s.received for s in self._sub.stats.values())
+        c["dropped"] = sum(s.get("dropped", 0) for s in stats.values())
+        c["queue_depth"] = len(self._queue)
+        c["loop_latency_ms"] = round(self._latency_ewma_ms, 3)
+        status = "ok" if c["lost"] == 0 and c["handler_errors"] == 0 else "warn"
+        return msgs.Diagnostics(
+            stamp_ns=time.time_ns(),
+            frame_id="",
+            node=self.name,
+            pid=os.getpid(),
+            uptime_s=time.monotonic() - self._t0,
+            status=status,
+            counters=dict(c),
+            topics=stats,
+        )
+
+    def publish_diagnostics(self) -> None:
+        self.publish(DIAGNOSTICS_TOPIC, self.diagnostics())
+
+    # ------------------------------------------------------------------ loop
+
+    def _read_available(self, max_batch: int = 1000) -> None:
+        """Move queued socket messages into the node queue without blocking."""
+        assert self._sub is not None
+        sock = self._sub.socket
+        reliable_room = min(
+            (s.queue_size for s in self._subs.values() if s.reliable), default=max_batch
+        )
+        n = 0
+        while n < max_batch and len(self._queue) < reliable_room:
+            try:
+                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return
+            n += 1
+            env = self._sub.decode_frames(frames)
+            if env is None:
+                continue
+            sub = self._subs.get(env.topic)
+            if sub is None:
+                continue
+            if sub.msg_type is not None and not isinstance(env.msg, sub.msg_type):
+                self._sub.stats[env.topic].malformed += 1
+                self.log.warning(
+                    "%s: expected %s, got %s", env.topic, sub.msg_type.TYPE, env.msg.TYPE
+                )
+                continue
+            sub.pending += 1
+            self._queue.append((sub, env))
+
+    def _handle_queue(self) -> None:
+        assert self._sub is not None
+        while self._queue and not self._stop.is_set():
+            sub, env = self._queue.popleft()
+            sub.pending -= 1
+            if not sub.reliable and sub.pending >= sub.queue_size:
+                self._sub.stats[env.topic].dropped += 1  # superseded: latest wins
+                continue
+            t0 = time.perf_counter()
+            try:
+                sub.handler(env.msg)
+            except MogsError as err:
+                self.counters["handler_errors"] += 1
+                self.log.warning("%s: rejected message seq %d: %s", env.topic, env.seq, err)
+            except Exception:  # a node never dies of one message; the traceback is logged
+                self.counters["handler_errors"] += 1
+                self.log.exception("%s: handler failed on seq %d", env.topic, env.seq)
+            dt_ms = (time.perf_counter() - t0) * 1000
+            self._latency_ewma_ms = 0.9 * self._latency_ewma_ms + 0.1 * dt_ms
+            self.counters["handler_ms_max"] = max(self.counters["handler_ms_max"], dt_ms)
+            if self._sub.socket.poll(0, zmq.POLLIN):
+                self._read_available()
+            self._run_timers()
+
+    def _run_timers(self) -> None:
+        now = time.monotonic()
+        for timer in self._timers:
+            if now >= timer[1]:
+                timer[1] = max(timer[1] + timer[0], now)
+                try:
+                    timer[2]()
+                except Exception:
+                    self.counters["handler_errors"] += 1
+                    self.log.exception("timer %s failed", getattr(timer[2], "__name__", timer[2]))
+
+    def spin_once(self, timeout_ms: int = 100) -> None:
+        """Wait up to ``timeout_ms`` for input, then handle everything queued and due timers."""
+        now = time.monotonic()
+        if self._timers:
+            next_due = min(t[1] for t in self._timers)
+            timeout_ms = max(0, min(timeout_ms, int((next_due - now) * 1000)))
+        if self._sub is not None:
+            if self._queue or self._sub.socket.poll(timeout_ms, zmq.POLLIN):
+                self._read_available()
+                self._handle_queue()
+        elif timeout_ms:
+            self._stop.wait(timeout_ms / 1000)
+        self._run_timers()
+
+    def run(self, *, install_signal_handlers: bool = True, duration_s: float | None = None) -> int:
+        """Run until stopped (signal, ``request_stop``, or ``duration_s``); returns an exit code."""
+        if install_signal_handlers and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: self._stop.set())
+        end = None if duration_s is None else time.monotonic() + duration_s
+        self.log.info("node %s up (pid %d)", self.name, os.getpid())
+        try:
+            while not self._stop.is_set():
+                self.spin_once(100)
+                if end is not None and time.monotonic() >= end:
+                    break
+        finally:
+            self.close()
+        return 0
+
+    def close(self) -> None:
+        """Teardown, final diagnostics, then close sockets (flushing outgoing messages)."""
+        try:
+            self.teardown()
+        except Exception:
+            self.log.exception("teardown failed")
+        try:
+            if self.diagnostics_period_s > 0:
+                self.publish_diagnostics()
+        except Exception:  # pragma: no cover
+            pass
+        if self._sub is not None:
+            self._sub.close()
+        self._pub.close()
+        if self._own_ctx:
+            self._ctx.term()
+        self.log.info("node %s down: %s", self.name, {k: v for k, v in self.counters.items() if v})

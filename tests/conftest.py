@@ -1,0 +1,27 @@
+"""Shared test fixtures: paths to the real data excerpts, private bus endpoints."""
+
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("MOGS_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+def shared_data(sub: str) -> Path:
+    """Path of a real-data excerpt; skips the test with a reason when it is absent."""
+    p = SHARED_DATA / sub
+    if not p.exists():
+        pytest.skip(f"real data excerpt {p} is absent (a user checkout has no ../shared)")
+    return p
+
+
+@pytest.fixture
+def ipc_endpoints(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str]:
+    d = Path("/tmp") / f"mogs-test-{uuid.uuid4().hex[:8]}"
+    d.mkdir()
+    return f"ipc://{d}/pub.ipc", f"ipc://{d}/sub.ipc"

@@ -1,0 +1,118 @@
+"""Launcher: respawn after SIGKILL, clean shutdown on SIGINT with no process left."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+import yaml
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Subscriber
+from mogs_node.errors import ConfigError
+from mogs_node.launch import load_launch_file, parse_launch
+
+
+def _diag_until(sub: Subscriber, pred, timeout_s: float) -> msgs.Diagnostics:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        env = sub.receive(timeout_ms=200)
+        if env is not None and isinstance(env.msg, msgs.Diagnostics) and pred(env.msg):
+            return env.msg
+    raise AssertionError("expected diagnostics did not arrive")
+
+
+def test_killed_node_is_respawned_and_sigint_stops_everything(
+    tmp_path: Path, ipc_endpoints
+) -> None:
+    launch = {
+        "name": "lt",
+        "bus": {"pub_endpoint": ipc_endpoints[0], "sub_endpoint": ipc_endpoints[1]},
+        "nodes": [
+            {
+                "name": "source",
+                "class": "mogs_node.demo_nodes:SyntheticSource",
+                "params": {
+                    "n_frames": 0,
+                    "rate_hz": 20.0,
+                    "keyframes": True,
+                    "width": 64,
+                    "height": 48,
+                },
+            },
+            {
+                "name": "sink",
+                "class": "mogs_node.demo_nodes:Recorder",
+                "params": {"topics": ["/frontend/keyframe"]},
+                "respawn": "on_failure",
+                "respawn_delay_s": 0.2,
+            },
+        ],
+    }
+    path = tmp_path / "lt.yaml"
+    path.write_text(yaml.safe_dump(launch))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mogs_node.cli", "launch", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    sub = Subscriber(BusConfig(*ipc_endpoints))
+    sub.subscribe("/diagnostics")
+    try:
+        first = _diag_until(sub, lambda d: d.node == "sink" and d.counters["received"] >= 5, 30)
+        os.kill(first.pid, signal.SIGKILL)
+        second = _diag_until(
+            sub,
+            lambda d: d.node == "sink" and d.pid != first.pid and d.counters["received"] >= 5,
+            30,
+        )
+        assert second.pid != first.pid  # a new process, receiving again
+        family = psutil.Process(proc.pid).children(recursive=True)
+        assert len(family) == 3  # broker, source, respawned sink
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+        elapsed = time.monotonic() - t0
+    finally:
+        sub.close()
+        if proc.poll() is None:
+            proc.kill()
+    text = out.decode()
+    assert proc.returncode == 0, text
+    assert elapsed < 5.0, f"shutdown took {elapsed:.1f} s"
+    assert "respawning sink" in text
+    gone, alive = psutil.wait_procs(family, timeout=1.0)
+    assert not alive, f"left behind: {alive}"
+
+
+def test_launch_file_errors_name_the_key(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"nodes\[0\]: missing key 'class'"):
+        parse_launch({"nodes": [{"name": "a"}]})
+    with pytest.raises(ConfigError, match="respawn"):
+        parse_launch({"nodes": [{"name": "a", "class": "m:C", "respawn": "sometimes"}]})
+    with pytest.raises(ConfigError, match="exit_when"):
+        parse_launch({"nodes": [{"name": "a", "class": "m:C"}], "exit_when": ["b"]})
+    with pytest.raises(ConfigError, match="pub_endpoint"):
+        parse_launch(
+            {"bus": {"pub_endpoint": "http://x", "sub_endpoint": "tcp://127.0.0.1:1"}, "nodes": []}
+        )
+    p = tmp_path / "bad.yaml"
+    p.write_text("nodes: [\n")
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_launch_file(p)
+
+
+def test_repository_launch_files_parse() -> None:
+    root = Path(__file__).resolve().parents[1] / "launch"
+    files = sorted(root.glob("*.yaml"))
+    assert files
+    for f in files:
+        lf = load_launch_file(f)
+        assert lf.nodes

@@ -1,0 +1,297 @@
+"""Codec: round trips of every message type (hypothesis) and strict rejection of bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Subscriber
+from mogs_node.errors import MessageError
+
+INT64 = st.integers(min_value=-(1 << 63), max_value=(1 << 63) - 1)
+FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
+TEXT = st.text(max_size=40)
+
+
+def _array(spec: msgs.ArraySpec, dims: dict[str, int], pattern: tuple) -> st.SearchStrategy:
+    shape = tuple(p if isinstance(p, int) else dims[p] for p in pattern)
+    return st.sampled_from(spec.dtypes).flatmap(
+        lambda dt: hnp.arrays(
+            np.dtype(dt),
+            shape,
+            elements=(
+                {"allow_nan": False, "allow_infinity": False}
+                if spec.finite and np.dtype(dt).kind == "f"
+                else None
+            ),
+        )
+    )
+
+
+def _scalar(kind: str) -> st.SearchStrategy:
+    return {
+        "int": INT64,
+        "float": FINITE,
+        "float_or_nan": st.one_of(FINITE, st.just(float("nan"))),
+        "str": TEXT,
+        "bool": st.booleans(),
+        "vec3": st.tuples(FINITE, FINITE, FINITE),
+        "dict_num": st.dictionaries(
+            TEXT, st.one_of(st.integers(-(2**31), 2**31), FINITE), max_size=5
+        ),
+        "dict_any": st.dictionaries(
+            TEXT,
+            st.one_of(
+                st.integers(-1000, 1000),
+                FINITE,
+                TEXT,
+                st.dictionaries(TEXT, st.integers(0, 10**9), max_size=3),
+            ),
+            max_size=4,
+        ),
+    }[kind]
+
+
+@st.composite
+def messages(draw: st.DrawFn, cls: type[msgs.Message]) -> msgs.Message:
+    dims = {s: draw(st.integers(0, 6)) for s in ("N", "M")}
+    dims["H"] = draw(st.integers(1, 8))
+    dims["W"] = draw(st.integers(1, 8))
+    values = {name: draw(_scalar(kind)) for name, kind in cls.SCALARS.items()}
+    for name, spec in cls.ARRAYS.items():
+        if spec.optional and draw(st.booleans()):
+            values[name] = None
+            continue
+        pattern = draw(st.sampled_from(spec.shapes))
+        values[name] = draw(_array(spec, dims, pattern))
+    if cls is msgs.Image:
+        values["encoding"] = (
+            "mono8" if values["data"].ndim == 2 else draw(st.sampled_from(["rgb8", "bgr8"]))
+        )
+    if cls is msgs.DepthMap:
+        values["kind"] = draw(st.sampled_from(msgs.DepthMap.KINDS))
+    return cls(**values)
+
+
+@pytest.mark.parametrize("cls", list(msgs.MESSAGE_TYPES.values()), ids=list(msgs.MESSAGE_TYPES))
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_round_trip_every_type(cls: type[msgs.Message], data: st.DataObject) -> None:
+    msg = data.draw(messages(cls))
+    seq = data.draw(st.integers(0, 2**62))
+    frames = msgs.encode("/t/x", msg, seq=seq, src=7)
+    env = msgs.decode([bytes(f) for f in frames])
+    assert env.topic == "/t/x" and env.seq == seq and env.src == 7
+    assert type(env.msg) is cls
+    assert env.msg == msg
+    for name in cls.ARRAYS:
+        a, b = getattr(msg, name), getattr(env.msg, name)
+        if a is not None:
+            assert b.dtype == a.dtype and b.shape == a.shape
+
+
+def test_arrays_are_zero_copy_views_of_the_frames() -> None:
+    img = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3)
+    frames = msgs.encode(
+        "/camera/image", msgs.Image(stamp_ns=1, frame_id="c", encoding="rgb8", data=img)
+    )
+    # the encoder hands out a view of the array itself, not a copy
+    assert np.shares_memory(np.frombuffer(frames[2], np.uint8), img)
+    buf = bytearray(frames[2])
+    env = msgs.decode([frames[0], frames[1], buf])
+    assert np.shares_memory(env.msg.data, np.frombuffer(buf, np.uint8))
+
+
+def _kf(n: int = 3) -> msgs.Keyframe:
+    return msgs.Keyframe(
+        stamp_ns=5,
+        frame_id="cam",
+        keyframe_id=1,
+        image=np.zeros((4, 6, 3), np.uint8),
+        K=np.eye(3),
+        T_world_cam=np.eye(4),
+        feature_ids=np.arange(n, dtype=np.int64),
+        feature_uv_px=np.zeros((n, 2), np.float32),
+        feature_xyz_cam_m=np.ones((n, 3), np.float32),
+        feature_weight=np.ones(n, np.float32),
+    )
+
+
+def _header(frames: list) -> dict:
+    return msgpack.unpackb(bytes(frames[1]), raw=False)
+
+
+def _with_header(frames: list, header: dict) -> list:
+    return [frames[0], msgpack.packb(header, use_bin_type=True), *frames[2:]]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "field"),
+    [
+        (lambda h: h.update(t="Bogus"), "t"),
+        (lambda h: h.update(v=2), "v"),
+        (lambda h: h["f"].pop("keyframe_id"), "keyframe_id"),
+        (lambda h: h["f"].update(extra=1), "extra"),
+        (lambda h: h["f"].update(keyframe_id="3"), "keyframe_id"),
+        (lambda h: h["f"].update(stamp_ns=1.5), "stamp_ns"),
+        (lambda h: h["a"][0].__setitem__(1, "|O"), "image"),
+        (lambda h: h["a"][0].__setitem__(1, "<f4"), "image"),
+        (lambda h: h["a"][0].__setitem__(2, [4, 6, 4]), "image"),
+        (lambda h: h["a"][0].__setitem__(2, [2, 6, 3]), "image"),
+        (lambda h: h["a"][3].__setitem__(0, "unknown"), "unknown"),
+        (lambda h: h.pop("seq"), "header"),
+    ],
+)
+def test_decoder_names_the_bad_field(mutate, field: str) -> None:
+    frames = msgs.encode("/frontend/keyframe", _kf())
+    h = _header(frames)
+    mutate(h)
+    with pytest.raises(MessageError) as exc:
+        msgs.decode(_with_header(frames, h))
+    assert exc.value.field == field, str(exc.value)
+
+
+def test_decoder_rejects_inconsistent_dimensions_and_non_finite() -> None:
+    kf = _kf(3)
+    frames = msgs.encode("/frontend/keyframe", kf)
+    h = _header(frames)
+    # feature_weight claims N=2 while the other arrays have N=3
+    names = [d[0] for d in h["a"]]
+    i = names.index("feature_weight")
+    h["a"][i][2] = [2]
+    frames2 = _with_header(frames, h)
+    frames2[2 + i] = np.ones(2, np.float32).tobytes()
+    with pytest.raises(MessageError, match="N=2") as exc:
+        msgs.decode(frames2)
+    assert exc.value.field == "feature_weight"
+    bad = dataclasses.replace(kf, feature_uv_px=np.full((3, 2), np.nan, np.float32))
+    with pytest.raises(MessageError) as exc:
+        msgs.encode("/frontend/keyframe", bad)
+    assert exc.value.field == "feature_uv_px"
+    good = msgs.encode("/frontend/keyframe", kf)
+    j = names.index("feature_uv_px")
+    good[2 + j] = np.full((3, 2), np.inf, np.float32).tobytes()
+    with pytest.raises(MessageError) as exc:
+        msgs.decode(good)
+    assert exc.value.field == "feature_uv_px"
+
+
+def test_decoder_rejects_oversized_messages() -> None:
+    frames = msgs.encode("/frontend/keyframe", _kf())
+    total = sum(len(bytes(f)) for f in frames)
+    msgs.decode(frames, max_bytes=total)
+    with pytest.raises(MessageError) as exc:
+        msgs.decode(frames, max_bytes=total - 1)
+    assert exc.value.field == "size"
+
+
+def test_encoder_refuses_what_the_decoder_would_reject() -> None:
+    with pytest.raises(MessageError) as exc:
+        msgs.encode(
+            "/imu",
+            msgs.Imu(
+                stamp_ns=1,
+                frame_id="i",
+                gyro_rad_s=(0.0, float("nan"), 0.0),
+                accel_m_s2=(0.0, 0.0, 9.8),
+            ),
+        )
+    assert exc.value.field == "gyro_rad_s[1]"
+    with pytest.raises(MessageError) as exc:
+        msgs.encode(
+            "/camera/image",
+            msgs.Image(stamp_ns=1, frame_id="c", encoding="rgb8", data=np.zeros((2, 2), np.uint8)),
+        )
+    assert exc.value.field == "data"
+
+
+def _corrupt(rng: np.random.Generator, frames: list[bytes]) -> list[bytes]:
+    """One malformed variant of a valid message (the property: every variant must be rejected)."""
+    f = [bytes(x) for x in frames]
+    kind = rng.integers(0, 9)
+    if len(f) == 2 and kind in (1, 6):  # no array buffer to damage: damage the header instead
+        kind = 0
+    if kind == 0:  # truncate the header
+        f[1] = f[1][: rng.integers(0, len(f[1]))]
+    elif kind == 1:  # truncate an array buffer
+        i = rng.integers(2, len(f))
+        f[i] = f[i][: max(0, len(f[i]) - 1 - rng.integers(0, len(f[i]) + 1))]
+    elif kind == 2:  # drop a frame
+        del f[rng.integers(1, len(f))]
+    elif kind == 3:  # an extra frame
+        f.insert(rng.integers(2, len(f) + 1), rng.bytes(rng.integers(0, 64)))
+    elif kind == 4:  # random header bytes
+        f[1] = rng.bytes(rng.integers(0, 200))
+    elif kind == 5:  # flip bytes in the header (re-checked below against accidental validity)
+        h = bytearray(f[1])
+        for _ in range(rng.integers(1, 4)):
+            h[rng.integers(0, len(h))] ^= 1 << rng.integers(0, 8)
+        f[1] = bytes(h)
+    elif kind == 6:  # a valid header with a wrong-size array
+        i = rng.integers(2, len(f))
+        f[i] = f[i] + rng.bytes(rng.integers(1, 9))
+    elif kind == 7:  # garbage topic
+        f[0] = rng.bytes(rng.integers(0, 8))
+    else:  # only random frames
+        f = [rng.bytes(rng.integers(0, 40)) for _ in range(rng.integers(0, 5))]
+    return f
+
+
+def test_fuzz_10000_malformed_messages_are_all_rejected() -> None:
+    rng = np.random.default_rng(1234)
+    sources = [
+        msgs.encode("/frontend/keyframe", _kf(5)),
+        msgs.encode(
+            "/imu",
+            msgs.Imu(stamp_ns=1, frame_id="i", gyro_rad_s=(0.1, 0.2, 0.3), accel_m_s2=(0, 0, 9.8)),
+        ),
+        msgs.encode(
+            "/prior/depth",
+            msgs.DepthMap(
+                stamp_ns=1,
+                frame_id="c",
+                keyframe_id=2,
+                kind="metric",
+                depth=np.ones((3, 4), np.float32),
+                confidence=np.zeros((3, 4), np.float32),
+                source="test",
+                object_labels=np.zeros((3, 4), np.int32),
+                object_model=np.array([1], np.int8),
+            ),
+        ),
+    ]
+    sub = Subscriber(BusConfig("inproc://unused-pub", "inproc://unused-sub"))
+    subscribed = ("/frontend/keyframe", "/imu", "/prior/depth")
+    for t in subscribed:
+        sub.subscribe(t)
+    rejected = accidentally_valid = 0
+    n = 10_000
+    for k in range(n):
+        good = sources[k % len(sources)]
+        bad = _corrupt(rng, good)
+        try:
+            env0 = msgs.decode(bad)
+        except MessageError:
+            rejected += 1
+            is_bad = True
+        else:
+            # a well-formed message on a topic nobody subscribed to is refused by the subscriber
+            is_bad = env0.topic not in subscribed
+            # a bit flip can land on a byte whose change is still a well-formed message
+            # (e.g. a digit of a time stamp): such a message is valid, not malformed
+            accidentally_valid += 1
+        before = sum(s.malformed for s in sub.stats.values()) + sub.malformed
+        env = sub.decode_frames(bad)  # the subscriber path never raises
+        after = sum(s.malformed for s in sub.stats.values()) + sub.malformed
+        assert (env is None) == is_bad
+        assert after - before == int(is_bad)  # every rejection is counted, once
+    sub.close()
+    assert rejected + accidentally_valid == n
+    assert accidentally_valid < n * 0.02
