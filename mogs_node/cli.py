@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     ),
     "sim": ("mogs_node.commands.sim", "generate a synthetic driving sequence with ground truth"),
     "eval": ("mogs_node.commands.eval", "evaluate depth, trajectory or map against ground truth"),
+    "keys": ("mogs_node.commands.keys", "generate CURVE key pairs for an authenticated tcp bus"),
 }
 
 

@@ -1,0 +1,141 @@
+"""CURVE on tcp: authorised peers talk; an unauthenticated publisher or subscriber gets nothing."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, CurveConfig, Publisher, Subscriber, generate_keys, run_broker
+from mogs_node.errors import BusError
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _imu(k: int) -> msgs.Imu:
+    return msgs.Imu(
+        stamp_ns=k, frame_id="i", gyro_rad_s=(0.0, 0.0, 0.0), accel_m_s2=(0.0, 0.0, 9.8)
+    )
+
+
+@pytest.fixture
+def curve_bus(tmp_path: Path):
+    keys = tmp_path / "keys"
+    generate_keys(keys, ["broker", "good"])
+    generate_keys(tmp_path / "rogue", ["rogue"])  # a valid key pair that the broker does not know
+    base = dict(
+        pub_endpoint=f"tcp://127.0.0.1:{_port()}", sub_endpoint=f"tcp://127.0.0.1:{_port()}"
+    )
+    broker_cfg = BusConfig(
+        **base,
+        curve=CurveConfig(
+            server_public_key=str(keys / "broker.key"),
+            server_secret_key=str(keys / "broker.key_secret"),
+            authorized_keys_dir=str(keys / "authorized"),
+        ),
+    )
+    good = BusConfig(
+        **base,
+        curve=CurveConfig(
+            server_public_key=str(keys / "broker.key"),
+            client_secret_key=str(keys / "good.key_secret"),
+        ),
+    )
+    rogue = BusConfig(
+        **base,
+        curve=CurveConfig(
+            server_public_key=str(keys / "broker.key"),
+            client_secret_key=str(tmp_path / "rogue" / "rogue.key_secret"),
+        ),
+    )
+    plain = BusConfig(**base)
+    ctx = zmq.Context()
+    stop, ready = threading.Event(), threading.Event()
+    t = threading.Thread(
+        target=run_broker, args=(broker_cfg, stop), kwargs={"ready": ready, "context": ctx}
+    )
+    t.start()
+    assert ready.wait(5)
+    yield {"good": good, "rogue": rogue, "plain": plain}
+    stop.set()
+    t.join(5)
+    ctx.term()
+
+
+def _receive_all(sub: Subscriber, seconds: float) -> list[msgs.Envelope]:
+    out, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        env = sub.receive(timeout_ms=50)
+        if env is not None:
+            out.append(env)
+    return out
+
+
+def test_authorised_peers_communicate(curve_bus) -> None:
+    ctx = zmq.Context()
+    sub = Subscriber(curve_bus["good"], context=ctx)
+    sub.subscribe("/imu")
+    pub = Publisher(curve_bus["good"], context=ctx)
+    assert pub.wait_for_subscriber("/imu", 5)
+    for k in range(10):
+        pub.publish("/imu", _imu(k))
+    got = _receive_all(sub, 1.0)
+    assert [e.msg.stamp_ns for e in got] == list(range(10))
+    pub.close(0)
+    sub.close()
+    ctx.term()
+
+
+@pytest.mark.parametrize("intruder", ["rogue", "plain"])
+def test_unauthenticated_peers_get_nothing_in_or_out(curve_bus, intruder: str) -> None:
+    ctx = zmq.Context()
+    good_sub = Subscriber(curve_bus["good"], context=ctx)
+    good_sub.subscribe("/imu")
+    good_pub = Publisher(curve_bus["good"], context=ctx)
+    assert good_pub.wait_for_subscriber("/imu", 5)
+    bad_sub = Subscriber(curve_bus[intruder], context=ctx)
+    bad_sub.subscribe("/imu")
+    bad_pub = Publisher(curve_bus[intruder], context=ctx)
+    # the intruder's subscription never reaches a publisher...
+    assert not bad_pub.wait_for_subscriber("/imu", 1.0)
+    time.sleep(0.5)
+    for k in range(5):
+        good_pub.publish("/imu", _imu(k))  # ...so it must not read this
+        bad_pub.publish("/imu", _imu(1000 + k))  # and this must not reach the good subscriber
+    got_good = _receive_all(good_sub, 1.0)
+    got_bad = _receive_all(bad_sub, 0.5)
+    assert [e.msg.stamp_ns for e in got_good] == list(range(5))
+    assert got_bad == []
+    for s in (good_pub, bad_pub):
+        s.close(0)
+    for s in (good_sub, bad_sub):
+        s.close()
+    ctx.term()
+
+
+def test_broker_refuses_public_addresses_unless_allowed() -> None:
+    cfg = BusConfig(f"tcp://0.0.0.0:{_port()}", f"tcp://127.0.0.1:{_port()}")
+    with pytest.raises(BusError, match="non-loopback"):
+        run_broker(cfg, threading.Event())
+
+
+def test_missing_key_file_is_a_clear_error(tmp_path: Path) -> None:
+    cfg = BusConfig(
+        "tcp://127.0.0.1:1",
+        "tcp://127.0.0.1:2",
+        curve=CurveConfig(
+            server_public_key=str(tmp_path / "nope.key"),
+            client_secret_key=str(tmp_path / "nope.key_secret"),
+        ),
+    )
+    with pytest.raises(BusError, match="nope.key_secret"):
+        Publisher(cfg)
