@@ -256,7 +256,7 @@ class Node:
             out.setdefault(topic, {})["published"] = n
         return out
 
-    def diagnostics(self) -> msgs.Diagnostics:
+    def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
         stats = self.topic_stats()
         c = self.counters
         if self._sub is not None:
@@ -268,7 +268,8 @@ class Node:
         c["dropped"] = sum(s.get("dropped", 0) for s in stats.values())
         c["queue_depth"] = len(self._queue)
         c["loop_latency_ms"] = round(self._latency_ewma_ms, 3)
-        status = "ok" if c["lost"] == 0 and c["handler_errors"] == 0 else "warn"
+        if status is None:
+            status = "ok" if c["lost"] == 0 and c["handler_errors"] == 0 else "warn"
         return msgs.Diagnostics(
             stamp_ns=time.time_ns(),
             frame_id="",
@@ -386,10 +387,10 @@ class Node:
         except Exception:
             self.log.exception("teardown failed")
         try:
-            if self.diagnostics_period_s > 0:
-                self.publish_diagnostics()
+            if self.diagnostics_period_s > 0:  # the last heartbeat says the node has stopped
+                self.publish(DIAGNOSTICS_TOPIC, self.diagnostics(status="stopped"))
         except Exception:  # pragma: no cover
-            pass
+            self.log.exception("final diagnostics failed")
         if self._sub is not None:
             self._sub.close()
         self._pub.close()

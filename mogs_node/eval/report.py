@@ -42,20 +42,24 @@ def machine_line() -> str:
     try:
         rev = subprocess.run(
             ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
-            capture_output=True, text=True, timeout=5,
+            capture_output=True,
+            text=True,
+            timeout=5,
         ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         rev = ""
     return f"{cpu}, Python {platform.python_version()}" + (f", commit {rev}" if rev else "")
 
 
-def update_markdown_section(
-    name: str, body_md: str, path: str | Path | None = None
-) -> Path:
+def update_markdown_section(name: str, body_md: str, path: str | Path | None = None) -> Path:
     """Replace (or append) the ``name`` section of ``docs/benchmarks.md`` with ``body_md``."""
     p = Path(path) if path is not None else REPO_ROOT / "docs" / "benchmarks.md"
     p.parent.mkdir(parents=True, exist_ok=True)
-    text = p.read_text() if p.exists() else "# Benchmarks\n\nLatest figures; each section is written by the command shown in it.\n"
+    text = (
+        p.read_text()
+        if p.exists()
+        else "# Benchmarks\n\nLatest figures; each section is written by the command shown in it.\n"
+    )
     begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
     block = f"{begin}\n{body_md.rstrip()}\n{end}"
     if begin in text and end in text:
