@@ -11,6 +11,7 @@ pipeline nodes land (issue 8 replaces the demo graph).
 from __future__ import annotations
 
 import json
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -128,6 +129,7 @@ class RecorderParams:
     expect: int = 0  # stop after this many messages on the first topic (0 = run until stopped)
     summary_path: str = ""  # JSON summary written on shutdown
     delay_ms: float = 0.0  # artificial work per message (to overwhelm a subscriber in tests)
+    hang_after: int = 0  # hang (never return) on this message number (supervision tests; 0 = never)
 
 
 class Recorder(Node):
@@ -147,6 +149,9 @@ class Recorder(Node):
             self.ids.append(msg.keyframe_id)
         if self.params.delay_ms:
             time.sleep(self.params.delay_ms / 1000)
+        if self.params.hang_after and self.count[topic] == self.params.hang_after:
+            self.log.warning("hanging on purpose (hang_after=%d)", self.params.hang_after)
+            threading.Event().wait()
         if self.params.expect and self.count[self.params.topics[0]] >= self.params.expect:
             self.request_stop()
 

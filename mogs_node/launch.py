@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+import zmq
 
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.errors import ConfigError
@@ -61,6 +62,9 @@ class NodeSpec:
     respawn: str = "on_failure"
     max_respawns: int = 5
     respawn_delay_s: float = 0.5
+    heartbeat_timeout_s: float = (
+        30.0  # kill + respawn a node silent on /diagnostics this long (0: off)
+    )
     host: str = "localhost"
     env: dict[str, str] = field(default_factory=dict)
 
@@ -119,6 +123,7 @@ def parse_launch(
             "respawn",
             "max_respawns",
             "respawn_delay_s",
+            "heartbeat_timeout_s",
             "host",
             "env",
         }
@@ -145,6 +150,7 @@ def parse_launch(
                 respawn=respawn,
                 max_respawns=int(nd.get("max_respawns", 5)),
                 respawn_delay_s=float(nd.get("respawn_delay_s", 0.5)),
+                heartbeat_timeout_s=float(nd.get("heartbeat_timeout_s", 30.0)),
                 host=str(nd.get("host", "localhost")),
                 env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
             )
@@ -194,6 +200,7 @@ class _Child:
     exited: int | None = None
     restart_at: float | None = None
     reader: threading.Thread | None = None
+    started_at: float = 0.0
 
 
 class Launcher:
@@ -206,6 +213,8 @@ class Launcher:
         self._stop = threading.Event()
         self._out_lock = threading.Lock()
         self.children: list[_Child] = []
+        self._heartbeats: dict[str, tuple[float, int]] = {}  # node -> (monotonic time, pid)
+        self._hb_lock = threading.Lock()
         bus_json = json.dumps(launch.bus.to_dict())
         py = sys.executable
         if launch.start_broker:
@@ -258,6 +267,7 @@ class Launcher:
         )
         child.exited = None
         child.restart_at = None
+        child.started_at = time.monotonic()
         child.reader = threading.Thread(
             target=self._pump, args=(child, child.proc.stdout), daemon=True
         )
@@ -274,6 +284,10 @@ class Launcher:
                 signal.signal(sig, lambda *_: self._stop.set())
         end = None if timeout_s is None else time.monotonic() + timeout_s
         code = 0
+        watcher = threading.Thread(
+            target=self._watch_heartbeats, name="mogs-heartbeats", daemon=True
+        )
+        watcher.start()
         try:
             for i, child in enumerate(self.children):
                 self._start(child)
@@ -290,12 +304,48 @@ class Launcher:
             self.shutdown()
         return code
 
+    def _watch_heartbeats(self) -> None:
+        """Record the last /diagnostics heartbeat of every node (runs in a thread)."""
+        from mogs_node import msgs
+        from mogs_node.bus import Subscriber
+
+        ctx = zmq.Context()
+        try:
+            sub = Subscriber(self.launch.bus, context=ctx)
+            sub.subscribe("/diagnostics")
+            while not self._stop.is_set():
+                env = sub.receive(timeout_ms=200)
+                if env is not None and isinstance(env.msg, msgs.Diagnostics):
+                    with self._hb_lock:
+                        self._heartbeats[env.msg.node] = (time.monotonic(), env.msg.pid)
+            sub.close()
+        except Exception:  # supervision by exit codes goes on without heartbeats
+            log.exception("heartbeat watcher stopped")
+        finally:
+            ctx.term()
+
+    def _check_heartbeat(self, child: _Child, now: float) -> None:
+        """Kill a running node whose heartbeat stopped (hung); the respawn policy then applies."""
+        timeout = child.spec.heartbeat_timeout_s if child.spec is not None else 0.0
+        if timeout <= 0 or child.proc is None or child.exited is not None:
+            return
+        with self._hb_lock:
+            seen = self._heartbeats.get(child.name)
+        if seen is not None and seen[1] == child.proc.pid:
+            silent = now - seen[0]
+        else:  # not heard from this process yet: allow for start-up (imports, model loading)
+            silent = now - child.started_at - 15.0
+        if silent > timeout:
+            self._print(f"[launch] {child.name} sent no heartbeat for {silent:.1f} s: killing it")
+            child.proc.kill()
+
     def _supervise(self) -> bool:
         """Reap, respawn; True when the launch is complete (exit_when nodes done)."""
         now = time.monotonic()
         for child in self.children:
             if child.proc is None:
                 continue
+            self._check_heartbeat(child, now)
             if child.exited is None:
                 rc = child.proc.poll()
                 if rc is None:

@@ -116,3 +116,53 @@ def test_repository_launch_files_parse() -> None:
     for f in files:
         lf = load_launch_file(f)
         assert lf.nodes
+
+
+def test_hung_node_is_killed_and_respawned(tmp_path: Path, ipc_endpoints) -> None:
+    launch = {
+        "name": "hang",
+        "bus": {"pub_endpoint": ipc_endpoints[0], "sub_endpoint": ipc_endpoints[1]},
+        "nodes": [
+            {
+                "name": "source",
+                "class": "mogs_node.demo_nodes:SyntheticSource",
+                "params": {
+                    "n_frames": 0,
+                    "rate_hz": 20.0,
+                    "keyframes": True,
+                    "width": 32,
+                    "height": 24,
+                },
+            },
+            {
+                "name": "sink",
+                "class": "mogs_node.demo_nodes:Recorder",
+                "params": {"topics": ["/frontend/keyframe"], "hang_after": 40},
+                "heartbeat_timeout_s": 2.0,
+                "respawn_delay_s": 0.2,
+            },
+        ],
+    }
+    path = tmp_path / "hang.yaml"
+    path.write_text(yaml.safe_dump(launch))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mogs_node.cli", "launch", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    sub = Subscriber(BusConfig(*ipc_endpoints))
+    sub.subscribe("/diagnostics")
+    try:
+        first = _diag_until(sub, lambda d: d.node == "sink" and d.counters["received"] >= 1, 30)
+        # the sink hangs on its 40th keyframe; the launcher must notice the silence and respawn it
+        _diag_until(sub, lambda d: d.node == "sink" and d.pid != first.pid, 40)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+    finally:
+        sub.close()
+        if proc.poll() is None:
+            proc.kill()
+    text = out.decode()
+    assert "sent no heartbeat" in text and "respawning sink" in text
+    assert proc.returncode == 0
