@@ -1,0 +1,146 @@
+"""Learned depth prior: monocular relative depth from an ONNX model, Depth Anything V2 style.
+
+The paper's LFM (section III-A) is a large foundation model for monocular depth. Users who have an
+ONNX export of Depth Anything V2 (the common export: input ``image`` ``[1, 3, h, w]`` float32,
+output ``depth`` ``[1, h, w]`` relative inverse depth, ``h, w`` multiples of 14) can run it here.
+
+Pre-processing as the reference implementation: RGB to [0, 1], resize so that the shorter side is
+``input_size`` keeping the aspect ratio with both sides rounded to a multiple of 14 (bicubic),
+ImageNet normalisation. A model with static spatial input dimensions is fed exactly that size.
+Post-processing: the output is resized back to the image (bilinear), so pixel ``(u, v)`` of the
+result belongs to pixel ``(u, v)`` of the input. The output kind is declared by the user
+(``relative_inverse_depth`` for Depth Anything V2 relative models, ``metric`` for its metric
+fine-tunes); confidence is 1 where the value is usable (finite, > 0) and 0 elsewhere.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.depth_prior.ort import check_signature, open_session
+from mogs_node.errors import ConfigError, ModelError
+from mogs_node.geometry import check_array
+
+__all__ = ["DepthAnythingOnnx", "DepthAnythingParams", "MonoDepth", "preprocess_size"]
+
+log = logging.getLogger(__name__)
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+OUTPUT_KINDS = ("relative_inverse_depth", "relative_depth", "metric")
+
+
+@dataclass(frozen=True)
+class DepthAnythingParams:
+    """Parameters of the ONNX monocular depth backend."""
+
+    model_path: str = ""  # ONNX file (required)
+    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda
+    threads: int = 0  # intra-op threads (0 = onnxruntime default)
+    input_size: int = 518  # shorter side fed to the network (for dynamic-size models)
+    multiple_of: int = 14  # both sides rounded to a multiple of this (ViT patch size)
+    output_kind: str = "relative_inverse_depth"  # what the model outputs (declared, not guessed)
+    input_name: str = "image"  # model input name
+    output_name: str = "depth"  # model output name
+
+    def __post_init__(self) -> None:
+        if self.output_kind not in OUTPUT_KINDS:
+            raise ConfigError(
+                f"output_kind: expected one of {OUTPUT_KINDS}, got {self.output_kind!r}"
+            )
+        if self.input_size < self.multiple_of or self.multiple_of < 1:
+            raise ConfigError("input_size must be >= multiple_of >= 1")
+
+
+@dataclass
+class MonoDepth:
+    """Network output aligned to the input image."""
+
+    value: NDArray[np.float32]  # [H, W] in the declared kind, 0 where unusable
+    confidence: NDArray[np.float32]  # [H, W] 1 where usable, 0 elsewhere
+    kind: str  # the declared output kind
+    net_hw: tuple[int, int]  # size the network ran at
+    model_ms: float = 0.0  # time spent inside the network
+
+
+def preprocess_size(H: int, W: int, input_size: int, multiple_of: int) -> tuple[int, int]:
+    """Network input ``(h, w)``: shorter side ~``input_size``, aspect kept, multiples of 14.
+
+    As Depth Anything's ``Resize(keep_aspect_ratio=True, resize_method="lower_bound")``: the scale
+    makes the shorter side ``input_size``; each side is rounded to the nearest multiple and raised
+    to at least ``input_size`` rounded up.
+    """
+    scale = input_size / min(H, W)
+
+    def fit(x: float) -> int:
+        y = int(round(x / multiple_of) * multiple_of)
+        if y < input_size:
+            y = int(np.ceil(x / multiple_of) * multiple_of)
+        return max(y, multiple_of)
+
+    return fit(H * scale), fit(W * scale)
+
+
+class DepthAnythingOnnx:
+    """A loaded ONNX monocular depth model; :meth:`infer` is pure given the session."""
+
+    def __init__(self, params: DepthAnythingParams) -> None:
+        self.params = params
+        self.session = open_session(params.model_path, provider=params.provider,
+                                    threads=params.threads)
+        check_signature(self.session, params.model_path, [(params.input_name, 4)], [])
+        outs = {o.name: o.shape for o in self.session.get_outputs()}
+        if params.output_name not in outs or len(outs[params.output_name]) not in (3, 4):
+            raise ModelError(f"{params.model_path}: expected output {params.output_name!r} of "
+                             f"shape [1, h, w] or [1, 1, h, w], model has {outs}")
+        shape = next(i.shape for i in self.session.get_inputs() if i.name == params.input_name)
+        if isinstance(shape[1], int) and shape[1] != 3:
+            raise ModelError(f"{params.model_path}: input {params.input_name!r} must have 3 "
+                             f"channels, has {shape[1]}")
+        static = all(isinstance(s, int) for s in shape[2:])
+        self.static_hw = (shape[2], shape[3]) if static else None
+        if self.static_hw and any(s % params.multiple_of for s in self.static_hw):
+            raise ModelError(f"{params.model_path}: static input size {self.static_hw} is not a "
+                             f"multiple of {params.multiple_of}")
+
+    def net_size(self, H: int, W: int) -> tuple[int, int]:
+        if self.static_hw is not None:
+            return self.static_hw
+        return preprocess_size(H, W, self.params.input_size, self.params.multiple_of)
+
+    def preprocess(self, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+        """``[H, W, 3]`` uint8 RGB -> ``[1, 3, h, w]`` float32, resized and ImageNet-normalised."""
+        img = check_array("rgb", rgb, shape=(None, None, 3), dtype=np.uint8)
+        h, w = self.net_size(*img.shape[:2])
+        x = cv2.resize(img.astype(np.float32) / 255.0, (w, h), interpolation=cv2.INTER_CUBIC)
+        x = (x - IMAGENET_MEAN) / IMAGENET_STD
+        return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)
+
+    def infer(self, rgb: NDArray[np.uint8]) -> MonoDepth:
+        """Depth of ``rgb`` ``[H, W, 3]`` uint8, aligned to the image."""
+        H, W = np.shape(rgb)[:2]
+        x = self.preprocess(rgb)
+        t0 = time.perf_counter()
+        (out,) = self.session.run([self.params.output_name], {self.params.input_name: x})
+        model_ms = (time.perf_counter() - t0) * 1e3
+        out = np.asarray(out, np.float32)
+        if out.ndim == 4:
+            out = out[:, 0]
+        if out.ndim != 3 or out.shape[0] != 1:
+            raise ModelError(f"{self.params.model_path}: output shape {list(out.shape)}, "
+                             "expected [1, h, w]")
+        value = cv2.resize(out[0], (W, H), interpolation=cv2.INTER_LINEAR)
+        ok = np.isfinite(value) & (value > 0)
+        return MonoDepth(
+            value=np.where(ok, value, 0.0).astype(np.float32),
+            confidence=ok.astype(np.float32),
+            kind=self.params.output_kind,
+            net_hw=(int(x.shape[2]), int(x.shape[3])),
+            model_ms=model_ms,
+        )

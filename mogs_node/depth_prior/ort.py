@@ -1,0 +1,70 @@
+"""Opening user-supplied ONNX models with onnxruntime, strictly (DESIGN.md section 3).
+
+A missing or malformed model, an unavailable execution provider or a wrong input/output signature
+raises :class:`ModelError` at start-up; there is never a silent fallback to another backend or
+provider. Shared by the learned depth-prior and segmentation backends.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+from mogs_node.errors import ConfigError, ModelError
+
+__all__ = ["PROVIDERS", "check_signature", "open_session"]
+
+log = logging.getLogger(__name__)
+
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
+
+
+def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
+    """An ``onnxruntime.InferenceSession`` for the model at ``path`` on ``provider``.
+
+    Args:
+        path: ONNX file.
+        provider: ``"cpu"`` or ``"cuda"``; CUDA must be available (no fallback to CPU).
+        threads: intra-op threads (0 = onnxruntime's default).
+    """
+    import onnxruntime as ort
+
+    if provider not in PROVIDERS:
+        raise ConfigError(f"provider: expected one of {sorted(PROVIDERS)}, got {provider!r}")
+    p = Path(path)
+    if not str(path) or not p.is_file():
+        raise ModelError(f"model file not found: {str(path)!r}")
+    name = PROVIDERS[provider]
+    if name not in ort.get_available_providers():
+        raise ModelError(
+            f"{p.name}: execution provider {name} is not available in this onnxruntime "
+            f"(available: {ort.get_available_providers()})"
+        )
+    opts = ort.SessionOptions()
+    if threads > 0:
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    try:
+        sess = ort.InferenceSession(str(p), sess_options=opts, providers=[name])
+    except Exception as err:  # onnxruntime raises its own exception types on bad files
+        raise ModelError(f"{p}: cannot load ONNX model ({err})") from err
+    log.info("loaded %s on %s", p, name)
+    return sess
+
+
+def check_signature(
+    sess, where: str, inputs: Sequence[tuple[str, int]], outputs: Sequence[tuple[str, int]]
+) -> None:
+    """Check that ``sess`` has the named inputs/outputs with the given ranks (``ModelError``)."""
+    have_in = {i.name: len(i.shape) for i in sess.get_inputs()}
+    have_out = {o.name: len(o.shape) for o in sess.get_outputs()}
+    for kind, have, want in (("input", have_in, inputs), ("output", have_out, outputs)):
+        for name, rank in want:
+            if name not in have:
+                raise ModelError(f"{where}: model has no {kind} {name!r} (it has {sorted(have)})")
+            if have[name] != rank:
+                raise ModelError(
+                    f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}"
+                )

@@ -1,0 +1,65 @@
+"""Segmentation worker node: ``/frontend/keyframe`` -> ``/seg/masks`` (DESIGN.md sections 1, 3).
+
+Backends: ``graph`` (weight-free default, :mod:`mogs_node.segmentation.graph`) or ``sam``
+(Segment Anything ONNX, :mod:`mogs_node.segmentation.sam_onnx`). The SAM model files are loaded in
+``setup``: a missing or malformed model stops the node at start-up with a ModelError, never a
+silent fallback to the graph segmenter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mogs_node import msgs
+from mogs_node.errors import ConfigError
+from mogs_node.node import Node, parse_params
+from mogs_node.segmentation.graph import GraphSegParams, segment_graph
+from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
+
+__all__ = ["SegmentationNode", "SegmentationParams"]
+
+BACKENDS = ("graph", "sam")
+
+
+@dataclass(frozen=True)
+class SegmentationParams:
+    """Parameters of the segmentation worker."""
+
+    backend: str = "graph"  # "graph" (weight-free) or "sam" (ONNX files in `sam`)
+    graph: dict[str, Any] = field(default_factory=dict)  # GraphSegParams fields
+    sam: dict[str, Any] = field(default_factory=dict)  # SamParams fields (encoder/decoder paths)
+    in_topic: str = "/frontend/keyframe"  # keyframes to segment
+    out_topic: str = "/seg/masks"  # label images, keyed by keyframe id
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"segmentation.backend: expected one of {BACKENDS}, got "
+                              f"{self.backend!r}")
+
+
+class SegmentationNode(Node):
+    """One label image per keyframe, in keyframe order (reliable topics)."""
+
+    Params = SegmentationParams
+
+    def setup(self) -> None:
+        p: SegmentationParams = self.params
+        self.graph_params = parse_params(GraphSegParams, p.graph, where=f"{self.name}.graph")
+        self.sam: SamOnnx | None = None
+        if p.backend == "sam":
+            self.sam = SamOnnx(parse_params(SamParams, p.sam, where=f"{self.name}.sam"))
+        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe)
+
+    def on_keyframe(self, kf: msgs.Keyframe) -> None:
+        rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
+        if self.sam is not None:
+            labels = self.sam.generate(np.ascontiguousarray(rgb)).labels
+        else:
+            labels = segment_graph(rgb, self.graph_params)
+        self.publish(self.params.out_topic, msgs.Masks(
+            stamp_ns=kf.stamp_ns, frame_id=kf.frame_id, keyframe_id=kf.keyframe_id,
+            labels=labels.astype(np.int32), backend=self.params.backend))
+        self.log.debug("keyframe %d: %d segments", kf.keyframe_id, int(labels.max()) + 1)

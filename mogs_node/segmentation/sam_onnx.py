@@ -1,0 +1,307 @@
+"""Learned segmenter: Segment Anything (SAM) as ONNX, with automatic mask generation.
+
+Two ONNX files in the layout of the official export (``segment_anything/utils/onnx.py``,
+``scripts/export_onnx_model.py``) plus the usual separate image-encoder export:
+
+- encoder: input ``image`` ``[1, 3, 1024, 1024]`` float32 (RGB resized so that the longest side is
+  1024, normalised with SAM's pixel mean/std on the 0-255 scale, zero-padded bottom/right), output
+  ``image_embeddings`` ``[1, 256, 64, 64]``;
+- prompt decoder: inputs ``image_embeddings``, ``point_coords`` ``[1, N, 2]`` (in the resized
+  1024 frame), ``point_labels`` ``[1, N]`` (1 foreground, -1 padding), ``mask_input``
+  ``[1, 1, 256, 256]``, ``has_mask_input`` ``[1]``, ``orig_im_size`` ``[2]`` (H, W); outputs
+  ``masks`` ``[1, M, H, W]`` (logits already resized to the original image), ``iou_predictions``
+  ``[1, M]``, ``low_res_masks`` ``[1, M, 256, 256]``.
+
+Automatic mask generation as ``SamAutomaticMaskGenerator``: one foreground point per cell of a
+``points_per_side`` x ``points_per_side`` grid (plus the padding point the export expects); with a
+multi-mask decoder (M = 4) the three multi-mask outputs are used; masks are kept when the predicted
+IoU >= ``pred_iou_thresh`` and the stability score (IoU of the mask thresholded at
+``mask_threshold +- stability_score_offset``) >= ``stability_score_thresh``; duplicates are removed
+by greedy box NMS on the predicted IoU; tiny masks are dropped. The survivors are painted into
+one int32 label image (-1 = none) in painter's order, far first, so that near masks end on top: in
+a driving scene an object's nearness is read from how low in the image it reaches (its ground
+contact), or from a depth map when one is given.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.depth_prior.ort import check_signature, open_session
+from mogs_node.errors import ConfigError, ModelError
+from mogs_node.geometry import check_array
+
+__all__ = [
+    "SamMasks",
+    "SamOnnx",
+    "SamParams",
+    "box_nms",
+    "grid_points",
+    "paint_masks",
+    "stability_score",
+]
+
+log = logging.getLogger(__name__)
+
+PIXEL_MEAN = np.array([123.675, 116.28, 103.53], np.float32)
+PIXEL_STD = np.array([58.395, 57.12, 57.375], np.float32)
+DECODER_INPUTS = [("image_embeddings", 4), ("point_coords", 3), ("point_labels", 2),
+                  ("mask_input", 4), ("has_mask_input", 1), ("orig_im_size", 1)]
+DECODER_OUTPUTS = [("masks", 4), ("iou_predictions", 2)]
+
+
+@dataclass(frozen=True)
+class SamParams:
+    """Parameters of the SAM ONNX backend and its automatic mask generation."""
+
+    encoder_path: str = ""  # ONNX image encoder (required)
+    decoder_path: str = ""  # ONNX prompt decoder, official export layout (required)
+    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda
+    threads: int = 0  # intra-op threads (0 = onnxruntime default)
+    image_size: int = 1024  # encoder input side (longest image side is resized to this)
+    encoder_input: str = "image"  # encoder input name
+    encoder_output: str = "image_embeddings"  # encoder output name
+    points_per_side: int = 32  # prompt grid is points_per_side^2 points
+    pred_iou_thresh: float = 0.88  # keep masks with predicted IoU at least this
+    stability_score_thresh: float = 0.95  # keep masks with stability score at least this
+    stability_score_offset: float = 1.0  # logit offset of the stability score
+    mask_threshold: float = 0.0  # logit threshold of a mask
+    box_nms_thresh: float = 0.7  # drop a mask whose box IoU with a better one exceeds this
+    min_mask_region_px: int = 100  # drop masks smaller than this [px]
+
+    def __post_init__(self) -> None:
+        if self.points_per_side < 1 or self.image_size < 16:
+            raise ConfigError("SamParams: points_per_side >= 1 and image_size >= 16 required")
+        if not (0 <= self.pred_iou_thresh <= 1 and 0 <= self.stability_score_thresh <= 1):
+            raise ConfigError("SamParams: pred_iou_thresh and stability_score_thresh in [0, 1]")
+        if not 0 < self.box_nms_thresh <= 1 or self.stability_score_offset < 0:
+            raise ConfigError("SamParams: box_nms_thresh in (0, 1], stability_score_offset >= 0")
+
+
+@dataclass
+class SamMasks:
+    """Result of automatic mask generation."""
+
+    labels: NDArray[np.int32]  # [H, W] label image, -1 = none
+    masks: NDArray[np.bool_]  # [K, H, W] kept masks, label k = masks[k] where on top
+    iou: NDArray[np.float32]  # [K] predicted IoU
+    stability: NDArray[np.float32]  # [K] stability score
+    points_px: NDArray[np.float64]  # [K, 2] prompt point of each kept mask (original pixels)
+    stats: dict[str, float] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------ pure helpers
+
+
+def resized_hw(H: int, W: int, long_side: int) -> tuple[int, int]:
+    """SAM's ``ResizeLongestSide.get_preprocess_shape``: ``(h, w)``, ``max(h, w) = long_side``."""
+    scale = long_side / max(H, W)
+    return int(H * scale + 0.5), int(W * scale + 0.5)
+
+
+def grid_points(H: int, W: int, points_per_side: int) -> NDArray[np.float64]:
+    """Prompt grid in original pixels ``[n*n, 2]`` (u, v): cell centres, row-major.
+
+    As ``build_point_grid``: normalised ``(i + 0.5) / n`` scaled by the image width/height.
+    """
+    off = 1.0 / (2 * points_per_side)
+    side = np.linspace(off, 1 - off, points_per_side)
+    u, v = np.meshgrid(side * W, side * H)
+    return np.stack([u.ravel(), v.ravel()], -1)
+
+
+def stability_score(logits: NDArray[np.floating], threshold: float, offset: float) -> NDArray:
+    """IoU of ``logits > threshold + offset`` and ``logits > threshold - offset``.
+
+    ``logits`` ``[K, H, W]`` -> ``[K]``.
+    """
+    hi = (logits > threshold + offset).sum(axis=(-2, -1), dtype=np.int64)
+    lo = (logits > threshold - offset).sum(axis=(-2, -1), dtype=np.int64)
+    return np.where(lo > 0, hi / np.maximum(lo, 1), 0.0).astype(np.float32)
+
+
+def _boxes(masks: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Tight boxes ``[K, 4]`` (u0, v0, u1, v1), inclusive pixel bounds, of masks ``[K, H, W]``."""
+    rows, cols = masks.any(axis=2), masks.any(axis=1)
+    H, W = masks.shape[1:]
+    v0 = np.argmax(rows, axis=1)
+    v1 = H - 1 - np.argmax(rows[:, ::-1], axis=1)
+    u0 = np.argmax(cols, axis=1)
+    u1 = W - 1 - np.argmax(cols[:, ::-1], axis=1)
+    return np.stack([u0, v0, u1, v1], -1).astype(np.float64)
+
+
+def box_nms(
+    boxes: NDArray[np.floating], scores: NDArray[np.floating], iou_thresh: float
+) -> NDArray[np.int64]:
+    """Greedy NMS: indices ``[K']`` of kept boxes ``[K, 4]`` (u0, v0, u1, v1), best score first."""
+    b = np.asarray(boxes, np.float64)
+    order = np.argsort(-np.asarray(scores), kind="stable")
+    area = (b[:, 2] - b[:, 0] + 1) * (b[:, 3] - b[:, 1] + 1)
+    keep = []
+    while order.size:
+        i = order[0]
+        keep.append(int(i))
+        rest = order[1:]
+        iw = np.minimum(b[i, 2], b[rest, 2]) - np.maximum(b[i, 0], b[rest, 0]) + 1
+        ih = np.minimum(b[i, 3], b[rest, 3]) - np.maximum(b[i, 1], b[rest, 1]) + 1
+        inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
+        iou = inter / (area[i] + area[rest] - inter)
+        order = rest[iou <= iou_thresh]
+    return np.asarray(keep, np.int64)
+
+
+def paint_masks(
+    masks: NDArray[np.bool_], depth_m: NDArray[np.floating] | None = None
+) -> tuple[NDArray[np.int32], NDArray[np.int64]]:
+    """Painter's order, near masks on top; returns (labels ``[H, W]`` int32, order ``[K]``).
+
+    Nearness of mask ``k``: its median depth when ``depth_m`` ``[H, W]`` is given (pixels with a
+    positive depth), else the lowest image row it reaches (larger row = nearer for objects standing
+    on the ground). Masks are painted far to near; label ``k`` refers to ``masks[k]``. Ties: larger
+    masks first, so smaller ones stay visible.
+    """
+    K = masks.shape[0]
+    H, W = masks.shape[1:]
+    labels = np.full((H, W), -1, np.int32)
+    if K == 0:
+        return labels, np.zeros(0, np.int64)
+    area = masks.sum(axis=(1, 2))
+    if depth_m is not None:
+        d = check_array("depth_m", depth_m, shape=(H, W))
+        near = np.empty(K)
+        for k in range(K):  # loop over masks, not pixels
+            vals = d[masks[k] & (d > 0)]
+            near[k] = -np.median(vals) if vals.size else -np.inf
+    else:
+        near = _boxes(masks)[:, 3]
+    order = np.lexsort((-area, near))  # far (small 'near') first; within ties large first
+    for k in order:
+        labels[masks[k]] = k
+    return labels, order
+
+
+# ------------------------------------------------------------------------------ the model
+
+
+class SamOnnx:
+    """Loaded SAM encoder + decoder; :meth:`generate` runs automatic mask generation."""
+
+    def __init__(self, params: SamParams) -> None:
+        self.params = params
+        self.encoder = open_session(params.encoder_path, provider=params.provider,
+                                    threads=params.threads)
+        check_signature(self.encoder, params.encoder_path, [(params.encoder_input, 4)],
+                        [(params.encoder_output, 4)])
+        self.decoder = open_session(params.decoder_path, provider=params.provider,
+                                    threads=params.threads)
+        check_signature(self.decoder, params.decoder_path, DECODER_INPUTS, DECODER_OUTPUTS)
+        self.model_ms = 0.0  # time spent inside the two networks (running total)
+
+    def preprocess(self, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+        """``[H, W, 3]`` uint8 RGB -> ``[1, 3, S, S]``: resize longest side, normalise, pad."""
+        img = check_array("rgb", rgb, shape=(None, None, 3), dtype=np.uint8)
+        S = self.params.image_size
+        h, w = resized_hw(img.shape[0], img.shape[1], S)
+        x = cv2.resize(img, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        x = (x - PIXEL_MEAN) / PIXEL_STD
+        out = np.zeros((1, 3, S, S), np.float32)
+        out[0, :, :h, :w] = x.transpose(2, 0, 1)
+        return out
+
+    def embed(self, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+        """Image embeddings ``[1, C, h, w]`` of the encoder."""
+        x = self.preprocess(rgb)
+        t0 = time.perf_counter()
+        (emb,) = self.encoder.run([self.params.encoder_output], {self.params.encoder_input: x})
+        self.model_ms += (time.perf_counter() - t0) * 1e3
+        return np.asarray(emb, np.float32)
+
+    def to_model_coords(self, points_px: NDArray[np.floating], H: int, W: int) -> NDArray:
+        """Original pixels ``[N, 2]`` -> resized 1024 frame (``ResizeLongestSide.apply_coords``)."""
+        h, w = resized_hw(H, W, self.params.image_size)
+        return np.asarray(points_px, np.float64) * np.array([w / W, h / H])
+
+    def predict_point(
+        self, embeddings: NDArray[np.float32], point_px: NDArray[np.floating], H: int, W: int
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Decoder on one foreground point: mask logits ``[M, H, W]`` and IoU ``[M]``."""
+        pt = self.to_model_coords(np.asarray(point_px, np.float64).reshape(1, 2), H, W)
+        coords = np.concatenate([pt, np.zeros((1, 2))])[None].astype(np.float32)
+        feeds = {
+            "image_embeddings": embeddings,
+            "point_coords": coords,
+            "point_labels": np.array([[1.0, -1.0]], np.float32),
+            "mask_input": np.zeros((1, 1, 256, 256), np.float32),
+            "has_mask_input": np.zeros(1, np.float32),
+            "orig_im_size": np.array([H, W], np.float32),
+        }
+        t0 = time.perf_counter()
+        masks, iou = self.decoder.run(["masks", "iou_predictions"], feeds)
+        self.model_ms += (time.perf_counter() - t0) * 1e3
+        masks = np.asarray(masks, np.float32)[0]
+        iou = np.asarray(iou, np.float32)[0]
+        if masks.shape[1:] != (H, W) or masks.shape[0] != iou.shape[0]:
+            raise ModelError(f"{self.params.decoder_path}: masks {list(masks.shape)} do not "
+                              f"match the image {H}x{W} / iou {list(iou.shape)}")
+        return masks, iou
+
+    def generate(
+        self, rgb: NDArray[np.uint8], depth_m: NDArray[np.floating] | None = None
+    ) -> SamMasks:
+        """Automatic mask generation on ``rgb`` ``[H, W, 3]`` uint8 (see module docstring)."""
+        p = self.params
+        H, W = np.shape(rgb)[:2]
+        model_ms0 = self.model_ms
+        emb = self.embed(rgb)
+        pts = grid_points(H, W, p.points_per_side)
+        # Candidates are kept cropped to their box (a full-size mask per prompt would need
+        # gigabytes for a 32x32 grid on a 1242x375 image).
+        boxes, crops, keep_iou, keep_stab, keep_pts = [], [], [], [], []
+        n_total = 0
+        for pt in pts:  # one decoder call per prompt point (the export has batch 1)
+            logits, iou = self.predict_point(emb, pt, H, W)
+            if logits.shape[0] == 4:  # multi-mask decoder: SAM's AMG uses outputs 1..3
+                logits, iou = logits[1:], iou[1:]
+            n_total += len(iou)
+            for k in np.flatnonzero(iou >= p.pred_iou_thresh):  # loop over <= 3 masks
+                stab = float(stability_score(logits[k:k + 1], p.mask_threshold,
+                                             p.stability_score_offset)[0])
+                if stab < p.stability_score_thresh:
+                    continue
+                m = logits[k] > p.mask_threshold
+                if np.count_nonzero(m) < max(p.min_mask_region_px, 1):
+                    continue
+                rows = np.flatnonzero(m.any(axis=1))
+                cols = np.flatnonzero(m.any(axis=0))
+                box = (cols[0], rows[0], cols[-1], rows[-1])
+                boxes.append(box)
+                crops.append(m[box[1]:box[3] + 1, box[0]:box[2] + 1].copy())
+                keep_iou.append(iou[k])
+                keep_stab.append(stab)
+                keep_pts.append(pt)
+        n_filtered = len(crops)
+        ious = np.asarray(keep_iou, np.float32)
+        stabs = np.asarray(keep_stab, np.float32)
+        kpts = np.asarray(keep_pts, np.float64).reshape(-1, 2)
+        idx = (box_nms(np.asarray(boxes, np.float64), ious, p.box_nms_thresh) if crops
+               else np.zeros(0, np.int64))
+        masks = np.zeros((len(idx), H, W), bool)
+        for j, i in enumerate(idx):  # paste the survivors (loop over masks, not pixels)
+            u0, v0, u1, v1 = boxes[i]
+            masks[j, v0:v1 + 1, u0:u1 + 1] = crops[i]
+        ious, stabs, kpts = ious[idx], stabs[idx], kpts[idx]
+        labels, _ = paint_masks(masks, depth_m)
+        stats = {"n_prompts": float(len(pts)), "n_candidates": float(n_total),
+                 "n_after_filters": float(n_filtered), "n_masks": float(len(masks)),
+                 "coverage": float(np.mean(labels >= 0)),
+                 "model_ms": self.model_ms - model_ms0}
+        log.debug("SAM AMG: %s", stats)
+        return SamMasks(labels=labels, masks=masks, iou=ious.astype(np.float32),
+                        stability=stabs.astype(np.float32), points_px=kpts, stats=stats)

@@ -1,0 +1,137 @@
+"""Depth-prior worker node in one process: keyframes in, priors out, keyed by keyframe id."""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.depth_prior.node import DepthPriorNode
+from mogs_node.errors import ConfigError, ModelError
+from mogs_node.geometry import make_T, so3_exp
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _two_view_scene import CAM, render  # noqa: E402
+
+
+@pytest.fixture
+def inproc_bus():
+    ctx = zmq.Context()
+    name = uuid.uuid4().hex[:8]
+    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=1000)
+    stop, ready = threading.Event(), threading.Event()
+    t = threading.Thread(target=run_broker, args=(bus, stop),
+                         kwargs={"ready": ready, "context": ctx})
+    t.start()
+    assert ready.wait(5)
+    yield bus, ctx
+    stop.set()
+    t.join(5)
+    ctx.term()
+
+
+def keyframe(kid: int, T: np.ndarray) -> tuple[msgs.Keyframe, np.ndarray]:
+    grey, depth = render(T)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    # three sparse metric points from the ground truth
+    uv = np.array([[100.0, 120.0], [240.0, 140.0], [400.0, 100.0]], np.float32)
+    z = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+    xyz = CAM.backproject(uv.astype(np.float64), z).astype(np.float32)
+    kf = msgs.Keyframe(
+        stamp_ns=kid * 100_000_000, frame_id="cam", keyframe_id=kid, image=rgb, K=CAM.K,
+        T_world_cam=T, feature_ids=np.arange(3, dtype=np.int64), feature_uv_px=uv,
+        feature_xyz_cam_m=xyz, feature_weight=np.ones(3, np.float32))
+    return kf, depth
+
+
+def test_flow_node_publishes_prior_per_keyframe(inproc_bus) -> None:
+    bus, ctx = inproc_bus
+    node = DepthPriorNode("prior", {"flow": {"far_baseline_m": 0.0}}, bus, context=ctx,
+                          diagnostics_period_s=0)
+    watcher = Subscriber(bus, context=ctx)
+    watcher.subscribe("/prior/depth")
+    pub = Publisher(bus, context=ctx)
+    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
+    assert node._pub.wait_for_subscriber("/prior/depth", 5)
+    poses = [np.eye(4), make_T(so3_exp(np.array([0.0, 0.01, 0.0])), np.array([0.05, 0, 0.5]))]
+    truth = []
+    for kid, T in enumerate(poses, start=7):
+        kf, depth = keyframe(kid, T)
+        truth.append(depth)
+        pub.publish("/frontend/keyframe", kf)
+    got: list[msgs.DepthMap] = []
+    deadline = time.monotonic() + 20
+    while len(got) < 2 and time.monotonic() < deadline:
+        node.spin_once(100)
+        env = watcher.receive(timeout_ms=50)
+        if env is not None:
+            got.append(env.msg)
+    assert [m.keyframe_id for m in got] == [7, 8]
+    first, second = got
+    assert first.kind == "metric" and first.source == "flow"
+    assert not first.confidence.any()  # no earlier keyframe: no prior, confidence 0
+    m = second.confidence > 0
+    assert m.mean() > 0.4
+    err = np.abs(second.depth[m] - truth[1][m]) / truth[1][m]
+    assert np.median(err) < 0.03
+    assert node.counters["handler_errors"] == 0
+    pub.close(0)
+    watcher.close()
+    node.close()
+
+
+def test_bad_params_and_missing_model_fail_at_start(inproc_bus, tmp_path) -> None:
+    bus, ctx = inproc_bus
+    with pytest.raises(ConfigError, match="backend"):
+        DepthPriorNode("p", {"backend": "midas"}, bus, context=ctx, diagnostics_period_s=0)
+    with pytest.raises(ConfigError, match="flow"):
+        DepthPriorNode("p", {"flow": {"min_baseline": 1}}, bus, context=ctx,
+                       diagnostics_period_s=0)
+    with pytest.raises(ModelError, match="not found"):
+        DepthPriorNode("p", {"backend": "depth_anything",
+                             "onnx": {"model_path": str(tmp_path / "none.onnx")}},
+                       bus, context=ctx, diagnostics_period_s=0)
+
+
+def test_depth_anything_node_publishes_declared_kind(inproc_bus, tmp_path) -> None:
+    pytest.importorskip("torch")
+    import warnings
+
+    import _tiny_onnx
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = _tiny_onnx.export_depth_anything(tmp_path / "da.onnx", dynamic=True)
+    bus, ctx = inproc_bus
+    node = DepthPriorNode("prior", {"backend": "depth_anything",
+                                    "onnx": {"model_path": model, "input_size": 70}},
+                          bus, context=ctx, diagnostics_period_s=0)
+    watcher = Subscriber(bus, context=ctx)
+    watcher.subscribe("/prior/depth")
+    pub = Publisher(bus, context=ctx)
+    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
+    assert node._pub.wait_for_subscriber("/prior/depth", 5)
+    kf, _ = keyframe(3, np.eye(4))
+    pub.publish("/frontend/keyframe", kf)
+    got = None
+    deadline = time.monotonic() + 10
+    while got is None and time.monotonic() < deadline:
+        node.spin_once(100)
+        env = watcher.receive(timeout_ms=50)
+        got = env.msg if env is not None else None
+    assert got is not None and got.keyframe_id == 3
+    assert got.kind == "relative_inverse_depth" and got.source == "depth_anything"
+    assert got.depth.shape == kf.image.shape[:2] and np.all(got.confidence == 1)
+    assert node.net is not None
+    np.testing.assert_allclose(got.depth, node.net.infer(kf.image).value)
+    pub.close(0)
+    watcher.close()
+    node.close()

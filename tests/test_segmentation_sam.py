@@ -1,0 +1,165 @@
+"""SAM ONNX backend: pre/post-processing and automatic mask generation on tiny exported models.
+
+The tiny models (tests/_tiny_onnx.py) have the official export's input/output names and shapes and
+compute discs around the prompt point, so every expectation below is exact geometry.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("onnx")
+pytestmark = pytest.mark.filterwarnings(
+    "ignore::DeprecationWarning", "ignore::UserWarning", "ignore:torch.tensor results"
+)
+
+sys.path.insert(0, str(Path(__file__).parent))
+import _tiny_onnx as _tiny_sam  # noqa: E402
+
+from mogs_node.errors import ModelError  # noqa: E402
+from mogs_node.segmentation.sam_onnx import (  # noqa: E402
+    PIXEL_MEAN,
+    PIXEL_STD,
+    SamOnnx,
+    SamParams,
+    box_nms,
+    grid_points,
+    paint_masks,
+    resized_hw,
+    stability_score,
+)
+
+H, W = 240, 310
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> tuple[str, str]:
+    return _tiny_sam.export(tmp_path_factory.mktemp("sam"))
+
+
+@pytest.fixture(scope="module")
+def sam(models) -> SamOnnx:
+    enc, dec = models
+    return SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, points_per_side=4))
+
+
+def test_grid_points_are_cell_centres() -> None:
+    pts = grid_points(200, 300, 4)
+    assert pts.shape == (16, 2)
+    np.testing.assert_allclose(np.unique(pts[:, 0]), [37.5, 112.5, 187.5, 262.5])
+    np.testing.assert_allclose(np.unique(pts[:, 1]), [25.0, 75.0, 125.0, 175.0])
+    np.testing.assert_allclose(pts[1], [112.5, 25.0])  # row-major: u varies fastest
+
+
+def test_preprocess_resize_normalise_pad(sam) -> None:
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    rgb[:] = rgb[:1, :1]  # constant colour: resizing must not change it
+    x = sam.preprocess(rgb)
+    h, w = resized_hw(H, W, 1024)
+    assert x.shape == (1, 3, 1024, 1024) and (h, w) == (793, 1024)
+    expect = (rgb[0, 0].astype(np.float32) - PIXEL_MEAN) / PIXEL_STD
+    np.testing.assert_allclose(x[0, :, :h, :w].reshape(3, -1).mean(1), expect, rtol=1e-5)
+    np.testing.assert_allclose(x[0, :, :h, :w].reshape(3, -1).std(1), 0, atol=1e-5)
+    assert np.all(x[0, :, h:, :] == 0) and np.all(x[0, :, :, w:] == 0)  # zero padding
+
+
+def test_decoder_mask_aligned_to_prompt(sam) -> None:
+    emb = sam.embed(np.zeros((H, W, 3), np.uint8))
+    assert emb.shape == (1, 256, 64, 64)
+    scale = 1024 / max(H, W)
+    for pt in ([100.0, 60.0], [250.0, 180.0]):
+        logits, iou = sam.predict_point(emb, np.array(pt), H, W)
+        assert logits.shape == (4, H, W)
+        np.testing.assert_allclose(iou, _tiny_sam.IOUS, atol=1e-3)
+        for k in (1, 3):
+            m = logits[k] > 0
+            vv, uu = np.nonzero(m)
+            # Disc around the prompt in original pixels, radius RADII[k] / scale (clipped
+            # discs are not centred, so check the centre only where the disc is inside).
+            r = _tiny_sam.RADII[k] / scale
+            if pt[0] - r > 0 and pt[0] + r < W and pt[1] - r > 0 and pt[1] + r < H:
+                assert abs(uu.mean() - pt[0]) < 1.0 and abs(vv.mean() - pt[1]) < 1.0
+                assert m.sum() == pytest.approx(np.pi * r * r, rel=0.05)
+
+
+def test_stability_score_and_nms_helpers() -> None:
+    x = np.linspace(-10, 10, 101)[None, None, :].repeat(3, 1)  # [1, 3, 101]
+    sharp = np.stack([x[0] * 10, x[0] * 0.1])  # [2, 3, 101]
+    s = stability_score(sharp, 0.0, 1.0)
+    assert s[0] > 0.95 and s[1] < 0.5
+    boxes = np.array([[0, 0, 9, 9], [1, 1, 10, 10], [20, 20, 29, 29]], float)
+    keep = box_nms(boxes, np.array([0.8, 0.9, 0.5]), 0.5)
+    np.testing.assert_array_equal(keep, [1, 2])
+
+
+def test_automatic_masks_filtered_nms_painted(sam) -> None:
+    res = sam.generate(np.zeros((H, W, 3), np.uint8))
+    p = sam.params
+    assert res.stats["n_prompts"] == 16
+    assert res.stats["n_candidates"] == 48  # outputs 1..3 of a multi-mask decoder
+    # Output 2 is blurry (stability < 0.95) and output 0 is never used: only outputs 1 and 3.
+    assert res.stats["n_after_filters"] == 32
+    assert np.all(res.iou >= p.pred_iou_thresh) and np.all(res.stability >= 0.95)
+    # After NMS no two kept masks overlap by box IoU above the threshold.
+    from mogs_node.segmentation.sam_onnx import _boxes
+
+    b = _boxes(res.masks)
+    assert len(box_nms(b, res.iou, p.box_nms_thresh)) == len(b)
+    assert len(res.masks) == 32  # 4x4 grid: discs far apart, box IoU < 0.7, nothing suppressed
+    # Label image: int32, -1 = none, labels index the kept masks and lie inside them.
+    assert res.labels.dtype == np.int32 and res.labels.shape == (H, W)
+    for k in np.unique(res.labels[res.labels >= 0]):
+        assert np.all(res.masks[k][res.labels == k])
+
+
+def test_nms_suppresses_overlapping_masks(models) -> None:
+    enc, dec = models
+    dense = SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8,
+                              box_nms_thresh=0.3))
+    res = dense.generate(np.zeros((H, W, 3), np.uint8))
+    assert res.stats["n_after_filters"] == 128
+    assert 0 < res.stats["n_masks"] < 128
+    from mogs_node.segmentation.sam_onnx import _boxes
+
+    b = _boxes(res.masks)
+    u0 = np.maximum(b[:, None, 0], b[None, :, 0])
+    u1 = np.minimum(b[:, None, 2], b[None, :, 2])
+    v0 = np.maximum(b[:, None, 1], b[None, :, 1])
+    v1 = np.minimum(b[:, None, 3], b[None, :, 3])
+    inter = np.clip(u1 - u0 + 1, 0, None) * np.clip(v1 - v0 + 1, 0, None)
+    area = (b[:, 2] - b[:, 0] + 1) * (b[:, 3] - b[:, 1] + 1)
+    iou = inter / (area[:, None] + area[None] - inter)
+    np.fill_diagonal(iou, 0)
+    assert iou.max() <= 0.3
+    assert res.stats["coverage"] > 0.9
+
+
+def test_painter_puts_near_masks_on_top() -> None:
+    masks = np.zeros((3, 50, 60), bool)
+    masks[0, 5:40, 5:55] = True  # large, reaches row 39
+    masks[1, 20:48, 10:30] = True  # reaches row 47: nearest
+    masks[2, 0:30, 25:45] = True  # reaches row 29: farthest
+    labels, order = paint_masks(masks)
+    np.testing.assert_array_equal(order, [2, 0, 1])
+    assert labels[25, 20] == 1 and labels[25, 40] == 0 and labels[2, 30] == 2
+    assert labels[45, 58] == -1
+    depth = np.full((50, 60), 10.0)
+    depth[masks[2]] = 3.0  # with a depth map, mask 2 is nearest
+    labels_d, order_d = paint_masks(masks, depth)
+    assert order_d[-1] == 2 and labels_d[25, 28] == 2
+
+
+def test_missing_and_mismatched_models(models, tmp_path) -> None:
+    enc, dec = models
+    with pytest.raises(ModelError, match="not found"):
+        SamOnnx(SamParams(encoder_path=enc, decoder_path=str(tmp_path / "missing.onnx")))
+    with pytest.raises(ModelError, match="point_coords"):
+        SamOnnx(SamParams(encoder_path=dec, decoder_path=enc))  # swapped files
+    with pytest.raises(ModelError, match="input_image"):
+        SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, encoder_input="input_image"))
