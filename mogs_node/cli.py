@@ -28,6 +28,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     ),
     "sim": ("mogs_node.commands.sim", "generate a synthetic driving sequence with ground truth"),
     "eval": ("mogs_node.commands.eval", "evaluate depth, trajectory or map against ground truth"),
+    "play": ("mogs_node.commands.play", "stream a KITTI / EuRoC / bag / synthetic sequence"),
+    "live": ("mogs_node.commands.live", "stream a live camera or IMU onto the bus"),
+    "record": ("mogs_node.commands.record", "record bus topics to an MCAP file"),
+    "ros2": ("mogs_node.commands.ros2", "mirror bus topics to and from ROS 2 (needs rclpy)"),
     "keys": ("mogs_node.commands.keys", "generate CURVE key pairs for an authenticated tcp bus"),
 }
 

@@ -1,0 +1,483 @@
+"""The player node: streams a recorded or simulated sequence onto the bus in time order.
+
+Publishes ``/camera/image`` (:class:`~mogs_node.msgs.Image`) and ``/imu``
+(:class:`~mogs_node.msgs.Imu`) with the recorded stamps, and ground truth when the dataset has it:
+``/groundtruth/pose`` (:class:`~mogs_node.msgs.PoseStamped`, ``T_world_cam``) and, with
+``groundtruth_depth``, ``/groundtruth/depth`` (:class:`~mogs_node.msgs.DepthMap`, kind metric,
+``keyframe_id`` = frame index). A recording of ``mogs record`` is re-published bit-exactly, frame
+for frame, on its recorded topics.
+
+Timing (see :mod:`bridges.replay`):
+
+- ``rate`` 1.0 plays at the recorded rate, N at N times it (``rate`` 0 or ``fast``: no clock);
+- ``fast``: as fast as the pipeline accepts: at most ``max_frames_in_flight`` images are published
+  and not yet acknowledged on ``ack_topic`` (default ``/frontend/odometry``; any message whose
+  ``stamp_ns`` is at or after an image's stamp acknowledges it), and, if
+  ``max_keyframes_in_flight`` > 0, at most that many keyframes seen on ``keyframe_topic`` are
+  waiting for ``keyframe_done_topic`` (default ``/metrizer/depth``). So the frontend never has to
+  drop an image (its image queue keeps only the latest) and the keyframe workers' backlog stays
+  bounded;
+- ``start_s`` / ``end_s``: seconds after the first frame; IMU samples from ``imu_lead_s`` before
+  the first played frame are included;
+- pause / resume: ``SIGUSR1`` pauses, ``SIGUSR2`` resumes (the schedule shifts by the pause), or
+  :meth:`PlayerNode.pause` / :meth:`PlayerNode.resume` in-process;
+- a progress line (bar, frames published / total, rate, IMU count, state) every
+  ``progress_period_s`` in the log, and the same figures in ``/diagnostics`` counters.
+
+When everything is published the node lingers ``linger_s`` (flushing, late acknowledgements) and
+stops with exit code 0 if ``exit_when_done``.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from bridges.recording import RecordedMessage, count_recording, read_recording
+from bridges.replay import (
+    IMAGE,
+    FlowWindow,
+    RateMeter,
+    ReplayClock,
+    build_events,
+    format_progress,
+    select_window,
+)
+from bridges.sources import SOURCE_KINDS, open_sequence
+from mogs_node import msgs
+from mogs_node.datasets import BagTopics, Sequence
+from mogs_node.errors import ConfigError
+from mogs_node.node import Node
+
+__all__ = ["PlayerNode", "PlayerParams"]
+
+PLAYER_SOURCES = (*SOURCE_KINDS, "recording")
+ENCODINGS = ("", "mono8", "rgb8", "bgr8")
+
+
+@dataclass(frozen=True)
+class PlayerParams:
+    """Parameters of the player node."""
+
+    source: str = "sim"  # kitti | kitti_odometry | euroc | bag | sim | recording (mogs record)
+    path: str = ""  # dataset folder, bag or recording (unused for sim)
+    rate: float = 1.0  # replay speed: 1 = recorded rate, N = N times faster, 0 = no clock
+    fast: bool = False  # as fast as the pipeline accepts (flow control below); ignores rate
+    start_s: float = 0.0  # first frame played: this many seconds after the first frame
+    end_s: float | None = None  # last frame played: this many seconds after the first (None: all)
+    imu_lead_s: float = 0.1  # IMU samples this long before the first played frame are played
+    image_topic: str = "/camera/image"  # output images (best effort)
+    imu_topic: str = "/imu"  # output IMU samples (reliable)
+    groundtruth: bool = True  # publish ground-truth camera poses when the dataset has them
+    groundtruth_depth: bool = False  # also publish ground-truth depth maps (large)
+    gt_pose_topic: str = "/groundtruth/pose"  # output ground-truth poses
+    gt_depth_topic: str = "/groundtruth/depth"  # output ground-truth depth
+    encoding: str = ""  # "" keeps the dataset's encoding; mono8 | rgb8 | bgr8 converts
+    camera_frame_id: str = "camera"  # frame_id of images and ground truth
+    imu_frame_id: str = "imu"  # frame_id of IMU samples
+    bag_image_topic: str = "/camera/image_raw"  # bag: sensor_msgs Image or CompressedImage
+    bag_imu_topic: str = "/imu"  # bag: sensor_msgs/Imu ("" = none)
+    bag_camera_info_topic: str = "/camera/camera_info"  # bag: CameraInfo ("" = none)
+    bag_pose_topic: str = "/ground_truth/pose"  # bag: geometry_msgs/PoseStamped ("" = none)
+    bag_depth_topic: str = "/ground_truth/depth"  # bag: 32FC1 / 16UC1 depth ("" = none)
+    intrinsics: tuple[float, ...] = ()  # bag without CameraInfo: (fx, fy, cx, cy, width, height)
+    sim: dict[str, Any] = field(default_factory=dict)  # source sim: SimConfig fields
+    ack_topic: str = "/frontend/odometry"  # fast: a message here acknowledges images <= its stamp
+    max_frames_in_flight: int = 2  # fast: images published and not yet acknowledged (>= 1)
+    keyframe_topic: str = "/frontend/keyframe"  # fast: keyframes produced (watched if below > 0)
+    keyframe_done_topic: str = "/metrizer/depth"  # fast: a keyframe is done when this arrives
+    max_keyframes_in_flight: int = 0  # fast: keyframes waiting for keyframe_done (0 = unwatched)
+    ack_timeout_s: float = 30.0  # fast: give up waiting after this long (counted; 0 = never)
+    wait_for_subscriber_s: float = 10.0  # before streaming, wait for a subscriber of image_topic
+    prefetch: int = 4  # images loaded ahead in a worker thread
+    progress_period_s: float = 2.0  # seconds between progress lines (0 = none)
+    tick_s: float = 0.002  # scheduling period of the player loop
+    linger_s: float = 0.5  # after the last message: keep running this long
+    exit_when_done: bool = True  # stop the node (exit code 0) once everything is played
+
+    def __post_init__(self) -> None:
+        if self.source not in PLAYER_SOURCES:
+            raise ConfigError(
+                f"player.source: expected one of {PLAYER_SOURCES}, got {self.source!r}"
+            )
+        if self.encoding not in ENCODINGS:
+            raise ConfigError(
+                f"player.encoding: expected one of {ENCODINGS}, got {self.encoding!r}"
+            )
+        if not (self.rate >= 0 and np.isfinite(self.rate)):
+            raise ConfigError(f"player.rate: expected a finite number >= 0, got {self.rate}")
+        if self.max_frames_in_flight < 1 or self.max_keyframes_in_flight < 0:
+            raise ConfigError(
+                "player.max_frames_in_flight: >= 1 and max_keyframes_in_flight: >= 0, got "
+                f"{self.max_frames_in_flight}, {self.max_keyframes_in_flight}"
+            )
+        if self.tick_s <= 0 or self.prefetch < 0 or self.linger_s < 0 or self.ack_timeout_s < 0:
+            raise ConfigError(
+                "player: tick_s > 0, prefetch >= 0, linger_s >= 0, ack_timeout_s >= 0"
+            )
+        if self.start_s < 0 or (self.end_s is not None and self.end_s < self.start_s):
+            raise ConfigError(
+                f"player.start_s/end_s: need 0 <= start_s <= end_s, got {self.start_s}, {self.end_s}"
+            )
+
+    def bag_topics(self) -> BagTopics:
+        return BagTopics(
+            image=self.bag_image_topic,
+            camera_info=self.bag_camera_info_topic or None,
+            imu=self.bag_imu_topic or None,
+            pose=self.bag_pose_topic or None,
+            depth=self.bag_depth_topic or None,
+        )
+
+
+def convert_encoding(image: np.ndarray, encoding: str, target: str) -> tuple[np.ndarray, str]:
+    """uint8 image ``[H, W]`` (mono8) or ``[H, W, 3]`` (rgb8 / bgr8) -> ``target`` encoding
+    (``""`` keeps it)."""
+    if not target or target == encoding:
+        return image, encoding
+    if encoding == "mono8":
+        rgb = np.repeat(image[..., None], 3, axis=2)
+    elif encoding == "bgr8":
+        rgb = np.ascontiguousarray(image[..., ::-1])
+    elif encoding == "rgb8":
+        rgb = image
+    else:
+        raise ConfigError(f"encoding: cannot convert from {encoding!r}")
+    if target == "mono8":
+        return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), "mono8"
+    if target == "bgr8":
+        return np.ascontiguousarray(rgb[..., ::-1]), "bgr8"
+    return rgb, "rgb8"
+
+
+class PlayerNode(Node):
+    """Streams a sequence (see the module docstring); one instance plays once."""
+
+    Params = PlayerParams
+
+    # ------------------------------------------------------------------ set-up
+
+    def setup(self) -> None:
+        p: PlayerParams = self.params
+        self.seq: Sequence | None = None
+        self.events: list[tuple[int, str, int]] = []
+        self._rec_iter: Iterator[RecordedMessage] | None = None
+        self._rec_next: RecordedMessage | None = None
+        if p.source == "recording":
+            counts = count_recording(p.path)
+            self.total_frames = counts.get(p.image_topic, 0)
+            self.total_messages = sum(counts.values())
+            self._rec_iter = read_recording(p.path)
+            self._rec_next = next(self._rec_iter, None)
+        else:
+            self.seq = open_sequence(
+                p.source,
+                p.path,
+                bag_topics=p.bag_topics(),
+                intrinsics=p.intrinsics,
+                sim=p.sim,
+            )
+            imu_stamps = self.seq.imu.stamps_ns if self.seq.imu is not None else ()
+            self.events = select_window(
+                build_events(self.seq.stamps_ns, imu_stamps),
+                start_s=p.start_s,
+                end_s=p.end_s,
+                imu_lead_s=p.imu_lead_s,
+            )
+            self.total_frames = sum(1 for e in self.events if e[1] == IMAGE)
+            self.total_messages = len(self.events)
+        self.pos = 0
+        self.frames_published = 0
+        self.imu_published = 0
+        self.messages_published = 0
+        self.clock = ReplayClock(0.0 if p.fast else p.rate)
+        self.frames = FlowWindow(p.max_frames_in_flight if p.fast else 0)
+        self.keyframes = FlowWindow(p.max_keyframes_in_flight if p.fast else 0)
+        self.meter = RateMeter()
+        self.state = "starting"
+        self._blocked_since: float | None = None
+        self._done_at: float | None = None
+        self._started = False
+        self._last_progress = time.monotonic()
+        self._pause_requested: bool | None = None
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="player-load")
+        self._loads: dict[int, Future] = {}
+        self._image_positions = [i for i, e in enumerate(self.events) if e[1] == IMAGE]
+        self._next_image = 0  # index into _image_positions of the next image to publish
+        self._raw_pub = None
+        if p.source == "recording":  # own socket: re-published frames keep their seq and src
+            from mogs_node.bus import Publisher
+
+            self._raw_pub = Publisher(self.bus, context=self._ctx)
+        for k in ("frames_published", "imu_published", "ack_waits", "ack_timeouts"):
+            self.counters[k] = 0
+        self.counters["frames_total"] = self.total_frames
+        if p.fast:
+            self.subscribe(p.ack_topic, self._on_ack, reliable=True)
+            if p.max_keyframes_in_flight > 0:
+                self.subscribe(p.keyframe_topic, self._on_keyframe, reliable=True)
+                self.subscribe(p.keyframe_done_topic, self._on_keyframe_done, reliable=True)
+        self.log.info(
+            "playing %s %s: %d frames, %d messages, %s",
+            p.source,
+            p.path or "",
+            self.total_frames,
+            self.total_messages,
+            f"fast (flow control on {p.ack_topic})" if p.fast else f"rate {p.rate}x",
+        )
+        self.every(p.tick_s, self.tick)
+
+    def run(self, *, install_signal_handlers: bool = True, duration_s: float | None = None) -> int:
+        """As :meth:`Node.run`, plus SIGUSR1 (pause) / SIGUSR2 (resume) handlers."""
+        if install_signal_handlers and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGUSR1, lambda *_: self.pause())
+            signal.signal(signal.SIGUSR2, lambda *_: self.resume())
+        return super().run(install_signal_handlers=install_signal_handlers, duration_s=duration_s)
+
+    def pause(self) -> None:
+        """Pause playback (signal-safe: applied at the next tick)."""
+        self._pause_requested = True
+
+    def resume(self) -> None:
+        """Resume playback (signal-safe: applied at the next tick)."""
+        self._pause_requested = False
+
+    # ------------------------------------------------------------------ flow control
+
+    def _on_ack(self, msg: msgs.Message) -> None:
+        self.frames.ack(msg.stamp_ns)
+
+    def _on_keyframe(self, msg: msgs.Message) -> None:
+        self.keyframes.sent(msg.stamp_ns)
+
+    def _on_keyframe_done(self, msg: msgs.Message) -> None:
+        self.keyframes.ack(msg.stamp_ns)
+
+    def _may_send_image(self, now: float) -> bool:
+        if self.frames.can_send() and self.keyframes.can_send():
+            self._blocked_since = None
+            return True
+        if self._blocked_since is None:
+            self._blocked_since = now
+            self.counters["ack_waits"] += 1
+        timeout = self.params.ack_timeout_s
+        if timeout > 0 and now - self._blocked_since > timeout:
+            self.log.warning(
+                "no acknowledgement for %.1f s (frames in flight %d on %s, keyframes %d on %s): "
+                "going on",
+                timeout,
+                self.frames.in_flight,
+                self.params.ack_topic,
+                self.keyframes.in_flight,
+                self.params.keyframe_done_topic,
+            )
+            self.counters["ack_timeouts"] += 1
+            self.frames = FlowWindow(self.frames.max_in_flight)
+            self.keyframes = FlowWindow(self.keyframes.max_in_flight)
+            self._blocked_since = None
+            return True
+        return False
+
+    # ------------------------------------------------------------------ loading
+
+    def _load(self, frame_index: int) -> tuple[np.ndarray, str, np.ndarray | None]:
+        assert self.seq is not None
+        f = self.seq.frames[frame_index]
+        image, enc = convert_encoding(f.image, f.encoding, self.params.encoding)
+        depth = f.depth_m() if (self.params.groundtruth_depth and f.has_depth) else None
+        return image, enc, depth
+
+    def _prefetch(self) -> None:
+        ahead = self._image_positions[
+            self._next_image : self._next_image + 1 + self.params.prefetch
+        ]
+        for pos in ahead:
+            k = self.events[pos][2]
+            if k not in self._loads:
+                self._loads[k] = self._pool.submit(self._load, k)
+
+    # ------------------------------------------------------------------ publishing
+
+    def _publish_event(self, ev: tuple[int, str, int]) -> None:
+        assert self.seq is not None
+        p: PlayerParams = self.params
+        stamp, kind, k = ev
+        if kind != IMAGE:
+            imu = self.seq.imu
+            assert imu is not None
+            g, a = imu.gyro_rad_s[k], imu.accel_m_s2[k]
+            self.publish(
+                p.imu_topic,
+                msgs.Imu(
+                    stamp_ns=stamp,
+                    frame_id=p.imu_frame_id,
+                    gyro_rad_s=(float(g[0]), float(g[1]), float(g[2])),
+                    accel_m_s2=(float(a[0]), float(a[1]), float(a[2])),
+                ),
+            )
+            self.imu_published += 1
+            self.counters["imu_published"] = self.imu_published
+            return
+        self._prefetch()
+        image, enc, depth = self._loads.pop(k).result()
+        self._next_image += 1
+        self.publish(
+            p.image_topic,
+            msgs.Image(stamp_ns=stamp, frame_id=p.camera_frame_id, encoding=enc, data=image),
+        )
+        self.frames.sent(stamp)
+        frame = self.seq.frames[k]
+        if p.groundtruth and frame.T_world_cam is not None:
+            self.publish(
+                p.gt_pose_topic,
+                msgs.PoseStamped(
+                    stamp_ns=stamp,
+                    frame_id=p.camera_frame_id,
+                    T_world_cam=np.asarray(frame.T_world_cam, dtype=np.float64),
+                ),
+            )
+        if depth is not None:
+            d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+            self.publish(
+                p.gt_depth_topic,
+                msgs.DepthMap(
+                    stamp_ns=stamp,
+                    frame_id=p.camera_frame_id,
+                    keyframe_id=frame.index,
+                    kind="metric",
+                    depth=d,
+                    confidence=(d > 0).astype(np.float32),
+                    source="groundtruth",
+                ),
+            )
+        self._frame_done()
+
+    def _frame_done(self) -> None:
+        self.frames_published += 1
+        self.counters["frames_published"] = self.frames_published
+        self.meter.tick(time.monotonic())
+
+    def _publish_recorded(self, rec: RecordedMessage) -> None:
+        assert self._raw_pub is not None
+        self._raw_pub.publish_frames(rec.frames)
+        if rec.topic == self.params.image_topic:
+            self.frames.sent(msgs.decode(rec.frames).msg.stamp_ns)
+            self._frame_done()
+
+    # ------------------------------------------------------------------ the loop
+
+    def _peek(self) -> tuple[int, bool] | None:
+        """(stamp of the next message, whether it is an image), or None at the end."""
+        if self._rec_iter is not None:
+            if self._rec_next is None:
+                return None
+            return self._rec_next.log_time_ns, self._rec_next.topic == self.params.image_topic
+        if self.pos >= len(self.events):
+            return None
+        ev = self.events[self.pos]
+        return ev[0], ev[1] == IMAGE
+
+    def _publish_next(self) -> None:
+        if self._rec_iter is not None:
+            assert self._rec_next is not None
+            self._publish_recorded(self._rec_next)
+            self._rec_next = next(self._rec_iter, None)
+        else:
+            self._publish_event(self.events[self.pos])
+        self.pos += 1
+        self.messages_published += 1
+
+    def tick(self) -> None:
+        p: PlayerParams = self.params
+        if not self._started:
+            self._started = True
+            topic = p.image_topic
+            pub = self._pub
+            if self._raw_pub is not None:
+                pub = self._raw_pub
+                if self.total_frames == 0 and self._rec_next is not None:
+                    topic = self._rec_next.topic
+            if p.wait_for_subscriber_s > 0 and not pub.wait_for_subscriber(
+                topic, p.wait_for_subscriber_s
+            ):
+                self.log.warning(
+                    "no subscriber of %s after %.1f s: playing anyway",
+                    topic,
+                    p.wait_for_subscriber_s,
+                )
+            if self.seq is not None:
+                self._prefetch()
+            self.state = "playing"
+        now = time.monotonic()
+        if self._pause_requested is not None:
+            if self._pause_requested:
+                self.clock.pause(now)
+                self.state = "paused"
+                self.log.info("paused at frame %d/%d", self.frames_published, self.total_frames)
+            else:
+                self.clock.resume(now)
+                self.state = "playing"
+                self.log.info("resumed")
+            self._pause_requested = None
+        budget_end = now + 0.05
+        while self._done_at is None:
+            nxt = self._peek()
+            if nxt is None:
+                self._done_at = now
+                self.state = "done"
+                self._progress(now, force=True)
+                break
+            stamp, is_image = nxt
+            if self.clock.paused:
+                break
+            if p.fast:
+                if is_image and not self._may_send_image(now):
+                    self.state = "waiting for " + (
+                        p.ack_topic if not self.frames.can_send() else p.keyframe_done_topic
+                    )
+                    break
+                self.state = "playing"
+            elif not self.clock.is_due(stamp, now):
+                break
+            self._publish_next()
+            if time.monotonic() > budget_end:
+                break
+        if self._done_at is not None and p.exit_when_done and now - self._done_at >= p.linger_s:
+            self.request_stop()
+        self._progress(now)
+
+    def _progress(self, now: float, force: bool = False) -> None:
+        period = self.params.progress_period_s
+        if not force and (period <= 0 or now - self._last_progress < period):
+            return
+        self._last_progress = now
+        self.log.info(
+            "%s",
+            format_progress(
+                self.frames_published,
+                self.total_frames,
+                self.meter.rate_hz(now),
+                imu=self.imu_published,
+                state=self.state,
+            ),
+        )
+
+    def teardown(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._raw_pub is not None:
+            self._raw_pub.close()
+        self.log.info(
+            "played %d/%d frames, %d IMU samples, %d messages",
+            self.frames_published,
+            self.total_frames,
+            self.imu_published,
+            self.messages_published,
+        )

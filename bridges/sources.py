@@ -1,0 +1,122 @@
+"""Open what a player streams: a dataset :class:`~mogs_node.datasets.Sequence` or a bus recording.
+
+``open_sequence(kind, ...)`` with ``kind`` one of :data:`SOURCE_KINDS`:
+
+- ``kitti``: KITTI raw drive folder (``image_02/data``; 10 Hz stamps from 0 without timestamps.txt)
+- ``kitti_odometry``: KITTI odometry ``sequences/XX`` folder
+- ``euroc``: EuRoC ASL folder (holding ``mav0``)
+- ``bag``: rosbag1 file, rosbag2 folder (sqlite3 / MCAP) or bare ``.mcap`` with standard messages
+- ``sim``: the synthetic world (:class:`mogs_node.sim.SimConfig`), rendered lazily
+
+A recording written by ``mogs record`` (raw bus frames) is opened with
+:func:`bridges.recording.read_recording` instead; :func:`is_recording` tells them apart.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from mogs_node.datasets import (
+    BagTopics,
+    Sequence,
+    read_bag,
+    read_euroc,
+    read_kitti_odometry,
+    read_kitti_raw,
+)
+from mogs_node.datasets.base import Frame, ImuSamples, Trajectory
+from mogs_node.errors import ConfigError, DatasetError
+from mogs_node.geometry import PinholeCamera
+
+__all__ = ["SOURCE_KINDS", "open_sequence", "sequence_from_sim"]
+
+log = logging.getLogger(__name__)
+
+SOURCE_KINDS = ("kitti", "kitti_odometry", "euroc", "bag", "sim")
+
+
+def sequence_from_sim(seq: object) -> Sequence:
+    """A :class:`mogs_node.sim.SimSequence` as a dataset Sequence (frames rendered on access).
+
+    Images are RGB, depth is the ground-truth z-depth (0 where the ray hits nothing), poses
+    ``T_world_cam``; the IMU is the simulated noisy one; the ground truth is the body trajectory.
+    """
+    from mogs_node.sim import SimSequence
+
+    if not isinstance(seq, SimSequence):
+        raise ConfigError(f"seq: expected a SimSequence, got {type(seq).__name__}")
+
+    def image(i: int):
+        return lambda: seq.render(i).rgb
+
+    def depth(i: int):
+        def load() -> np.ndarray:
+            d = seq.render(i).depth_m
+            return np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+
+        return load
+
+    frames = tuple(
+        Frame(
+            i,
+            int(seq.stamps_ns[i]),
+            seq.camera,
+            image(i),
+            "rgb8",
+            seq.T_world_cam[i],
+            depth(i),
+            f"sim:{i}",
+        )
+        for i in range(len(seq))
+    )
+    imu = ImuSamples(seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2)
+    gt = Trajectory(seq.stamps_ns, seq.T_world_imu, "imu")
+    return Sequence(
+        f"sim_seed{seq.config.seed}", frames, imu, seq.T_imu_cam, gt, None, {"sim": True}
+    )
+
+
+def open_sequence(
+    kind: str,
+    path: str = "",
+    *,
+    bag_topics: BagTopics | None = None,
+    intrinsics: tuple[float, ...] = (),
+    sim: dict[str, object] | None = None,
+) -> Sequence:
+    """Open a sequence of ``kind`` (see the module docstring); errors name the path or option.
+
+    ``intrinsics`` ``(fx, fy, cx, cy, width, height)``: the camera of a bag without CameraInfo.
+    ``sim``: :class:`mogs_node.sim.SimConfig` fields for ``kind == "sim"``.
+    """
+    if kind not in SOURCE_KINDS:
+        raise ConfigError(f"source: expected one of {SOURCE_KINDS}, got {kind!r}")
+    if kind == "sim":
+        from mogs_node.node import parse_params
+        from mogs_node.sim import SimConfig, make_sequence
+
+        cfg = parse_params(SimConfig, sim or {}, where="sim")
+        return sequence_from_sim(make_sequence(cfg))
+    if not path:
+        raise ConfigError(f"path: a {kind} source needs a path")
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise DatasetError(f"{p}: no such file or folder")
+    if kind == "kitti":
+        return read_kitti_raw(p)
+    if kind == "kitti_odometry":
+        return read_kitti_odometry(p)
+    if kind == "euroc":
+        return read_euroc(p)
+    camera = None
+    if intrinsics:
+        if len(intrinsics) != 6:
+            raise ConfigError(
+                f"intrinsics: expected (fx, fy, cx, cy, width, height), got {intrinsics}"
+            )
+        fx, fy, cx, cy, w, h = intrinsics
+        camera = PinholeCamera(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+    return read_bag(p, topics=bag_topics, camera=camera)

@@ -1,0 +1,161 @@
+"""``mogs play kitti|euroc|bag|sim``: stream a sequence onto the bus (the player node, in-process).
+
+The broker must be running (``mogs launch FILE`` or ``mogs broker``); ``--launch FILE`` or
+``--bus-name NAME`` pick its endpoints. Examples::
+
+    mogs play kitti ../shared/data/kitti_raw_2011_09_26_78 --launch launch/kitti.yaml
+    mogs play euroc ../shared/data/euroc_v1_01_micro --rate 0.5
+    mogs play bag run.mcap --image-topic /cam/image_raw --imu-topic /imu0 --fast
+    mogs play sim --frames 40 --size 621x188 --seed 3 --fast
+
+Pause with ``kill -USR1 PID``, resume with ``kill -USR2 PID``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+from mogs_node.commands.broker import bus_from_args
+from mogs_node.errors import ConfigError
+
+HELP = "stream a KITTI / EuRoC / bag / synthetic sequence onto the bus"
+
+log = logging.getLogger(__name__)
+
+
+def _endpoint_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("bus")
+    g.add_argument("--launch", default=None, help="take the bus endpoints from this launch file")
+    g.add_argument("--bus-name", default=None, help="name of a default ipc bus (launch file name)")
+    g.add_argument("--pub", default=None, help="publisher endpoint of the broker")
+    g.add_argument("--sub", default=None, help="subscriber endpoint of the broker")
+    g.add_argument("--bus-json", default=None, help=argparse.SUPPRESS)
+
+
+def _play_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("playback")
+    g.add_argument("--rate", type=float, default=1.0, help="speed factor (1 = recorded rate)")
+    g.add_argument(
+        "--fast",
+        action="store_true",
+        help="as fast as the pipeline accepts (flow control on --ack-topic)",
+    )
+    g.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
+    g.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds in")
+    g.add_argument("--ack-topic", default="/frontend/odometry", help="fast: acknowledgements")
+    g.add_argument(
+        "--max-in-flight", type=int, default=2, help="fast: unacknowledged images at most"
+    )
+    g.add_argument(
+        "--max-keyframes-in-flight",
+        type=int,
+        default=0,
+        help="fast: keyframes waiting for /metrizer/depth at most (0 = not watched)",
+    )
+    g.add_argument("--encoding", default="", choices=["", "mono8", "rgb8", "bgr8"])
+    g.add_argument("--no-groundtruth", action="store_true", help="no /groundtruth/pose")
+    g.add_argument("--gt-depth", action="store_true", help="also publish /groundtruth/depth")
+    g.add_argument(
+        "--wait", type=float, default=10.0, help="seconds to wait for an image subscriber"
+    )
+    g.add_argument("--progress", type=float, default=2.0, help="seconds between progress lines")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="kind", metavar="SOURCE", required=True)
+    k = sub.add_parser("kitti", help="KITTI raw drive (or --odometry sequence) folder")
+    k.add_argument("path")
+    k.add_argument("--odometry", action="store_true", help="KITTI odometry sequences/XX layout")
+    e = sub.add_parser("euroc", help="EuRoC ASL folder (holding mav0)")
+    e.add_argument("path")
+    b = sub.add_parser("bag", help="rosbag1 / rosbag2 (sqlite3, MCAP) or a `mogs record` file")
+    b.add_argument("path")
+    b.add_argument("--image-topic", default="/camera/image_raw")
+    b.add_argument("--imu-topic", default="/imu", help="'' for none")
+    b.add_argument("--camera-info-topic", default="/camera/camera_info", help="'' for none")
+    b.add_argument("--pose-topic", default="/ground_truth/pose", help="'' for none")
+    b.add_argument("--depth-topic", default="/ground_truth/depth", help="'' for none")
+    b.add_argument(
+        "--intrinsics", default=None, metavar="FX,FY,CX,CY,W,H", help="bag without CameraInfo"
+    )
+    s = sub.add_parser("sim", help="the synthetic driving world")
+    s.add_argument("--frames", type=int, default=30)
+    s.add_argument("--size", default="621x188", help="WxH (default 621x188)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--trajectory", choices=["synthetic", "oxts"], default="synthetic")
+    for p in (k, e, b, s):
+        _play_args(p)
+        _endpoint_args(p)
+
+
+def params_from_args(args: argparse.Namespace) -> dict:
+    """The player node's parameters (a JSON-able dict) from the parsed command line."""
+    params: dict = {
+        "rate": args.rate,
+        "fast": args.fast,
+        "start_s": args.start,
+        "end_s": args.end,
+        "ack_topic": args.ack_topic,
+        "max_frames_in_flight": args.max_in_flight,
+        "max_keyframes_in_flight": args.max_keyframes_in_flight,
+        "encoding": args.encoding,
+        "groundtruth": not args.no_groundtruth,
+        "groundtruth_depth": args.gt_depth,
+        "wait_for_subscriber_s": args.wait,
+        "progress_period_s": args.progress,
+    }
+    if args.kind == "kitti":
+        params.update(source="kitti_odometry" if args.odometry else "kitti", path=args.path)
+    elif args.kind == "euroc":
+        params.update(source="euroc", path=args.path)
+    elif args.kind == "bag":
+        from bridges.recording import is_recording
+
+        if is_recording(args.path):
+            params.update(source="recording", path=args.path)
+        else:
+            params.update(
+                source="bag",
+                path=args.path,
+                bag_image_topic=args.image_topic,
+                bag_imu_topic=args.imu_topic,
+                bag_camera_info_topic=args.camera_info_topic,
+                bag_pose_topic=args.pose_topic,
+                bag_depth_topic=args.depth_topic,
+            )
+            if args.intrinsics:
+                try:
+                    vals = [float(v) for v in args.intrinsics.split(",")]
+                except ValueError as err:
+                    raise ConfigError(
+                        f"--intrinsics: expected 6 numbers, got {args.intrinsics!r}"
+                    ) from err
+                if len(vals) != 6:
+                    raise ConfigError(f"--intrinsics: expected 6 numbers, got {len(vals)}")
+                params["intrinsics"] = vals
+    else:
+        from mogs_node.commands.sim import parse_size
+
+        w, h = parse_size(args.size)
+        params.update(
+            source="sim",
+            sim={
+                "n_frames": args.frames,
+                "width": w,
+                "height": h,
+                "seed": args.seed,
+                "trajectory": args.trajectory,
+            },
+        )
+    return params
+
+
+def command(args: argparse.Namespace) -> int:
+    from bridges.player import PlayerNode
+
+    params = params_from_args(args)
+    log.debug("player params: %s", json.dumps(params))
+    node = PlayerNode("player", params, bus_from_args(args))
+    return node.run()

@@ -1,0 +1,464 @@
+"""The player node as a real process: sim and KITTI streams, and flow control against slow consumers.
+
+The slow consumer nodes below are started as processes (``mogs node tests.test_bridges_player:...``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Subscriber
+from mogs_node.demo_nodes import make_keyframe
+from mogs_node.node import Node
+
+REPO = Path(__file__).resolve().parents[1]
+PY = [sys.executable, "-m", "mogs_node.cli"]
+log = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------------ helper processes
+
+
+def start_broker(bus: BusConfig) -> subprocess.Popen:
+    proc = subprocess.Popen([*PY, "broker", "--bus-json", json.dumps(bus.to_dict())], cwd=REPO)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        if Path(bus.sub_endpoint[len("ipc://") :]).exists():
+            return proc
+        time.sleep(0.05)
+    proc.kill()
+    raise RuntimeError("broker did not come up")
+
+
+def start_node(cls: str, name: str, params: dict, bus: BusConfig) -> subprocess.Popen:
+    return subprocess.Popen(
+        [
+            *PY,
+            "node",
+            cls,
+            "--name",
+            name,
+            "--params-json",
+            json.dumps(params),
+            "--bus-json",
+            json.dumps(bus.to_dict()),
+        ],
+        cwd=REPO,
+    )
+
+
+def play(bus: BusConfig, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*PY, "play", *args, "--bus-json", json.dumps(bus.to_dict())],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(2)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def collect(
+    sub: Subscriber, proc: subprocess.Popen, timeout_s: float, arrivals: list[float] | None = None
+) -> list[msgs.Envelope]:
+    """Everything ``sub`` receives until ``proc`` exits and the socket has been quiet a moment
+    (with the monotonic arrival time of each message appended to ``arrivals``)."""
+    out: list[msgs.Envelope] = []
+    deadline = time.monotonic() + timeout_s
+    quiet_since = None
+    while time.monotonic() < deadline:
+        env = sub.receive(timeout_ms=100)
+        if env is not None:
+            out.append(env)
+            if arrivals is not None:
+                arrivals.append(time.monotonic())
+            quiet_since = None
+        elif proc.poll() is not None:
+            quiet_since = quiet_since or time.monotonic()
+            if time.monotonic() - quiet_since > 0.5:
+                break
+    return out
+
+
+# ------------------------------------------------------------------------ slow consumer nodes
+
+
+@dataclass(frozen=True)
+class SlowFrontendParams:
+    delay_ms: float = 50.0  # work per image
+    keyframe_every: int = 3  # every n-th image becomes a keyframe
+    summary_path: str = ""  # JSON summary on shutdown
+
+
+class SlowFrontend(Node):
+    """Like the frontend's interface: latest-wins images in, one Odometry per handled image (its
+    stamp acknowledges the image), a Keyframe every ``keyframe_every`` images."""
+
+    Params = SlowFrontendParams
+
+    def setup(self) -> None:
+        self.stamps: list[int] = []
+        self.subscribe("/camera/image", self.on_image, reliable=False, msg_type=msgs.Image)
+
+    def on_image(self, msg: msgs.Message) -> None:
+        time.sleep(self.params.delay_ms / 1000)
+        self.stamps.append(msg.stamp_ns)
+        n = len(self.stamps)
+        self.publish(
+            "/frontend/odometry",
+            msgs.Odometry(
+                stamp_ns=msg.stamp_ns,
+                frame_id="camera",
+                frame_index=n - 1,
+                T_world_cam=np.eye(4),
+                velocity_world_m_s=(0.0, 0.0, 0.0),
+                status="tracking",
+            ),
+        )
+        if (n - 1) % self.params.keyframe_every == 0:
+            kf = make_keyframe(n - 1, 32, 24, 4)
+            kf.stamp_ns = msg.stamp_ns
+            self.publish("/frontend/keyframe", kf)
+
+    def teardown(self) -> None:
+        if self.params.summary_path:
+            Path(self.params.summary_path).write_text(
+                json.dumps({"stamps": self.stamps, "topics": self.topic_stats()})
+            )
+
+
+@dataclass(frozen=True)
+class SlowMetrizerParams:
+    delay_ms: float = 150.0  # work per keyframe
+    summary_path: str = ""  # JSON summary on shutdown
+
+
+class SlowMetrizer(Node):
+    """Keyframes in (reliable), one metric DepthMap per keyframe after ``delay_ms``."""
+
+    Params = SlowMetrizerParams
+
+    def setup(self) -> None:
+        self.ids: list[int] = []
+        self.max_backlog = 0
+        self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
+
+    def on_keyframe(self, msg: msgs.Message) -> None:
+        self.max_backlog = max(self.max_backlog, len(self._queue))
+        time.sleep(self.params.delay_ms / 1000)
+        self.ids.append(msg.keyframe_id)
+        d = np.ones((4, 4), np.float32)
+        self.publish(
+            "/metrizer/depth",
+            msgs.DepthMap(
+                stamp_ns=msg.stamp_ns,
+                frame_id="camera",
+                keyframe_id=msg.keyframe_id,
+                kind="metric",
+                depth=d,
+                confidence=d,
+                source="test",
+            ),
+        )
+
+    def teardown(self) -> None:
+        if self.params.summary_path:
+            Path(self.params.summary_path).write_text(
+                json.dumps(
+                    {"ids": self.ids, "max_backlog": self.max_backlog, "topics": self.topic_stats()}
+                )
+            )
+
+
+# ------------------------------------------------------------------------ tests
+
+
+def test_sim_sequence_streams_every_message_in_time_order(ipc_endpoints) -> None:
+    from mogs_node.sim import SimConfig, make_sequence
+
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    sub = Subscriber(bus)
+    for t in ("/camera/image", "/imu", "/groundtruth/pose", "/groundtruth/depth"):
+        sub.subscribe(t)
+    try:
+        proc = play(
+            bus,
+            "sim",
+            "--gt-depth",
+            "--frames",
+            "6",
+            "--size",
+            "96x32",
+            "--seed",
+            "2",
+            "--rate",
+            "0",
+            "--start",
+            "0.1",
+            "--end",
+            "0.4",
+        )
+        got = collect(sub, proc, 120)
+        out = proc.communicate(timeout=30)[0].decode()
+    finally:
+        sub.close()
+        stop(broker)
+    assert proc.returncode == 0, out
+    seq = make_sequence(SimConfig(seed=2, n_frames=6, width=96, height=32))
+    # frames 1..4 (0.1 s .. 0.4 s after frame 0), IMU from 0.1 s before frame 1 up to frame 4
+    t1, t4 = int(seq.stamps_ns[1]), int(seq.stamps_ns[4])
+    imu_idx = [k for k, t in enumerate(seq.imu_stamps_ns) if t1 - 100_000_000 <= t <= t4]
+    expected = sorted(
+        [(int(seq.imu_stamps_ns[k]), 0, "/imu", k) for k in imu_idx]
+        + [(int(seq.stamps_ns[i]), 1, "/camera/image", i) for i in range(1, 5)]
+        + [(int(seq.stamps_ns[i]), 2, "/groundtruth/pose", i) for i in range(1, 5)]
+        + [(int(seq.stamps_ns[i]), 3, "/groundtruth/depth", i) for i in range(1, 5)]
+    )
+    assert [(e.msg.stamp_ns, e.topic) for e in got] == [(t, topic) for t, _, topic, _ in expected]
+    for env, (_, _, topic, k) in zip(got, expected):
+        if topic == "/imu":
+            assert env.msg.gyro_rad_s == tuple(seq.imu_gyro_rad_s[k].tolist())
+            assert env.msg.accel_m_s2 == tuple(seq.imu_accel_m_s2[k].tolist())
+        elif topic == "/camera/image":
+            assert env.msg.encoding == "rgb8"
+            np.testing.assert_array_equal(env.msg.data, seq.render(k).rgb)
+        elif topic == "/groundtruth/pose":
+            np.testing.assert_array_equal(env.msg.T_world_cam, seq.T_world_cam[k])
+        else:
+            d = seq.render(k).depth_m
+            d = np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+            assert (env.msg.kind, env.msg.keyframe_id) == ("metric", k)
+            np.testing.assert_array_equal(env.msg.depth, d)
+            np.testing.assert_array_equal(env.msg.confidence, (d > 0).astype(np.float32))
+    assert all(st.lost == 0 for st in sub.stats.values())
+    assert "[####################] 4/4 frames (100.0%)" in out
+
+
+@pytest.mark.shared_data
+def test_kitti_excerpt_streams_all_78_frames_at_10_hz(ipc_endpoints, tmp_path: Path) -> None:
+    data = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_raw_2011_09_26_78"
+    if not data.exists():
+        pytest.skip(f"real data excerpt not found: {data} (a user checkout has no ../shared/data)")
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    summary = tmp_path / "recorder.json"
+    recorder = start_node(
+        "mogs_node.demo_nodes:Recorder",
+        "recorder",
+        {"topics": ["/camera/image"], "expect": 78, "summary_path": str(summary)},
+        bus,
+    )
+    sub = Subscriber(bus)
+    sub.subscribe("/diagnostics")
+    arrivals: list[float] = []
+    try:
+        # the recorder's first heartbeat: its subscription is in place before the player starts
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            env = sub.receive(timeout_ms=200)
+            if env is not None and env.msg.node == "recorder":
+                break
+        sub.subscribe("/camera/image")
+        sub.socket.setsockopt(zmq.UNSUBSCRIBE, b"/diagnostics")
+        proc = play(bus, "kitti", str(data), "--progress", "1")
+        got = collect(sub, proc, 120, arrivals)
+        out = proc.communicate(timeout=30)[0].decode()
+        recorder.wait(20)
+        arrivals = [t for t, e in zip(arrivals, got) if e.topic == "/camera/image"]
+        got = [e for e in got if e.topic == "/camera/image"]
+    finally:
+        sub.close()
+        stop(recorder)
+        stop(broker)
+    assert proc.returncode == 0, out
+    assert recorder.returncode == 0
+    counted = json.loads(summary.read_text())
+    assert counted["count"] == {"/camera/image": 78}
+    assert counted["topics"]["/camera/image"]["lost"] == 0
+    # no timestamps.txt in the excerpt: the reader stamps at 10 Hz from 0, the player keeps them
+    assert [e.msg.stamp_ns for e in got] == [i * 100_000_000 for i in range(78)]
+    assert all(e.msg.data.shape == (375, 1242, 3) and e.msg.encoding == "rgb8" for e in got)
+    span = arrivals[-1] - arrivals[0]
+    log.info("kitti78: 78 frames over %.2f s at the subscriber = %.2f Hz", span, 77 / span)
+    assert "78/78 frames (100.0%)" in out
+
+
+def _flow_run(
+    bus: BusConfig, tmp_path: Path, play_args: list[str], frontend_delay_ms: float = 40.0
+) -> tuple[dict, dict, str]:
+    fe_sum, mz_sum = tmp_path / "fe.json", tmp_path / "mz.json"
+    fe = start_node(
+        "tests.test_bridges_player:SlowFrontend",
+        "slow_frontend",
+        {"delay_ms": frontend_delay_ms, "keyframe_every": 3, "summary_path": str(fe_sum)},
+        bus,
+    )
+    mz = start_node(
+        "tests.test_bridges_player:SlowMetrizer",
+        "slow_metrizer",
+        {"delay_ms": 120.0, "summary_path": str(mz_sum)},
+        bus,
+    )
+    try:
+        time.sleep(0.5)  # both consumers subscribed before the player starts
+        proc = play(bus, "sim", "--frames", "18", "--size", "64x24", "--wait", "10", *play_args)
+        out = proc.communicate(timeout=120)[0].decode()
+        time.sleep(0.5)  # the metrizer finishes its last keyframe
+    finally:
+        stop(fe)
+        stop(mz)
+    assert proc.returncode == 0, out
+    return json.loads(fe_sum.read_text()), json.loads(mz_sum.read_text()), out
+
+
+def test_fast_mode_loses_no_frame_and_bounds_the_keyframe_backlog(
+    ipc_endpoints, tmp_path: Path
+) -> None:
+    from mogs_node.sim import SimConfig, make_sequence
+
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    try:
+        fe, mz, out = _flow_run(
+            bus, tmp_path, ["--fast", "--max-in-flight", "1", "--max-keyframes-in-flight", "1"]
+        )
+    finally:
+        stop(broker)
+    stamps = make_sequence(SimConfig(n_frames=18, width=64, height=24)).stamps_ns.tolist()
+    assert fe["stamps"] == stamps  # every image handled, in order
+    assert fe["topics"]["/camera/image"]["dropped"] == 0
+    assert mz["ids"] == list(range(0, 18, 3))  # every keyframe metrized, in order
+    assert mz["max_backlog"] == 0  # never more than one keyframe waiting
+    assert "18/18 frames (100.0%)" in out
+
+
+@pytest.mark.slow
+def test_without_flow_control_a_slow_consumer_drops_frames(ipc_endpoints, tmp_path: Path) -> None:
+    """The control experiment: the same consumers, everything published at once (rate 0)."""
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    try:
+        fe, _, _ = _flow_run(bus, tmp_path, ["--rate", "0"], frontend_delay_ms=300.0)
+    finally:
+        stop(broker)
+    st = fe["topics"]["/camera/image"]
+    assert len(fe["stamps"]) < 18
+    assert st["dropped"] + st["lost"] == 18 - len(fe["stamps"])  # every missing image is counted
+
+
+@pytest.mark.parametrize(
+    ("fmt", "compressed"),
+    [
+        pytest.param("mcap", True, marks=pytest.mark.slow),
+        pytest.param("rosbag1", False, marks=pytest.mark.slow),
+    ],
+)
+def test_standard_bag_replays_images_imu_and_ground_truth(
+    ipc_endpoints, tmp_path: Path, fmt: str, compressed: bool
+) -> None:
+    from mogs_node.datasets import BagTopics, write_sim_bag
+    from mogs_node.sim import SimConfig, make_sequence
+
+    seq = make_sequence(SimConfig(seed=1, n_frames=3, width=64, height=24))
+    bag = tmp_path / ("sim.bag" if fmt == "rosbag1" else "sim_mcap")
+    topics = BagTopics(image="/cam/image", imu="/imu0")
+    write_sim_bag(seq, bag, fmt=fmt, topics=topics, compressed=compressed, with_depth=False)
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    sub = Subscriber(bus)
+    for t in ("/camera/image", "/imu", "/groundtruth/pose"):
+        sub.subscribe(t)
+    try:
+        proc = play(
+            bus,
+            "bag",
+            str(bag),
+            "--image-topic",
+            "/cam/image",
+            "--imu-topic",
+            "/imu0",
+            "--rate",
+            "0",
+            "--encoding",
+            "bgr8",
+        )
+        got = collect(sub, proc, 60)
+        out = proc.communicate(timeout=30)[0].decode()
+    finally:
+        sub.close()
+        stop(broker)
+    assert proc.returncode == 0, out
+    images = [e.msg for e in got if e.topic == "/camera/image"]
+    assert [m.stamp_ns for m in images] == seq.stamps_ns.tolist()
+    for i, m in enumerate(images):
+        assert m.encoding == "bgr8"
+        np.testing.assert_array_equal(m.data, seq.render(i).rgb[..., ::-1])  # PNG is lossless
+    imu = [e.msg for e in got if e.topic == "/imu"]
+    inside = (seq.imu_stamps_ns >= seq.stamps_ns[0] - 100_000_000) & (
+        seq.imu_stamps_ns <= seq.stamps_ns[-1]
+    )
+    assert [m.stamp_ns for m in imu] == seq.imu_stamps_ns[inside].tolist()
+    np.testing.assert_array_equal([m.gyro_rad_s for m in imu], seq.imu_gyro_rad_s[inside])
+    poses = [e.msg for e in got if e.topic == "/groundtruth/pose"]
+    np.testing.assert_allclose([p.T_world_cam for p in poses], seq.T_world_cam, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_sigusr1_pauses_and_sigusr2_resumes(ipc_endpoints) -> None:
+    import signal
+
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    sub = Subscriber(bus)
+    sub.subscribe("/camera/image")
+    got: list[msgs.Envelope] = []
+    try:
+        proc = play(bus, "sim", "--frames", "12", "--size", "32x16", "--rate", "2")
+        while not got:
+            env = sub.receive(timeout_ms=30_000)
+            assert env is not None, "player published nothing"
+            got.append(env)
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(0.1)  # the pause applies at the next tick; a frame may be on its way
+        n_paused = len(got) + len(_drain(sub, 0.1))
+        during = _drain(sub, 0.6)  # 0.6 s paused: at 2 x 10 Hz about 12 frames would come
+        proc.send_signal(signal.SIGUSR2)
+        rest = collect(sub, proc, 60)
+        out = proc.communicate(timeout=30)[0].decode()
+    finally:
+        sub.close()
+        stop(broker)
+    assert proc.returncode == 0, out
+    assert during == []
+    assert n_paused < 12
+    assert n_paused + len(rest) == 12
+    assert "paused at frame" in out and "resumed" in out
+
+
+def _drain(sub: Subscriber, seconds: float) -> list[msgs.Envelope]:
+    out, deadline = [], time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        env = sub.receive(timeout_ms=int(left * 1000) + 1)
+        if env is not None:
+            out.append(env)
+    return out
