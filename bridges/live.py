@@ -245,7 +245,7 @@ class LineImuParams:
     frame_id: str = "imu"  # frame_id of the samples
     max_samples: int = 0  # stop after this many accepted samples (0 = never)
     stop_at_eof: bool = True  # file source: stop at its end (a FIFO/tty never ends)
-    tick_s: float = 0.002  # polling period of the socket / port
+    tick_s: float = 0.002  # polling period of a serial port / FIFO / file (UDP needs none)
     wait_for_subscriber_s: float = 0.0  # before reading, wait this long for a subscriber
 
 
@@ -288,7 +288,10 @@ class LineImuNode(_ImuPublisher):
             self.is_file = os.path.isfile(p.source)
         self.log.info("reading IMU lines from %s", p.source)
         self._waited = p.wait_for_subscriber_s <= 0
-        self.every(p.tick_s, self.tick)
+        if self.sock is not None:  # a socket wakes the run loop's poll itself
+            self.add_reader(self.sock, self.tick)
+        else:  # regular files are always "readable"; ports and FIFOs are polled on a timer
+            self.every(p.tick_s, self.tick)
 
     def _read(self) -> bytes | None:
         """Available bytes ("" nothing now), or None at the end of a file."""
@@ -351,7 +354,6 @@ class ZmqImuParams:
     topic: str = "/imu"  # output topic
     frame_id: str = "imu"  # frame_id of the samples
     max_samples: int = 0  # stop after this many accepted samples (0 = never)
-    tick_s: float = 0.002  # polling period of the input socket
 
     def __post_init__(self) -> None:
         if self.socket not in ("pull", "sub"):
@@ -369,7 +371,7 @@ class ZmqImuNode(_ImuPublisher):
     def setup(self) -> None:
         p: ZmqImuParams = self.params
         self._init_imu(p.topic, p.frame_id)
-        self.input = self._ctx.socket(zmq.PULL if p.socket == "pull" else zmq.SUB)
+        self.input = self.context.socket(zmq.PULL if p.socket == "pull" else zmq.SUB)
         self.input.linger = 0
         if p.socket == "sub":
             self.input.setsockopt(zmq.SUBSCRIBE, b"")
@@ -383,7 +385,7 @@ class ZmqImuNode(_ImuPublisher):
         self.log.info(
             "IMU input: %s %s %s", p.socket, "bound at" if p.bind else "connected to", p.endpoint
         )
-        self.every(p.tick_s, self.tick)
+        self.add_reader(self.input, self.tick)  # served by the run loop's one poll
 
     def tick(self) -> None:
         p: ZmqImuParams = self.params

@@ -212,11 +212,8 @@ class PlayerNode(Node):
         self._loads: dict[int, Future] = {}
         self._image_positions = [i for i, e in enumerate(self.events) if e[1] == IMAGE]
         self._next_image = 0  # index into _image_positions of the next image to publish
-        self._raw_pub = None
-        if p.source == "recording":  # own socket: re-published frames keep their seq and src
-            from mogs_node.bus import Publisher
-
-            self._raw_pub = Publisher(self.bus, context=self._ctx)
+        # recordings are re-published frame for frame: they keep their recorded seq and src
+        self._replay_raw = p.source == "recording"
         for k in ("frames_published", "imu_published", "ack_waits", "ack_timeouts"):
             self.counters[k] = 0
         self.counters["frames_total"] = self.total_frames
@@ -366,8 +363,8 @@ class PlayerNode(Node):
         self.meter.tick(time.monotonic())
 
     def _publish_recorded(self, rec: RecordedMessage) -> None:
-        assert self._raw_pub is not None
-        self._raw_pub.publish_frames(rec.frames)
+        assert self._replay_raw
+        self.publish_frames(rec.frames)
         if rec.topic == self.params.image_topic:
             self.frames.sent(msgs.decode(rec.frames).msg.stamp_ns)
             self._frame_done()
@@ -400,12 +397,9 @@ class PlayerNode(Node):
         if not self._started:
             self._started = True
             topic = p.image_topic
-            pub = self._pub
-            if self._raw_pub is not None:
-                pub = self._raw_pub
-                if self.total_frames == 0 and self._rec_next is not None:
-                    topic = self._rec_next.topic
-            if p.wait_for_subscriber_s > 0 and not pub.wait_for_subscriber(
+            if self._replay_raw and self.total_frames == 0 and self._rec_next is not None:
+                topic = self._rec_next.topic
+            if p.wait_for_subscriber_s > 0 and not self.wait_for_subscriber(
                 topic, p.wait_for_subscriber_s
             ):
                 self.log.warning(
@@ -472,8 +466,6 @@ class PlayerNode(Node):
 
     def teardown(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
-        if self._raw_pub is not None:
-            self._raw_pub.close()
         self.log.info(
             "played %d/%d frames, %d IMU samples, %d messages",
             self.frames_published,

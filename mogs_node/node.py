@@ -167,6 +167,9 @@ class Node:
         self._subs: dict[str, _Subscription] = {}
         self._queue: deque[tuple[_Subscription, msgs.Envelope]] = deque()
         self._timers: list[list[Any]] = []  # [period_s, next_due, callback]
+        self._extra: dict[
+            Any, Callable[[], None]
+        ] = {}  # external socket / fd -> on-readable callback
         self._stop = threading.Event()
         self._t0 = time.monotonic()
         self.counters: dict[str, float] = {
@@ -356,13 +359,56 @@ class Node:
         if self._timers:
             next_due = min(t[1] for t in self._timers)
             timeout_ms = max(0, min(timeout_ms, int((next_due - now) * 1000)))
-        if self._sub is not None:
-            if self._queue or self._sub.socket.poll(timeout_ms, zmq.POLLIN):
+        if self._queue:
+            timeout_ms = 0
+        if self._sub is None and not self._extra:
+            if timeout_ms:
+                self._stop.wait(timeout_ms / 1000)
+        else:
+            poller = zmq.Poller()
+            if self._sub is not None:
+                poller.register(self._sub.socket, zmq.POLLIN)
+            for sock in self._extra:
+                poller.register(sock, zmq.POLLIN)
+            ready = dict(poller.poll(timeout_ms))
+            for sock, callback in list(self._extra.items()):
+                # zmq reports its own sockets as themselves and anything else by file descriptor
+                key = sock if isinstance(sock, zmq.Socket | int) else sock.fileno()
+                if key in ready:
+                    try:
+                        callback()
+                    except Exception:
+                        self.counters["handler_errors"] += 1
+                        self.log.exception("reader of %s failed", sock)
+            if self._sub is not None and (self._queue or self._sub.socket in ready):
                 self._read_available()
                 self._handle_queue()
-        elif timeout_ms:
-            self._stop.wait(timeout_ms / 1000)
         self._run_timers()
+
+    # ------------------------------------------------------------------ extension points
+
+    @property
+    def context(self) -> zmq.Context:
+        """The node's ZeroMQ context, for extra sockets (e.g. an input from outside the bus)."""
+        return self._ctx
+
+    @property
+    def queue_depth(self) -> int:
+        """Messages received but not yet handled."""
+        return len(self._queue)
+
+    def add_reader(self, socket_or_fd: Any, callback: Callable[[], None]) -> None:
+        """Call ``callback()`` from the run loop whenever ``socket_or_fd`` (a zmq socket or a
+        file descriptor / object with ``fileno()``) is readable; the loop still blocks in one poll."""
+        self._extra[socket_or_fd] = callback
+
+    def remove_reader(self, socket_or_fd: Any) -> None:
+        self._extra.pop(socket_or_fd, None)
+
+    def publish_frames(self, frames: list[Any]) -> None:
+        """Forward already-encoded multipart frames unchanged (bit-exact replay of recordings)."""
+        self._pub.publish_frames(frames)
+        self.counters["published"] += 1
 
     def run(self, *, install_signal_handlers: bool = True, duration_s: float | None = None) -> int:
         """Run until stopped (signal, ``request_stop``, or ``duration_s``); returns an exit code."""

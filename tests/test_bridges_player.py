@@ -163,7 +163,7 @@ class SlowMetrizer(Node):
         self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
 
     def on_keyframe(self, msg: msgs.Message) -> None:
-        self.max_backlog = max(self.max_backlog, len(self._queue))
+        self.max_backlog = max(self.max_backlog, self.queue_depth)
         time.sleep(self.params.delay_ms / 1000)
         self.ids.append(msg.keyframe_id)
         d = np.ones((4, 4), np.float32)

@@ -134,3 +134,39 @@ def test_diagnostics_are_published_periodically(inproc_bus) -> None:
     assert len(seen) >= 3
     assert all(isinstance(m, msgs.Diagnostics) and m.node == "idle" for m in seen)
     assert seen[-1].uptime_s > seen[0].uptime_s
+
+
+def test_external_reader_is_served_by_the_same_loop(inproc_bus) -> None:
+    import os
+
+    bus, ctx = inproc_bus
+    node = Node("reader", {}, bus, context=ctx, diagnostics_period_s=0)
+    r, w = os.pipe()
+    got: list[bytes] = []
+    node.add_reader(r, lambda: got.append(os.read(r, 100)))
+    node.spin_once(50)
+    assert got == []  # nothing readable yet: the poll timed out
+    os.write(w, b"imu line\n")
+    node.spin_once(1000)
+    assert got == [b"imu line\n"]
+    node.remove_reader(r)
+    os.close(r)
+    os.close(w)
+    node.close()
+
+
+def test_external_python_socket_reader(inproc_bus) -> None:
+    import socket
+
+    bus, ctx = inproc_bus
+    node = Node("udp", {}, bus, context=ctx, diagnostics_period_s=0)
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    got: list[bytes] = []
+    node.add_reader(rx, lambda: got.append(rx.recv(100)))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        tx.sendto(b"datagram", rx.getsockname())
+    node.spin_once(1000)
+    assert got == [b"datagram"]
+    rx.close()
+    node.close()
