@@ -1,0 +1,102 @@
+"""Filling depth where nothing else gives a value: nearest sparse point, or edge-aware diffusion.
+
+:func:`edge_aware_fill` is a normalised convolution with the fast global smoother (FGS, opencv
+``ximgproc``) guided by the image: ``fill = FGS(depth * weight) / FGS(weight)``, run at a reduced
+resolution for speed, so values spread along surfaces and stop at colour edges.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["edge_aware_fill", "nearest_fill"]
+
+F32 = NDArray[np.float32]
+
+
+def nearest_fill(shape: tuple[int, int], u: NDArray, v: NDArray, depth_m: NDArray) -> F32:
+    """Depth of the nearest seed pixel everywhere (``[H, W]`` float32; 0 when there is no seed)."""
+    H, W = shape
+    out = np.zeros((H, W), np.float32)
+    if len(depth_m) == 0:
+        return out
+    seeds = np.ones((H, W), np.uint8)
+    seeds[v, u] = 0
+    _, lab = cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    seed_img = np.zeros((H, W), np.float32)
+    seed_img[v, u] = depth_m
+    # DIST_LABEL_PIXEL numbers the zero (seed) pixels 1..S in raster order
+    vals = seed_img.ravel()[np.flatnonzero(seeds.ravel() == 0)]
+    return vals[np.clip(lab - 1, 0, len(vals) - 1)]
+
+
+def edge_aware_fill(
+    depth_m: F32,
+    weight: F32,
+    guide_rgb: NDArray[np.uint8] | None,
+    scale: float = 0.5,
+    lam: float = 50.0,
+    sigma_color: float = 8.0,
+) -> F32:
+    """Edge-aware normalised-convolution fill of ``depth_m`` ``[H, W]`` from pixels with weight > 0.
+
+    Returns ``[H, W]`` float32, 0 where no seed reaches (the weight diffused there is ~0).
+    """
+    H, W = depth_m.shape
+    w = np.where(np.isfinite(depth_m) & (depth_m > 0), weight, 0.0).astype(np.float32)
+    if not np.any(w > 0):
+        return np.zeros((H, W), np.float32)
+    d = np.where(w > 0, depth_m, 0.0).astype(np.float32)
+    h2, w2 = max(1, round(H * scale)), max(1, round(W * scale))
+    if guide_rgb is None:
+        guide = np.zeros((h2, w2, 3), np.uint8)
+    else:
+        guide = cv2.resize(np.ascontiguousarray(guide_rgb), (w2, h2), interpolation=cv2.INTER_AREA)
+    ws = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
+    ds = cv2.resize(d * w, (w2, h2), interpolation=cv2.INTER_AREA)
+    num = cv2.ximgproc.fastGlobalSmootherFilter(guide, ds, lam, sigma_color)
+    den = cv2.ximgproc.fastGlobalSmootherFilter(guide, ws, lam, sigma_color)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(den > 1e-6 * max(float(ws.max()), 1e-12), num / den, 0.0).astype(np.float32)
+    f = cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)
+    return np.where(np.isfinite(f) & (f > 0), f, 0.0).astype(np.float32)
+
+
+def smooth_field(
+    shape: tuple[int, int],
+    flat_idx: NDArray[np.intp],
+    values: NDArray[np.floating],
+    weight: NDArray[np.floating],
+    sigma_frac: float = 0.08,
+    scale: float = 0.125,
+    clip: float = 0.5,
+    exponentiate: bool = False,
+) -> F32:
+    """Low-frequency field ``[H, W]`` float32 from scattered samples (Gaussian normalised conv.).
+
+    ``flat_idx`` ``[N]`` flat pixel indices into ``shape``, ``values`` / ``weight`` ``[N]``.
+    Accumulates at ``scale`` resolution (``bincount``), blurs numerator and weight with a Gaussian
+    of ``sigma_frac`` times the image width, clips to ``[-clip, clip]`` (0 far from every sample),
+    optionally exponentiates (still at low resolution: the field is smooth), and upsamples
+    bilinearly.
+    """
+    H, W = shape
+    h2, w2 = max(1, round(H * scale)), max(1, round(W * scale))
+    if len(flat_idx) == 0:
+        return np.full(shape, 1.0 if exponentiate else 0.0, np.float32)
+    v = np.minimum((flat_idx // W) * h2 // H, h2 - 1)
+    u = np.minimum((flat_idx % W) * w2 // W, w2 - 1)
+    cell = v * w2 + u
+    num = np.bincount(cell, weight * values, minlength=h2 * w2).reshape(h2, w2).astype(np.float32)
+    den = np.bincount(cell, weight, minlength=h2 * w2).reshape(h2, w2).astype(np.float32)
+    sig = max(sigma_frac * w2, 0.5)
+    num = cv2.GaussianBlur(num, (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
+    den = cv2.GaussianBlur(den, (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(den > 1e-12, num / den, 0.0).astype(np.float32)
+    f = np.clip(np.nan_to_num(f), -clip, clip)
+    if exponentiate:
+        f = np.exp(f)
+    return cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)

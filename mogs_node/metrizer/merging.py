@@ -1,0 +1,125 @@
+"""Multi-scale merging of under-supported masks (paper III-B).
+
+A mask with fewer than ``n_min`` features cannot support a shape fit on its own. Repeatedly, every
+under-supported group that has at least one feature merges into the adjacent group (region
+adjacency of the label image) that has features, is depth-contiguous (``|z_i - z_u| <= rho z_i``
+with ``z`` the median feature depth of a group) and has the smallest median-depth gap, until every
+group is supported or no candidate is left. Merges of one round are applied together (union-find),
+so the number of rounds is small; the loop is over rounds and merge pairs, never over pixels.
+
+Groups with no feature at all are not merged (their depth cannot be tested for contiguity); the
+refinement (CDR) calibrates them through prior anchoring and smoothness with their neighbours.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["group_medians", "merge_undersupported"]
+
+
+def _find_all(parent: NDArray[np.intp]) -> NDArray[np.intp]:
+    while True:
+        nxt = parent[parent]
+        if np.array_equal(nxt, parent):
+            return parent
+        parent = nxt
+
+
+def group_medians(
+    group_of_feat: NDArray[np.intp], z: NDArray[np.float64], n_groups: int
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Feature count ``[G]`` and median depth ``[G]`` (NaN without features) per group."""
+    counts = np.bincount(group_of_feat, minlength=n_groups)
+    med = np.full(n_groups, np.nan)
+    if len(z):
+        order = np.lexsort((z, group_of_feat))
+        zs = z[order]
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        has = counts > 0
+        lo = start[has] + (counts[has] - 1) // 2
+        hi = start[has] + counts[has] // 2
+        med[has] = 0.5 * (zs[lo] + zs[hi])
+    return counts, med
+
+
+def merge_undersupported(
+    n_obj: int,
+    adj_k: NDArray[np.intp],
+    adj_l: NDArray[np.intp],
+    feat_obj: NDArray[np.intp],
+    feat_z: NDArray[np.float64],
+    n_min: int = 9,
+    rho: float = 0.1,
+    max_rounds: int = 100,
+) -> tuple[NDArray[np.intp], int]:
+    """Group id per object ``[M]`` (compact, ``0..G-1``) and the number of merges performed.
+
+    ``adj_k, adj_l`` ``[E]``: adjacent object pairs; ``feat_obj`` ``[N]`` object per feature (all
+    ``>= 0``), ``feat_z`` ``[N]`` metric depths.
+    """
+    parent = np.arange(n_obj)
+    merges = 0
+    for _ in range(max_rounds):
+        root = _find_all(parent)
+        counts, med = group_medians(root[feat_obj], feat_z, n_obj)
+        gk, gl = root[adj_k], root[adj_l]
+        keep = gk != gl
+        a = np.concatenate([gk[keep], gl[keep]])  # directed edges a -> b
+        b = np.concatenate([gl[keep], gk[keep]])
+        under = (counts[a] > 0) & (counts[a] < n_min) & (counts[b] > 0)
+        gap = np.abs(med[a] - med[b])
+        ok = under & (gap <= rho * med[a])
+        if not ok.any():
+            break
+        a, b, gap = a[ok], b[ok], gap[ok]
+        order = np.lexsort((gap, a))
+        a, b = a[order], b[order]
+        first = np.concatenate([[True], a[1:] != a[:-1]])
+        for i, u in zip(a[first].tolist(), b[first].tolist(), strict=False):
+            ri, ru = i, u
+            while parent[ri] != ri:
+                ri = parent[ri]
+            while parent[ru] != ru:
+                ru = parent[ru]
+            if ri != ru:
+                parent[ri] = ru
+                merges += 1
+    root = _find_all(parent)
+    _, group = np.unique(root, return_inverse=True)
+    return group.astype(np.intp), merges
+
+
+def absorb_into_models(
+    pair_g: NDArray[np.intp],
+    pair_u: NDArray[np.intp],
+    row_pair: NDArray[np.intp],
+    row_ok: NDArray[np.bool_],
+    n_groups: int,
+    min_fraction: float,
+) -> NDArray[np.intp]:
+    """Second, shape-driven merging scale: absorb groups into an adjacent group's accepted shape.
+
+    ``pair_g, pair_u`` ``[P]``: candidate pairs (group ``g`` without an accepted model, adjacent
+    group ``u`` with one); ``row_pair`` ``[R]`` the pair of each evidence row (a feature of ``g``, or
+    a sample pixel of a featureless ``g``) and ``row_ok`` ``[R]`` whether ``u``'s model explains it.
+    ``g`` is absorbed into the ``u`` that explains the largest fraction of its rows, if that
+    fraction is at least ``min_fraction``. Returns the new group of every group ``[G]`` (not
+    compacted; absorbed groups point at their host, hosts never move).
+    """
+    target = np.arange(n_groups)
+    if len(pair_g) == 0:
+        return target
+    n_rows = np.bincount(row_pair, minlength=len(pair_g))
+    n_ok = np.bincount(row_pair, row_ok.astype(np.float64), minlength=len(pair_g))
+    frac = np.where(n_rows > 0, n_ok / np.maximum(n_rows, 1), 0.0)
+    good = frac >= min_fraction
+    if not good.any():
+        return target
+    g, u, f = pair_g[good], pair_u[good], frac[good]
+    order = np.lexsort((-f, g))
+    g, u = g[order], u[order]
+    first = np.concatenate([[True], g[1:] != g[:-1]])
+    target[g[first]] = u[first]
+    return target
