@@ -184,7 +184,7 @@ def load_launch_file(path: str | Path, overrides: dict[str, Any] | None = None) 
 def _set_pdeathsig() -> None:  # runs in the child between fork and exec
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: a hung node must not survive either
     except OSError:
         pass
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import uuid
 from pathlib import Path
@@ -25,3 +26,16 @@ def ipc_endpoints(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str]:
     d = Path("/tmp") / f"mogs-test-{uuid.uuid4().hex[:8]}"
     d.mkdir()
     return f"ipc://{d}/pub.ipc", f"ipc://{d}/sub.ipc"
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_processes():
+    """Kill whatever a test left running (a failed test must not leave nodes burning CPU)."""
+    import psutil
+
+    yield
+    kids = psutil.Process().children(recursive=True)
+    for k in kids:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            k.kill()
+    psutil.wait_procs(kids, timeout=5)
