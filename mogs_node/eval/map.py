@@ -1,0 +1,362 @@
+"""``mogs eval map --dataset sim``: Gaussian map quality and convergence for three initialisations.
+
+Paper Table II / Fig. 3 on the synthetic world. One sequence, the same keyframes, poses (ground
+truth), images and mapper settings for every initialisation; only the depth that initialises (and,
+where it has information, supervises) the Gaussians differs:
+
+- ``random``: uniform random depth in ``[1, 50]`` m, no depth test at insertion, no depth loss;
+- ``prior_global``: the simulated LFM prior aligned to the sparse metric points by one global
+  robust affine map (the metrizer's ``no_msc_cdr`` mode), with its confidence;
+- ``mogs``: the MOGS metrized depth (MSC + CDR, ``full`` mode) with its confidence.
+
+Metrizer inputs are those of ``mogs eval depth --dataset sim``: oracle instance masks, the
+simulated LFM (relative inverse depth), and ground-truth depth with 1% noise at Shi-Tomasi corners
+as the sparse metric points.
+
+Schedule: every ``kf_every``-th frame is a keyframe; each keyframe is inserted and followed by
+``iters_per_kf`` window iterations, then the optimisation continues to the iteration budget. A
+fixed held-out (non-keyframe) view is rendered every ``eval_every`` iterations: the first iteration
+at which its PSNR reaches the target gives ``iters_to_target`` (and the map size then,
+``gaussians_at_target``). At the budget, PSNR/SSIM are averaged over all held-out non-keyframes
+inside the keyframe span. ``peak_mem_mib`` is the peak resident-memory growth of the process that
+ran that initialisation (each runs in its own forked process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import multiprocessing as mp
+import resource
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section
+
+__all__ = ["MapEvalConfig", "evaluate", "run_init"]
+
+log = logging.getLogger(__name__)
+INITS = ("random", "prior_global", "mogs")
+
+
+@dataclass(frozen=True)
+class MapEvalConfig:
+    """Settings of the map evaluation."""
+
+    seed: int = 0  # sim world / trajectory seed
+    n_frames: int = 31  # frames of the sequence
+    width: int = 320  # render size
+    height: int = 96
+    kf_every: int = 3  # every kf_every-th frame is a keyframe; the others are held out
+    iters_per_kf: int = 15  # window iterations after each keyframe insertion
+    budget: int = 300  # total iteration budget
+    eval_every: int = 5  # fixed-view evaluation period (iterations)
+    fixed_view: int = 7  # index of the fixed held-out frame
+    target_psnr_db: float = 20.0  # paper: 20 dB
+    random_depth_range_m: tuple[float, float] = (1.0, 50.0)  # random init depth range
+    threads: int = 1  # torch threads per initialisation run
+    mapper_overrides: dict[str, Any] = field(default_factory=dict)  # MapperParams fields
+
+
+def _rss_mib() -> float:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:
+        return 0.0
+
+
+def _inputs(cfg: MapEvalConfig) -> dict[str, Any]:
+    """Render the sequence and compute every initialisation's depth for every keyframe."""
+    import cv2
+
+    from mogs_node.mapper.insertion import random_depth
+    from mogs_node.metrizer.pipeline import metrize_depth
+    from mogs_node.sim import LfmParams, SimConfig, make_sequence, simulated_lfm
+
+    seq = make_sequence(
+        SimConfig(seed=cfg.seed, n_frames=cfg.n_frames, width=cfg.width, height=cfg.height)
+    )
+    frames = [seq.render(i) for i in range(cfg.n_frames)]
+    kf_idx = list(range(0, cfg.n_frames, cfg.kf_every))
+    held = [i for i in range(kf_idx[0], kf_idx[-1]) if i not in kf_idx]
+    rng = np.random.default_rng(cfg.seed + 7)
+    depth: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {k: [] for k in INITS}
+    depth_err: dict[str, list[float]] = {k: [] for k in INITS}
+    for j, i in enumerate(kf_idx):
+        f = frames[i]
+        gray = cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY)
+        pts = cv2.goodFeaturesToTrack(gray, 800, 0.005, 3)
+        uv = np.zeros((0, 2)) if pts is None else pts[:, 0, :].astype(np.float64)
+        ui = np.clip(np.round(uv[:, 0]).astype(int), 0, cfg.width - 1)
+        vi = np.clip(np.round(uv[:, 1]).astype(int), 0, cfg.height - 1)
+        z = f.depth_m[vi, ui].astype(np.float64)
+        ok = np.isfinite(z) & (z > 0)
+        uv, z = uv[ok][:200], z[ok][:200]
+        z = z * (1.0 + 0.01 * rng.standard_normal(len(z)))
+        prior = simulated_lfm(f.depth_m, rng, LfmParams())
+        kw = dict(
+            K=seq.camera.K,
+            labels=f.instance_id,
+            feature_uv_px=uv,
+            feature_depth_m=z,
+            feature_weight=np.ones(len(z)),
+            prior=prior,
+            prior_confidence=np.ones_like(prior),
+            prior_kind="relative_inverse_depth",
+            image_rgb=f.rgb,
+        )
+        gt = f.depth_m
+        valid = np.isfinite(gt) & (gt > 0) & (gt <= 80)
+        for name, mode in (("mogs", "full"), ("prior_global", "no_msc_cdr")):
+            r = metrize_depth(**kw, mode=mode)
+            depth[name].append((r.depth_m, r.confidence))
+            m = valid & (r.depth_m > 0)
+            depth_err[name].append(float(np.mean(np.abs(r.depth_m[m] - gt[m]) / gt[m])))
+        rd = random_depth(
+            (cfg.height, cfg.width), *cfg.random_depth_range_m, seed=cfg.seed * 1000 + j
+        )
+        depth["random"].append((rd, np.ones_like(rd)))
+        depth_err["random"].append(float(np.mean(np.abs(rd[valid] - gt[valid]) / gt[valid])))
+    return {
+        "K": seq.camera.K,
+        "frames": frames,
+        "kf_idx": kf_idx,
+        "held": held,
+        "depth": depth,
+        "depth_absrel": {k: float(np.mean(v)) for k, v in depth_err.items()},
+    }
+
+
+def run_init(init: str, data: dict[str, Any], cfg: MapEvalConfig) -> dict[str, Any]:
+    """Map the sequence with one initialisation; returns its figures and curves."""
+    import torch
+
+    from mogs_node.mapper.image_metrics import psnr_db, ssim
+    from mogs_node.mapper.insertion import InsertionParams
+    from mogs_node.mapper.mapper import GaussianMapper, MapperParams
+
+    torch.set_num_threads(cfg.threads)
+    rss0 = _rss_mib()
+    base = MapperParams(window_size=4, n_random_past=1, seed=cfg.seed)
+    params = replace(base, **cfg.mapper_overrides)
+    if init == "random":
+        params = replace(
+            params, lambda_depth=0.0, insertion=replace(params.insertion, check_depth=False)
+        )
+    assert isinstance(params.insertion, InsertionParams)
+    frames, fixed = data["frames"], data["frames"][cfg.fixed_view]
+    mapper = GaussianMapper(params, data["K"], cfg.width, cfg.height)
+    curve_it: list[int] = []
+    curve_n: list[int] = []
+    curve_psnr: list[float] = []
+    iters_to_target = gauss_at_target = None
+    time_to_target = None
+    t_start = time.perf_counter()
+
+    def run(n: int) -> None:
+        nonlocal iters_to_target, gauss_at_target, time_to_target
+        done = 0
+        while done < n:
+            step = min(cfg.eval_every - mapper.iterations % cfg.eval_every, n - done)
+            mapper.optimize(step)
+            done += step
+            if mapper.iterations % cfg.eval_every == 0:
+                ps = psnr_db(mapper.render_view(fixed.T_world_cam).color, fixed.rgb)
+                curve_it.append(mapper.iterations)
+                curve_n.append(len(mapper.map))
+                curve_psnr.append(ps)
+                if iters_to_target is None and ps >= cfg.target_psnr_db:
+                    iters_to_target, gauss_at_target = mapper.iterations, len(mapper.map)
+                    time_to_target = time.perf_counter() - t_start
+
+    for j, i in enumerate(data["kf_idx"]):
+        d, c = data["depth"][init][j]
+        f = frames[i]
+        mapper.add_keyframe(i, f.rgb, f.T_world_cam, d, c)
+        run(min(cfg.iters_per_kf, cfg.budget - mapper.iterations))
+    run(cfg.budget - mapper.iterations)
+    wall = time.perf_counter() - t_start
+    ps, ss = [], []
+    for i in data["held"]:
+        r = mapper.render_view(frames[i].T_world_cam)
+        ps.append(psnr_db(r.color, frames[i].rgb))
+        ss.append(ssim(r.color, frames[i].rgb))
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {
+        "iters_to_target": iters_to_target,
+        "gaussians_at_target": gauss_at_target,
+        "seconds_to_target": time_to_target,
+        "psnr_at_budget": float(np.mean(ps)),
+        "ssim_at_budget": float(np.mean(ss)),
+        "gaussians_at_budget": len(mapper.map),
+        "peak_mem_mib": max(peak - rss0, 0.0),
+        "wall_s": wall,
+        "iterations_per_s": mapper.iterations / wall,
+        "curve": {"iterations": curve_it, "n_gaussians": curve_n, "fixed_view_psnr_db": curve_psnr},
+    }
+
+
+def _child(conn, init: str, data: dict[str, Any], cfg: MapEvalConfig) -> None:
+    try:
+        conn.send(("ok", run_init(init, data, cfg)))
+    except Exception as err:  # noqa: BLE001 - report any failure to the parent
+        conn.send(("error", repr(err)))
+    finally:
+        conn.close()
+
+
+def run_all(cfg: MapEvalConfig, inits: tuple[str, ...] = INITS) -> dict[str, Any]:
+    """Inputs once, then each initialisation in its own forked process (own peak memory)."""
+    data = _inputs(cfg)
+    out: dict[str, Any] = {}
+    ctx = mp.get_context("fork")
+    for init in inits:
+        parent, child = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=_child, args=(child, init, data, cfg))
+        proc.start()
+        child.close()
+        status, res = parent.recv()
+        proc.join()
+        if status != "ok":
+            raise RuntimeError(f"map eval {init}: {res}")
+        out[init] = res
+        log.info("%s: %s", init, {k: v for k, v in res.items() if k != "curve"})
+    return {
+        "inits": out,
+        "depth_absrel": data["depth_absrel"],
+        "n_keyframes": len(data["kf_idx"]),
+        "n_held_out": len(data["held"]),
+    }
+
+
+def plot_curves(results: dict[str, Any], target_db: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
+    for init, r in results.items():
+        c = r["curve"]
+        a1.plot(c["iterations"], c["n_gaussians"], label=init)
+        a2.plot(c["iterations"], c["fixed_view_psnr_db"], label=init)
+    a1.set_xlabel("iteration")
+    a1.set_ylabel("number of Gaussians")
+    a2.axhline(target_db, color="k", ls=":", lw=1)
+    a2.set_xlabel("iteration")
+    a2.set_ylabel("fixed held-out view PSNR [dB]")
+    a1.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    """``mogs eval map``: returns ``{"target_psnr_db", "inits": {INIT: {...}}, ...}``."""
+    cfg = MapEvalConfig(
+        seed=args.seed, target_psnr_db=args.target_psnr, budget=args.iters or MapEvalConfig.budget
+    )
+    res = run_all(cfg)
+    inits = res["inits"]
+    keys = (
+        "iters_to_target",
+        "gaussians_at_target",
+        "psnr_at_budget",
+        "ssim_at_budget",
+        "peak_mem_mib",
+    )
+    figures: dict[str, Any] = {
+        "target_psnr_db": cfg.target_psnr_db,
+        "inits": {k: {m: v[m] for m in keys} for k, v in inits.items()},
+        "details": {
+            k: {m: v[m] for m in v if m not in keys and m != "curve"} for k, v in inits.items()
+        },
+        "depth_absrel": res["depth_absrel"],
+        "config": {
+            "size": f"{cfg.width}x{cfg.height}",
+            "keyframes": res["n_keyframes"],
+            "held_out": res["n_held_out"],
+            "budget": cfg.budget,
+            "seed": cfg.seed,
+        },
+    }
+    figures.update(_ratios(inits, cfg.budget))
+    plot = Path(args.plot) if args.plot else REPO_ROOT / "docs" / "mapper_gaussians.png"
+    plot_curves(inits, cfg.target_psnr_db, plot)
+    _write_markdown(figures, inits, cfg, plot)
+    return figures
+
+
+def _ratios(inits: dict[str, Any], budget: int) -> dict[str, Any]:
+    """MOGS / random ratios. When random never reaches the target within the budget, its
+    iterations are only known to exceed ``budget``: the ratio is then an upper bound
+    (``iters_ratio_is_upper_bound``)."""
+
+    def ratio(a: Any, b: Any) -> float | None:
+        return None if a is None or b in (None, 0) else float(a) / float(b)
+
+    m, r = inits.get("mogs", {}), inits.get("random", {})
+    out: dict[str, Any] = {
+        "iters_ratio_mogs_vs_random": ratio(m.get("iters_to_target"), r.get("iters_to_target")),
+        "iters_ratio_is_upper_bound": False,
+        "gaussians_ratio_mogs_vs_random": ratio(
+            m.get("gaussians_at_target"), r.get("gaussians_at_target")
+        ),
+        "gaussians_at_budget_ratio_mogs_vs_random": ratio(
+            m.get("gaussians_at_budget"), r.get("gaussians_at_budget")
+        ),
+    }
+    if m.get("iters_to_target") is not None and r.get("iters_to_target") is None:
+        out["iters_ratio_mogs_vs_random"] = m["iters_to_target"] / budget
+        out["iters_ratio_is_upper_bound"] = True
+    return out
+
+
+def _fmt(v: Any, spec: str) -> str:
+    return "not reached" if v is None else format(v, spec)
+
+
+def _write_markdown(
+    fig: dict[str, Any], inits: dict[str, Any], cfg: MapEvalConfig, plot: Path
+) -> None:
+    lines = [
+        "## Gaussian map: initialisations (Table II style, synthetic world)",
+        "",
+        f"`mogs eval map --dataset sim --seed {cfg.seed} --iters {cfg.budget}`: "
+        f"{fig['config']['size']}, {fig['config']['keyframes']} keyframes (one every {cfg.kf_every} frames, "
+        f"ground-truth poses), {fig['config']['held_out']} held-out non-keyframes, "
+        f"{cfg.iters_per_kf} iterations per keyframe, budget {cfg.budget} iterations, fixed view = "
+        f"frame {cfg.fixed_view}, target {cfg.target_psnr_db:.0f} dB. Oracle instance masks, "
+        "simulated LFM prior, ground-truth sparse points with 1% noise.",
+        "",
+        "| init | init depth AbsRel | iters to target | s to target | Gaussians at target | "
+        "PSNR at budget [dB] | SSIM at budget | Gaussians at budget | peak mem [MiB] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for k, v in inits.items():
+        lines.append(
+            f"| {k} | {fig['depth_absrel'][k]:.3f} | {_fmt(v['iters_to_target'], 'd')} | "
+            f"{_fmt(v['seconds_to_target'], '.1f')} | {_fmt(v['gaussians_at_target'], 'd')} | "
+            f"{v['psnr_at_budget']:.2f} | {v['ssim_at_budget']:.3f} | {v['gaussians_at_budget']} | "
+            f"{v['peak_mem_mib']:.0f} |"
+        )
+    ir, gr = fig["iters_ratio_mogs_vs_random"], fig["gaussians_ratio_mogs_vs_random"]
+    bound = " (upper bound: random does not reach the target within the budget)"
+    lines += [
+        "",
+        f"- MOGS / random iterations to target: {_fmt(ir, '.2f')}"
+        f"{bound if fig['iters_ratio_is_upper_bound'] else ''}",
+        f"- MOGS / random Gaussians at target: {_fmt(gr, '.2f')}; at the budget: "
+        f"{_fmt(fig['gaussians_at_budget_ratio_mogs_vs_random'], '.2f')}",
+        "",
+        f"![Gaussians and fixed-view PSNR over iterations]({plot.name})",
+        "",
+        f"Machine: {machine_line()}",
+    ]
+    update_markdown_section("mapper-init-table2", "\n".join(lines))

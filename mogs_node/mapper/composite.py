@@ -1,0 +1,231 @@
+"""Front-to-back alpha compositing of depth-sorted screen-space Gaussians per tile (3DGS section 6).
+
+Two implementations with identical semantics (the per-pixel loop of 3DGS, including its skips and
+early termination; see ``csrc/composite_cpu.cpp``):
+
+- ``"cpp"``: a C++/OpenMP torch extension with a hand-written backward, compiled with
+  :func:`torch.utils.cpp_extension.load` on first use and cached by torch. If compilation fails
+  (no compiler, no headers) the failure is logged once and ``"torch"`` is used instead.
+- ``"torch"``: pure PyTorch, vectorised over tiles x pixels x a chunk of list entries, with exact
+  per-tile early termination (finished tiles leave the active set); gradients by autograd.
+
+Features are generic channels ``[N, C]`` (the rasterizer passes rgb, depth and a constant 1 so
+that colour, depth and accumulated alpha come out of one pass).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+from mogs_node.mapper.projection import TileBins
+
+__all__ = ["composite", "composite_torch", "cpp_extension_available", "load_cpp_extension"]
+
+log = logging.getLogger(__name__)
+
+_EXT: ModuleType | None = None
+_EXT_FAILED = False
+_EXT_LOCK = threading.Lock()
+
+
+def load_cpp_extension() -> ModuleType | None:
+    """Compile (first use) or load the cached C++ extension; ``None`` if that is impossible.
+
+    Set ``MOGS_NO_CPP_EXT=1`` to force the pure-PyTorch path.
+    """
+    global _EXT, _EXT_FAILED
+    if _EXT is not None or _EXT_FAILED:
+        return _EXT
+    with _EXT_LOCK:
+        if _EXT is not None or _EXT_FAILED:
+            return _EXT
+        if os.environ.get("MOGS_NO_CPP_EXT", "") not in ("", "0"):
+            _EXT_FAILED = True
+            return None
+        try:
+            from torch.utils.cpp_extension import load
+
+            src = Path(__file__).with_name("csrc") / "composite_cpu.cpp"
+            _EXT = load(
+                name="mogs_composite_cpu",
+                sources=[str(src)],
+                extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
+                extra_ldflags=["-fopenmp"],
+                verbose=False,
+            )
+        except Exception as err:  # noqa: BLE001 - any build failure means: use the fallback
+            log.warning("C++ compositing extension unavailable, using pure PyTorch: %s", err)
+            _EXT_FAILED = True
+    return _EXT
+
+
+def cpp_extension_available() -> bool:
+    """True when the C++ extension is (or can be) loaded."""
+    return load_cpp_extension() is not None
+
+
+class _CompositeCpp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds):
+        ext = load_cpp_extension()
+        alpha_min, alpha_max, t_min = thresholds
+        nthreads = torch.get_num_threads()
+        args = (
+            bins.tile_offsets,
+            bins.gauss_ids,
+            means2d.contiguous(),
+            conics.contiguous(),
+            opacity.contiguous(),
+            feats.contiguous(),
+            bg.contiguous(),
+            bins.extent_px.to(feats.dtype).contiguous(),
+        )
+        out, final_T, n_contrib, counts = ext.forward(
+            *args, width, height, bins.tile_px, bins.tiles_x, alpha_min, alpha_max, t_min, nthreads
+        )
+        ctx.save_for_backward(*args[2:], final_T, n_contrib)
+        ctx.bins, ctx.size, ctx.thr = bins, (width, height), thresholds
+        ctx.mark_non_differentiable(final_T, counts)
+        return out, final_T, counts
+
+    @staticmethod
+    def backward(ctx, grad_out, _grad_T, _grad_counts):
+        means2d, conics, opacity, feats, bg, ext, final_T, n_contrib = ctx.saved_tensors
+        bins, (width, height) = ctx.bins, ctx.size
+        alpha_min, alpha_max, _ = ctx.thr
+        g = load_cpp_extension().backward(
+            bins.tile_offsets,
+            bins.gauss_ids,
+            means2d,
+            conics,
+            opacity,
+            feats,
+            bg,
+            ext,
+            final_T,
+            n_contrib,
+            grad_out.contiguous(),
+            width,
+            height,
+            bins.tile_px,
+            bins.tiles_x,
+            alpha_min,
+            alpha_max,
+            torch.get_num_threads(),
+        )
+        grad_bg = (final_T[..., None] * grad_out).sum((0, 1))
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None
+
+
+def composite_torch(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacity: torch.Tensor,
+    feats: torch.Tensor,
+    bg: torch.Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    thresholds: tuple[float, float, float],
+    chunk: int = 32,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pure-PyTorch compositing; same inputs/outputs as :func:`composite`."""
+    alpha_min, alpha_max, t_min = thresholds
+    ts, tx_n, ty_n = bins.tile_px, bins.tiles_x, bins.tiles_y
+    n_tiles = tx_n * ty_n
+    C = feats.shape[1]
+    dt = feats.dtype
+    offs = bins.tile_offsets
+    lengths = offs[1:] - offs[:-1]
+    # pixel coordinates of each tile slot [n_tiles, ts*ts]; slots outside the image are masked
+    ly, lx = torch.meshgrid(torch.arange(ts), torch.arange(ts), indexing="ij")
+    tiles = torch.arange(n_tiles)
+    pxs = (tiles % tx_n)[:, None] * ts + lx.reshape(1, -1)
+    pys = (tiles // tx_n)[:, None] * ts + ly.reshape(1, -1)
+    inimg = (pxs < width) & (pys < height)
+    T = torch.ones(n_tiles, ts * ts, dtype=dt)
+    acc = torch.zeros(n_tiles, ts * ts, C, dtype=dt)
+    counts = torch.zeros(means2d.shape[0], dtype=torch.int32)
+    done = torch.zeros(n_tiles, ts * ts, dtype=torch.bool)
+    thr = torch.log(alpha_min / opacity.detach().clamp_min(1e-30))
+    max_len = int(lengths.max()) if n_tiles else 0
+    for k0 in range(0, max_len, chunk):
+        act = torch.nonzero((lengths > k0) & ~done.all(1)).flatten()
+        if len(act) == 0:
+            break
+        k = torch.arange(k0, k0 + chunk)
+        in_list = k[None, :] < lengths[act, None]  # [A, K]
+        idx = torch.where(in_list, offs[act, None] + k[None, :], torch.zeros_like(k[None, :]))
+        gid = bins.gauss_ids[idx]  # [A, K]
+        dx = means2d[gid, 0][:, None, :] - pxs[act][:, :, None].to(dt)  # [A, P, K]
+        dy = means2d[gid, 1][:, None, :] - pys[act][:, :, None].to(dt)
+        a, b, c = conics[gid, 0][:, None], conics[gid, 1][:, None], conics[gid, 2][:, None]
+        power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+        keep = (power <= 0) & (power >= thr[gid][:, None]) & in_list[:, None, :]
+        keep &= (~done[act] & inimg[act])[:, :, None]
+        alpha = torch.clamp_max(
+            opacity[gid][:, None] * torch.exp(power.clamp(-30.0, 0.0)), alpha_max
+        )
+        keep &= alpha >= alpha_min
+        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+        T0 = T[act]
+        with torch.no_grad():  # early termination: first entry with T (1 - alpha) < t_min and after
+            T_incl = T0.detach()[:, :, None] * torch.cumprod(1 - alpha.detach(), -1)
+            stop = T_incl < t_min
+        alpha = torch.where(stop, torch.zeros_like(alpha), alpha)
+        one_minus = 1 - alpha
+        T_excl = torch.cumprod(
+            torch.cat([torch.ones_like(alpha[..., :1]), one_minus[..., :-1]], -1), -1
+        )
+        w = alpha * T_excl * T0[:, :, None]
+        acc_new = acc[act] + torch.einsum("apk,akc->apc", w, feats[gid])
+        T_new = T0 * T_excl[..., -1] * one_minus[..., -1]
+        with torch.no_grad():
+            used = (alpha > 0) & ~stop
+            counts.index_add_(0, gid.flatten(), used.sum(1).flatten().to(torch.int32))
+            done_new = done[act] | stop.any(-1)
+        acc = acc.index_copy(0, act, acc_new)
+        T = T.index_copy(0, act, T_new)
+        done = done.index_copy(0, act, done_new)
+    # keep the graph connected when nothing is drawn (empty slices: zero gradients, never NaN)
+    anchor = means2d[:0].sum() + conics[:0].sum() + opacity[:0].sum() + feats[:0].sum()
+    out = acc + T[..., None] * bg + anchor
+    # [n_tiles, ts*ts, C] -> [H, W, C]
+    out = out.reshape(ty_n, tx_n, ts, ts, C).permute(0, 2, 1, 3, 4).reshape(ty_n * ts, tx_n * ts, C)
+    T_img = T.reshape(ty_n, tx_n, ts, ts).permute(0, 2, 1, 3).reshape(ty_n * ts, tx_n * ts)
+    return out[:height, :width], T_img[:height, :width].detach(), counts
+
+
+def composite(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacity: torch.Tensor,
+    feats: torch.Tensor,
+    bg: torch.Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    thresholds: tuple[float, float, float],
+    backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Composite screen-space Gaussians into ``[H, W, C]`` features.
+
+    ``means2d`` [N, 2], ``conics`` [N, 3], ``opacity`` [N], ``feats`` [N, C] (C <= 8), ``bg`` [C],
+    all the same float dtype; ``thresholds = (alpha_min, alpha_max, t_min)``. Returns
+    ``(out [H, W, C], final_transmittance [H, W], counts [N] int32)`` where ``counts`` is the number
+    of pixels each Gaussian contributed to. ``backend``: ``"auto"`` (C++ if available), ``"cpp"``,
+    ``"torch"``.
+    """
+    if backend in ("auto", "cpp") and load_cpp_extension() is not None:
+        return _CompositeCpp.apply(
+            means2d, conics, opacity, feats, bg, bins, width, height, thresholds
+        )
+    if backend == "cpp":
+        log.warning("composite: C++ backend requested but unavailable; using pure PyTorch")
+    return composite_torch(means2d, conics, opacity, feats, bg, bins, width, height, thresholds)

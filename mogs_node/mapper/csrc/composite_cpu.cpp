@@ -1,0 +1,361 @@
+// Front-to-back alpha compositing of depth-sorted 2D Gaussians per 16x16 tile (3DGS, Kerbl et al.
+// 2023, section 6), forward and backward, on the CPU with OpenMP over tiles (dynamic schedule).
+//
+// Semantics (identical to mogs_node/mapper/composite.py:composite_torch and to the per-pixel
+// reference): for each pixel, in list order, power = -0.5 (a dx^2 + c dy^2) - b dx dy with
+// d = mean - pixel; skip when opacity * exp(power) < alpha_min; alpha = min(alpha_max, ...);
+// stop (without this Gaussian) when T * (1 - alpha) < t_min; out += f * alpha * T.
+// The backward pass walks each pixel's list back to front (3DGS backward), recovering T by division.
+// Gradients are accumulated in per-thread buffers and summed at the end (no atomics on floats).
+#include <torch/extension.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+namespace {
+
+constexpr int kMaxC = 8;
+
+inline int thread_id() {
+#ifdef _OPENMP
+  return omp_get_thread_num();
+#else
+  return 0;
+#endif
+}
+
+template <typename scalar_t>
+struct Packed {
+  scalar_t mx, my, a, b, c, o, thr;  // thr = log(alpha_min / o): skip when power < thr
+  scalar_t ey;                        // half height of the support box (pixels)
+  int64_t id;
+};
+
+template <typename scalar_t>
+void pack_tile(const int64_t* ids, int64_t n, const scalar_t* means2d, const scalar_t* conics,
+               const scalar_t* opac, const scalar_t* ext, double alpha_min,
+               std::vector<Packed<scalar_t>>& buf) {
+  buf.resize(n);
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t g = ids[k];
+    Packed<scalar_t>& p = buf[k];
+    p.mx = means2d[2 * g];
+    p.my = means2d[2 * g + 1];
+    p.a = conics[3 * g];
+    p.b = conics[3 * g + 1];
+    p.c = conics[3 * g + 2];
+    p.o = opac[g];
+    p.thr = p.o > 0 ? static_cast<scalar_t>(std::log(alpha_min / static_cast<double>(p.o)))
+                    : static_cast<scalar_t>(INFINITY);
+    p.ey = ext[2 * g + 1];
+    p.id = g;
+  }
+}
+
+// Pixel rows [y0, y1] of the tile that the Gaussian's support box reaches (empty if y0 > y1).
+template <typename scalar_t>
+inline void row_range(const Packed<scalar_t>& p, int64_t py0, int64_t py1, int64_t& y0,
+                      int64_t& y1) {
+  const double lo = std::max(static_cast<double>(py0), std::ceil(double(p.my) - double(p.ey)));
+  const double hi = std::min(static_cast<double>(py1 - 1), std::floor(double(p.my) + double(p.ey)));
+  if (!(lo <= hi)) {
+    y0 = 1;
+    y1 = 0;
+    return;
+  }
+  y0 = static_cast<int64_t>(lo);
+  y1 = static_cast<int64_t>(hi);
+}
+
+// Pixel columns [x0, x1] of row y where power >= thr can hold: a superset of the exact ellipse
+// chord a dx^2 + 2 b dy dx + c dy^2 + 2 thr <= 0 (dx = mx - x), widened by a small margin, so
+// the in-loop test remains the only decision (results identical to a full scan).
+template <typename scalar_t>
+inline bool col_range(const Packed<scalar_t>& p, int64_t y, int64_t px0, int64_t px1,
+                      int64_t& x0, int64_t& x1) {
+  const double a = p.a, b = p.b, c = p.c, dy = double(p.my) - double(y);
+  const double q = c * dy * dy + 2.0 * double(p.thr);
+  const double disc = b * b * dy * dy - a * q;
+  const double scale = b * b * dy * dy + std::abs(a * q);
+  if (!(disc >= -1e-5 * scale) || !(a > 0)) return false;
+  const double half = std::sqrt(std::max(disc, 0.0)) / a;
+  const double centre = double(p.mx) + b * dy / a;  // x at the chord centre
+  const double m = 0.05 + 1e-4 * half;
+  const double lo = std::max(static_cast<double>(px0), std::ceil(centre - half - m));
+  const double hi = std::min(static_cast<double>(px1 - 1), std::floor(centre + half + m));
+  if (!(lo <= hi)) return false;
+  x0 = static_cast<int64_t>(lo);
+  x1 = static_cast<int64_t>(hi);
+  return true;
+}
+
+template <typename scalar_t>
+void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gauss_ids,
+                    const torch::Tensor& means2d, const torch::Tensor& conics,
+                    const torch::Tensor& opac, const torch::Tensor& feats, const torch::Tensor& bg,
+                    const torch::Tensor& ext, int64_t W, int64_t H, int64_t tile, int64_t tiles_x,
+                    double alpha_min, double alpha_max, double t_min, int nthreads,
+                    torch::Tensor& out, torch::Tensor& final_T, torch::Tensor& n_contrib,
+                    torch::Tensor& counts) {
+  const int64_t C = feats.size(1);
+  const int64_t n_tiles = tile_offsets.size(0) - 1;
+  const int64_t* offs = tile_offsets.data_ptr<int64_t>();
+  const int64_t* ids = gauss_ids.data_ptr<int64_t>();
+  const scalar_t* m2 = means2d.data_ptr<scalar_t>();
+  const scalar_t* co = conics.data_ptr<scalar_t>();
+  const scalar_t* op = opac.data_ptr<scalar_t>();
+  const scalar_t* fe = feats.data_ptr<scalar_t>();
+  const scalar_t* bgp = bg.data_ptr<scalar_t>();
+  const scalar_t* ex = ext.data_ptr<scalar_t>();
+  scalar_t* outp = out.data_ptr<scalar_t>();
+  scalar_t* Tp = final_T.data_ptr<scalar_t>();
+  int32_t* ncp = n_contrib.data_ptr<int32_t>();
+  int32_t* cnt = counts.data_ptr<int32_t>();
+  const scalar_t amax = static_cast<scalar_t>(alpha_max);
+  const scalar_t amin = static_cast<scalar_t>(alpha_min);
+  const scalar_t tmin = static_cast<scalar_t>(t_min);
+  const int64_t P = tile * tile;
+
+#pragma omp parallel num_threads(nthreads)
+  {
+    std::vector<Packed<scalar_t>> buf;
+    std::vector<scalar_t> T(P), acc(P * C);
+    std::vector<int32_t> last(P);
+    std::vector<char> done(P);
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t t = 0; t < n_tiles; ++t) {
+      const int64_t n = offs[t + 1] - offs[t];
+      pack_tile<scalar_t>(ids + offs[t], n, m2, co, op, ex, alpha_min, buf);
+      const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
+      const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
+      const int64_t n_pix = (px1 - px0) * (py1 - py0);
+      std::fill(T.begin(), T.end(), scalar_t(1));
+      std::fill(acc.begin(), acc.end(), scalar_t(0));
+      std::fill(last.begin(), last.end(), 0);
+      std::fill(done.begin(), done.end(), 0);
+      int64_t n_done = 0;
+      for (int64_t k = 0; k < n && n_done < n_pix; ++k) {
+        const Packed<scalar_t>& p = buf[k];
+        const scalar_t* f = fe + p.id * C;
+        int64_t y0, y1, x0, x1;
+        row_range(p, py0, py1, y0, y1);
+        int32_t used = 0;
+        for (int64_t y = y0; y <= y1; ++y) {
+          if (!col_range(p, y, px0, px1, x0, x1)) continue;
+          const scalar_t dy = p.my - static_cast<scalar_t>(y);
+          for (int64_t x = x0; x <= x1; ++x) {
+            const int64_t i = (y - py0) * tile + (x - px0);
+            if (done[i]) continue;
+            const scalar_t dx = p.mx - static_cast<scalar_t>(x);
+            const scalar_t power = -static_cast<scalar_t>(0.5) * (p.a * dx * dx + p.c * dy * dy) -
+                                   p.b * dx * dy;
+            if (power > 0 || power < p.thr) continue;
+            const scalar_t alpha = std::min(amax, p.o * std::exp(power));
+            if (alpha < amin) continue;
+            const scalar_t test_T = T[i] * (1 - alpha);
+            if (test_T < tmin) {
+              done[i] = 1;
+              ++n_done;
+              continue;
+            }
+            const scalar_t w = alpha * T[i];
+            scalar_t* ai = acc.data() + i * C;
+            for (int64_t ch = 0; ch < C; ++ch) ai[ch] += f[ch] * w;
+            T[i] = test_T;
+            last[i] = static_cast<int32_t>(k + 1);
+            ++used;
+          }
+        }
+        if (used) __atomic_fetch_add(cnt + p.id, used, __ATOMIC_RELAXED);
+      }
+      for (int64_t y = py0; y < py1; ++y) {
+        for (int64_t x = px0; x < px1; ++x) {
+          const int64_t i = (y - py0) * tile + (x - px0);
+          const int64_t pix = y * W + x;
+          for (int64_t ch = 0; ch < C; ++ch) outp[pix * C + ch] = acc[i * C + ch] + T[i] * bgp[ch];
+          Tp[pix] = T[i];
+          ncp[pix] = last[i];
+        }
+      }
+    }
+  }
+}
+
+template <typename scalar_t>
+void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gauss_ids,
+                     const torch::Tensor& means2d, const torch::Tensor& conics,
+                     const torch::Tensor& opac, const torch::Tensor& feats, const torch::Tensor& bg,
+                     const torch::Tensor& ext, const torch::Tensor& final_T,
+                     const torch::Tensor& n_contrib, const torch::Tensor& grad_out, int64_t W,
+                     int64_t H, int64_t tile, int64_t tiles_x, double alpha_min, double alpha_max,
+                     int nthreads, torch::Tensor& gbuf) {
+  // gbuf: [nthreads, N, 6 + C]: d means2d (2), d conic (3), d opacity (1), d feats (C)
+  const int64_t C = feats.size(1);
+  const int64_t N = means2d.size(0);
+  const int64_t S = 6 + C;
+  const int64_t n_tiles = tile_offsets.size(0) - 1;
+  const int64_t* offs = tile_offsets.data_ptr<int64_t>();
+  const int64_t* ids = gauss_ids.data_ptr<int64_t>();
+  const scalar_t* m2 = means2d.data_ptr<scalar_t>();
+  const scalar_t* co = conics.data_ptr<scalar_t>();
+  const scalar_t* op = opac.data_ptr<scalar_t>();
+  const scalar_t* fe = feats.data_ptr<scalar_t>();
+  const scalar_t* bgp = bg.data_ptr<scalar_t>();
+  const scalar_t* ex = ext.data_ptr<scalar_t>();
+  const scalar_t* Tp = final_T.data_ptr<scalar_t>();
+  const int32_t* ncp = n_contrib.data_ptr<int32_t>();
+  const scalar_t* go = grad_out.data_ptr<scalar_t>();
+  scalar_t* gb = gbuf.data_ptr<scalar_t>();
+  const scalar_t amax = static_cast<scalar_t>(alpha_max);
+  const scalar_t amin = static_cast<scalar_t>(alpha_min);
+  const int64_t P = tile * tile;
+
+#pragma omp parallel num_threads(nthreads)
+  {
+    std::vector<Packed<scalar_t>> buf;
+    std::vector<scalar_t> T(P), Tfin(P), accum(P * C), last_f(P * C), last_alpha(P), dout(P * C),
+        bg_dot(P);
+    std::vector<int32_t> nc(P);
+    scalar_t* g_thread = gb + static_cast<int64_t>(thread_id()) * N * S;
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t t = 0; t < n_tiles; ++t) {
+      const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
+      const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
+      int32_t max_nc = 0;
+      for (int64_t y = py0; y < py1; ++y) {
+        for (int64_t x = px0; x < px1; ++x) {
+          const int64_t i = (y - py0) * tile + (x - px0);
+          const int64_t pix = y * W + x;
+          T[i] = Tfin[i] = Tp[pix];
+          nc[i] = ncp[pix];
+          max_nc = std::max(max_nc, nc[i]);
+          scalar_t bd = 0;
+          for (int64_t ch = 0; ch < C; ++ch) {
+            dout[i * C + ch] = go[pix * C + ch];
+            bd += bgp[ch] * go[pix * C + ch];
+            accum[i * C + ch] = 0;
+            last_f[i * C + ch] = 0;
+          }
+          bg_dot[i] = bd;
+          last_alpha[i] = 0;
+        }
+      }
+      if (max_nc == 0) continue;
+      pack_tile<scalar_t>(ids + offs[t], max_nc, m2, co, op, ex, alpha_min, buf);
+      for (int64_t k = max_nc - 1; k >= 0; --k) {
+        const Packed<scalar_t>& p = buf[k];
+        const scalar_t* f = fe + p.id * C;
+        scalar_t gl[6 + kMaxC] = {0};
+        bool any = false;
+        int64_t y0, y1, x0, x1;
+        row_range(p, py0, py1, y0, y1);
+        for (int64_t y = y0; y <= y1; ++y) {
+          if (!col_range(p, y, px0, px1, x0, x1)) continue;
+          const scalar_t dy = p.my - static_cast<scalar_t>(y);
+          for (int64_t x = x0; x <= x1; ++x) {
+            const int64_t i = (y - py0) * tile + (x - px0);
+            if (k >= nc[i]) continue;
+            const scalar_t dx = p.mx - static_cast<scalar_t>(x);
+            const scalar_t power = -static_cast<scalar_t>(0.5) * (p.a * dx * dx + p.c * dy * dy) -
+                                   p.b * dx * dy;
+            if (power > 0 || power < p.thr) continue;
+            const scalar_t G = std::exp(power);
+            const scalar_t raw = p.o * G;
+            const scalar_t alpha = std::min(amax, raw);
+            if (alpha < amin) continue;
+            any = true;
+            T[i] = T[i] / (1 - alpha);
+            const scalar_t w = alpha * T[i];
+            const scalar_t la = last_alpha[i];
+            scalar_t* acc_i = accum.data() + i * C;
+            scalar_t* lf_i = last_f.data() + i * C;
+            const scalar_t* d_i = dout.data() + i * C;
+            scalar_t dL_dalpha = 0;
+            for (int64_t ch = 0; ch < C; ++ch) {
+              acc_i[ch] = la * lf_i[ch] + (1 - la) * acc_i[ch];
+              lf_i[ch] = f[ch];
+              dL_dalpha += (f[ch] - acc_i[ch]) * d_i[ch];
+              gl[6 + ch] += w * d_i[ch];
+            }
+            dL_dalpha *= T[i];
+            dL_dalpha -= Tfin[i] / (1 - alpha) * bg_dot[i];
+            last_alpha[i] = alpha;
+            if (raw > amax) continue;  // clamped: alpha does not depend on the parameters
+            const scalar_t dL_dpower = alpha * dL_dalpha;
+            gl[0] += -dL_dpower * (p.a * dx + p.b * dy);
+            gl[1] += -dL_dpower * (p.b * dx + p.c * dy);
+            gl[2] += -static_cast<scalar_t>(0.5) * dx * dx * dL_dpower;
+            gl[3] += -dx * dy * dL_dpower;
+            gl[4] += -static_cast<scalar_t>(0.5) * dy * dy * dL_dpower;
+            gl[5] += G * dL_dalpha;
+          }
+        }
+        if (any) {
+          scalar_t* g = g_thread + p.id * S;
+          for (int64_t j = 0; j < S; ++j) g[j] += gl[j];
+        }
+      }
+    }
+  }
+}
+
+void check_inputs(const torch::Tensor& means2d, const torch::Tensor& conics,
+                  const torch::Tensor& opac, const torch::Tensor& feats, const torch::Tensor& bg) {
+  TORCH_CHECK(means2d.is_contiguous() && conics.is_contiguous() && opac.is_contiguous() &&
+                  feats.is_contiguous() && bg.is_contiguous(),
+              "composite_cpu: inputs must be contiguous");
+  TORCH_CHECK(feats.size(1) <= kMaxC, "composite_cpu: at most 8 feature channels");
+}
+
+}  // namespace
+
+std::vector<torch::Tensor> composite_forward(torch::Tensor tile_offsets, torch::Tensor gauss_ids,
+                                             torch::Tensor means2d, torch::Tensor conics,
+                                             torch::Tensor opac, torch::Tensor feats,
+                                             torch::Tensor bg, torch::Tensor ext, int64_t W,
+                                             int64_t H, int64_t tile,
+                                             int64_t tiles_x, double alpha_min, double alpha_max,
+                                             double t_min, int64_t nthreads) {
+  check_inputs(means2d, conics, opac, feats, bg);
+  TORCH_CHECK(ext.is_contiguous() && ext.scalar_type() == feats.scalar_type(),
+              "composite_forward: ext must be contiguous and of the feature dtype");
+  const int64_t C = feats.size(1);
+  auto out = torch::empty({H, W, C}, feats.options());
+  auto final_T = torch::empty({H, W}, feats.options());
+  auto n_contrib = torch::empty({H, W}, feats.options().dtype(torch::kInt32));
+  auto counts = torch::zeros({means2d.size(0)}, feats.options().dtype(torch::kInt32));
+  AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "composite_forward", [&] {
+    forward_kernel<scalar_t>(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext, W, H, tile,
+                             tiles_x, alpha_min, alpha_max, t_min, static_cast<int>(nthreads), out,
+                             final_T, n_contrib, counts);
+  });
+  return {out, final_T, n_contrib, counts};
+}
+
+torch::Tensor composite_backward(torch::Tensor tile_offsets, torch::Tensor gauss_ids,
+                                 torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                 torch::Tensor feats, torch::Tensor bg, torch::Tensor ext,
+                                 torch::Tensor final_T,
+                                 torch::Tensor n_contrib, torch::Tensor grad_out, int64_t W,
+                                 int64_t H, int64_t tile, int64_t tiles_x, double alpha_min,
+                                 double alpha_max, int64_t nthreads) {
+  check_inputs(means2d, conics, opac, feats, bg);
+  TORCH_CHECK(grad_out.is_contiguous(), "composite_backward: grad_out must be contiguous");
+  const int64_t C = feats.size(1);
+  auto gbuf = torch::zeros({nthreads, means2d.size(0), 6 + C}, feats.options());
+  AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "composite_backward", [&] {
+    backward_kernel<scalar_t>(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext, final_T,
+                              n_contrib, grad_out, W, H, tile, tiles_x, alpha_min, alpha_max,
+                              static_cast<int>(nthreads), gbuf);
+  });
+  return gbuf.sum(0);
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &composite_forward, "tile compositing forward (CPU)");
+  m.def("backward", &composite_backward, "tile compositing backward (CPU)");
+}

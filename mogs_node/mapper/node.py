@@ -1,0 +1,217 @@
+"""Mapper node: keyframes + metrized depth -> Gaussian map (DESIGN.md sections 1, 2).
+
+Subscribes (reliable) to ``/frontend/keyframe`` and ``/metrizer/depth`` and pairs them by
+``keyframe_id`` (:class:`KeyframeDepthPairs`, pure); each complete pair goes to the pure
+:class:`~mogs_node.mapper.mapper.GaussianMapper` (insertion + ``iters_per_keyframe`` window
+iterations). After each keyframe it publishes ``/mapper/stats`` (:class:`~mogs_node.msgs.MapStats`),
+``/mapper/render`` (the map rendered at the keyframe pose) and ``/mapper/gaussians``
+(:class:`~mogs_node.msgs.GaussianUpdate`: only the Gaussians added or changed since the previous
+message and the removed ids, never the whole map). On shutdown (and every ``ply_every_kf``
+keyframes) the map is written to ``ply_path`` as a standard 3DGS PLY.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from mogs_node import msgs
+from mogs_node.errors import ConfigError, ShapeError
+from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
+from mogs_node.mapper.rasterizer import RasterParams
+from mogs_node.node import Node
+
+__all__ = ["KeyframeDepthPairs", "MapperNode", "MapperNodeParams"]
+
+
+@dataclass(frozen=True)
+class MapperNodeParams:
+    """Parameters of the mapper node (flat; the mapper core's are :class:`MapperParams`)."""
+
+    iters_per_keyframe: int = 30  # window iterations after each keyframe
+    window_size: int = 8  # keyframes in the optimisation window
+    n_random_past: int = 2  # random past keyframes per iteration
+    lambda_depth: float = 0.1  # weight of the confidence-weighted depth loss
+    exposure: bool = True  # per-keyframe affine exposure compensation
+    refine_poses: bool = False  # optimise window keyframe poses
+    densify: bool = False  # gradient-based cloning
+    backend: str = "auto"  # rasterizer backend: auto | cpp | torch | gsplat
+    threads: int = 0  # torch threads (0: torch's default)
+    max_pending: int = 16  # keyframes waiting for their depth (or depth for its keyframe)
+    publish_render: bool = True  # publish /mapper/render after each keyframe
+    ply_path: str = ""  # write the map here on shutdown ("" = never)
+    ply_every_kf: int = 0  # also write it every n keyframes (0 = only on shutdown)
+    keyframe_topic: str = "/frontend/keyframe"  # input keyframes
+    depth_topic: str = "/metrizer/depth"  # input metric depth
+    stats_topic: str = "/mapper/stats"  # output statistics
+    render_topic: str = "/mapper/render"  # output render
+    gaussians_topic: str = "/mapper/gaussians"  # output incremental map updates
+
+    def __post_init__(self) -> None:
+        if self.iters_per_keyframe < 0 or self.max_pending < 1 or self.threads < 0:
+            raise ConfigError("mapper: iters_per_keyframe >= 0, max_pending >= 1, threads >= 0")
+
+    def mapper_params(self) -> MapperParams:
+        return MapperParams(
+            raster=RasterParams(backend=self.backend),
+            window_size=self.window_size,
+            n_random_past=self.n_random_past,
+            lambda_depth=self.lambda_depth,
+            exposure=self.exposure,
+            refine_poses=self.refine_poses,
+            densify=self.densify,
+        )
+
+
+class KeyframeDepthPairs:
+    """Pairs keyframes with their depth by id; at most ``max_pending`` incomplete entries.
+
+    ``add`` returns the completed ``(keyframe, depth)`` pair or None; beyond ``max_pending`` the
+    oldest incomplete entry is evicted and counted in ``counters["evicted"]``.
+    """
+
+    def __init__(self, max_pending: int) -> None:
+        self.max_pending = max_pending
+        self._pending: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self.counters = {"paired": 0, "evicted": 0}
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def add(self, slot: str, keyframe_id: int, msg: Any) -> tuple[Any, Any] | None:
+        entry = self._pending.setdefault(keyframe_id, {})
+        entry[slot] = msg
+        if "keyframe" in entry and "depth" in entry:
+            del self._pending[keyframe_id]
+            self.counters["paired"] += 1
+            return entry["keyframe"], entry["depth"]
+        while len(self._pending) > self.max_pending:
+            self._pending.popitem(last=False)
+            self.counters["evicted"] += 1
+        return None
+
+
+def keyframe_rgb(kf: msgs.Keyframe) -> np.ndarray:
+    """The keyframe image as rgb uint8 [H, W, 3] (grey images are replicated)."""
+    img = np.asarray(kf.image)
+    return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
+
+
+def depth_for_keyframe(
+    depth: msgs.DepthMap, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Metric depth and confidence at the keyframe's size (nearest-neighbour resampling)."""
+    if depth.kind != "metric":
+        raise ShapeError(f"depth.kind: the mapper needs metric depth, got {depth.kind!r}")
+    d, c = np.asarray(depth.depth, np.float32), np.asarray(depth.confidence, np.float32)
+    if d.shape != (height, width):
+        d = cv2.resize(d, (width, height), interpolation=cv2.INTER_NEAREST)
+        c = cv2.resize(c, (width, height), interpolation=cv2.INTER_NEAREST)
+    return d, c
+
+
+class MapperNode(Node):
+    """Gaussian mapper process; see the module docstring."""
+
+    Params = MapperNodeParams
+
+    def setup(self) -> None:
+        p: MapperNodeParams = self.params
+        if p.threads:
+            torch.set_num_threads(p.threads)
+        self.pairs = KeyframeDepthPairs(p.max_pending)
+        self.mapper: GaussianMapper | None = None
+        self.counters.update({"keyframes_mapped": 0, "keyframes_rejected": 0})
+        self.subscribe(p.keyframe_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe)
+        self.subscribe(p.depth_topic, self.on_depth, reliable=True, msg_type=msgs.DepthMap)
+
+    def on_keyframe(self, msg: msgs.Keyframe) -> None:
+        pair = self.pairs.add("keyframe", msg.keyframe_id, msg)
+        if pair is not None:
+            self.process(*pair)
+
+    def on_depth(self, msg: msgs.DepthMap) -> None:
+        pair = self.pairs.add("depth", msg.keyframe_id, msg)
+        if pair is not None:
+            self.process(*pair)
+
+    def process(self, kf: msgs.Keyframe, depth: msgs.DepthMap) -> None:
+        p: MapperNodeParams = self.params
+        rgb = keyframe_rgb(kf)
+        H, W = rgb.shape[:2]
+        if self.mapper is None:
+            self.mapper = GaussianMapper(p.mapper_params(), kf.K, W, H)
+        m = self.mapper
+        if (m.width, m.height) != (W, H) or not np.allclose(kf.K, m.K_matrix):
+            self.counters["keyframes_rejected"] += 1
+            self.log.warning("keyframe %d: camera differs from the map's; skipped", kf.keyframe_id)
+            return
+        d, c = depth_for_keyframe(depth, W, H)
+        n_new = m.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
+        st = m.optimize(p.iters_per_keyframe)
+        self.counters["keyframes_mapped"] += 1
+        self.publish(
+            p.stats_topic,
+            msgs.MapStats(
+                stamp_ns=kf.stamp_ns,
+                frame_id="world",
+                keyframe_id=kf.keyframe_id,
+                n_gaussians=int(st["n_gaussians"]),
+                n_keyframes=int(st["n_keyframes"]),
+                iterations=int(st["iterations"]),
+                loss=float(st["loss"]),
+                psnr_db=float(st["psnr_db"]),
+                extra={"inserted": float(n_new), "pruned": st["n_pruned"], "window": st["window"]},
+            ),
+        )
+        if p.publish_render:
+            r = m.render_view(m.keyframe_pose(kf.keyframe_id))
+            depth_m = (r.depth / r.alpha.clamp_min(1e-6)).where(r.alpha > 1e-3, torch.zeros(()))
+            self.publish(
+                p.render_topic,
+                msgs.Render(
+                    stamp_ns=kf.stamp_ns,
+                    frame_id=kf.frame_id,
+                    keyframe_id=kf.keyframe_id,
+                    image=(r.color.numpy() * 255 + 0.5).astype(np.uint8),
+                    depth=np.nan_to_num(depth_m.numpy()).astype(np.float32),
+                ),
+            )
+        ch = m.drain_changes()
+        self.publish(
+            p.gaussians_topic,
+            msgs.GaussianUpdate(
+                stamp_ns=kf.stamp_ns,
+                frame_id="world",
+                keyframe_id=kf.keyframe_id,
+                ids=ch.ids,
+                means=ch.means,
+                log_scales=ch.log_scales,
+                quats_wxyz=ch.quats_wxyz,
+                opacity_logit=ch.opacity_logit,
+                colors_rgb=ch.colors,
+                removed_ids=ch.removed_ids,
+            ),
+        )
+        if (
+            p.ply_path
+            and p.ply_every_kf
+            and self.counters["keyframes_mapped"] % p.ply_every_kf == 0
+        ):
+            export_ply(m, p.ply_path)
+
+    def teardown(self) -> None:
+        p: MapperNodeParams = self.params
+        if p.ply_path and self.mapper is not None:
+            export_ply(self.mapper, p.ply_path)
+            self.log.info("map written to %s (%d Gaussians)", p.ply_path, len(self.mapper.map))
+
+
+def with_params(params: MapperNodeParams, **kw: Any) -> MapperNodeParams:
+    """A copy of ``params`` with fields replaced (convenience for launch code and tests)."""
+    return replace(params, **kw)

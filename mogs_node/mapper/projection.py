@@ -1,0 +1,224 @@
+"""Differentiable projection of 3D Gaussians to screen-space 2D Gaussians, and tile binning.
+
+This is the first half of 3D Gaussian splatting (Kerbl et al. 2023, section 4; EWA splatting of
+Zwicker et al. 2002): every Gaussian ``N(mu, Sigma)`` with ``Sigma = R S S^T R^T`` is moved into
+the camera frame and linearised around its centre, ``Sigma_2d = J W Sigma W^T J^T + eps I``. The
+second half (front-to-back alpha compositing) lives in :mod:`mogs_node.mapper.composite`.
+
+Everything here is plain PyTorch, vectorised over Gaussians, differentiable with autograd for
+the Gaussian parameters and for a 6-DoF camera pose tangent (:func:`se3_exp_torch`).
+
+Support radius: a Gaussian contributes to a pixel only where ``opacity * G >= alpha_min``
+(3DGS skips smaller alphas). That region is the ellipse ``d^T Sigma_2d^-1 d <= 2 ln(opacity /
+alpha_min)``, whose axis-aligned extents are ``sqrt(2 ln(opacity / alpha_min) Sigma_2d[i, i])``.
+Binning with this exact extent (instead of the usual 3-sigma) makes the tiled rasterizer agree
+exactly with a per-pixel reference that looks at every Gaussian.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = [
+    "Projected",
+    "TileBins",
+    "bin_tiles",
+    "project_gaussians",
+    "quat_wxyz_to_rotmat_torch",
+    "se3_exp_torch",
+]
+
+
+def quat_wxyz_to_rotmat_torch(quats_wxyz: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``[N, 3, 3]`` from (not necessarily unit) quaternions ``[N, 4]`` wxyz."""
+    q = quats_wxyz / quats_wxyz.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def _hat(v: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack(
+        [z, -v[..., 2], v[..., 1], v[..., 2], z, -v[..., 0], -v[..., 1], v[..., 0], z], -1
+    ).reshape(v.shape[:-1] + (3, 3))
+
+
+def se3_exp_torch(xi: torch.Tensor) -> torch.Tensor:
+    """SE(3) exponential of tangents ``xi = [rho, phi]`` (``[..., 6]``) -> ``[..., 4, 4]``.
+
+    Same convention as :func:`mogs_node.geometry.se3_exp`; differentiable everywhere, including
+    at ``xi = 0`` (Taylor expansions below a small angle, with NaN-safe branches).
+    """
+    rho, phi = xi[..., :3], xi[..., 3:]
+    th2 = (phi * phi).sum(-1)
+    small = th2 < 1e-8
+    th2_safe = torch.where(small, torch.ones_like(th2), th2)
+    th = th2_safe.sqrt()
+    A = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
+    B = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2_safe)
+    C = torch.where(small, 1.0 / 6 - th2 / 120, (th - torch.sin(th)) / (th2_safe * th))
+    Phi = _hat(phi)
+    Phi2 = Phi @ Phi
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(Phi.shape)
+    R = eye + A[..., None, None] * Phi + B[..., None, None] * Phi2
+    V = eye + B[..., None, None] * Phi + C[..., None, None] * Phi2
+    t = (V @ rho[..., None])[..., 0]
+    top = torch.cat([R, t[..., None]], -1)
+    bottom = torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype, device=xi.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+@dataclass
+class Projected:
+    """Screen-space Gaussians (all ``[N, ...]``, differentiable except ``valid`` / ``extent_px``).
+
+    ``means2d_px`` [N, 2] pixel centre (pixel centres at integer coordinates); ``conics`` [N, 3]
+    the upper triangle ``(a, b, c)`` of ``Sigma_2d^-1``; ``depths_m`` [N] camera z; ``opacity``
+    [N] in (0, 1); ``valid`` [N] bool (in front of the near plane, opaque enough, on screen);
+    ``extent_px`` [N, 2] half widths of the support box (exact, see module docstring).
+    """
+
+    means2d_px: torch.Tensor
+    conics: torch.Tensor
+    depths_m: torch.Tensor
+    opacity: torch.Tensor
+    valid: torch.Tensor
+    extent_px: torch.Tensor
+
+
+def project_gaussians(
+    means: torch.Tensor,
+    quats_wxyz: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logit: torch.Tensor,
+    T_cam_world: torch.Tensor,
+    K: tuple[float, float, float, float],
+    width: int,
+    height: int,
+    *,
+    near_m: float,
+    eps2d_px2: float,
+    alpha_min: float,
+    log_scale_range: tuple[float, float],
+    fov_clamp: float = 1.3,
+) -> Projected:
+    """Project Gaussians (EWA, 3DGS section 4) for the camera ``T_cam_world`` [4, 4].
+
+    ``means`` [N, 3] world, ``quats_wxyz`` [N, 4], ``log_scales`` [N, 3] (clamped to
+    ``log_scale_range`` so that degenerate or exploding scales stay finite), ``opacity_logit``
+    [N], ``K = (fx, fy, cx, cy)`` in pixels. Gaussians behind ``near_m`` are marked invalid and get
+    zero gradients (NaN-safe ``where`` branches, never a division by a non-positive depth).
+    """
+    fx, fy, cx, cy = (float(v) for v in K)
+    dt = means.dtype
+    R_cw = T_cam_world[:3, :3].to(dt)
+    t_cw = T_cam_world[:3, 3].to(dt)
+    p_cam = means @ R_cw.T + t_cw
+    z = p_cam[:, 2]
+    in_front = z > near_m
+    z_s = torch.where(in_front, z, torch.ones_like(z))
+    x_s = torch.where(in_front, p_cam[:, 0], torch.zeros_like(z))
+    y_s = torch.where(in_front, p_cam[:, 1], torch.zeros_like(z))
+    u = fx * x_s / z_s + cx
+    v = fy * y_s / z_s + cy
+    # Jacobian of the perspective map at a clamped view direction (3DGS: avoids huge J off-screen)
+    lim_x = fov_clamp * max(cx + 0.5, width - 0.5 - cx) / fx
+    lim_y = fov_clamp * max(cy + 0.5, height - 0.5 - cy) / fy
+    tx = (x_s / z_s).clamp(-lim_x, lim_x)
+    ty = (y_s / z_s).clamp(-lim_y, lim_y)
+    inv_z = 1.0 / z_s
+    zero = torch.zeros_like(z)
+    J = torch.stack(
+        [fx * inv_z, zero, -fx * tx * inv_z, zero, fy * inv_z, -fy * ty * inv_z], -1
+    ).reshape(-1, 2, 3)
+    R = quat_wxyz_to_rotmat_torch(quats_wxyz)
+    s = torch.exp(log_scales.clamp(*log_scale_range))
+    M = (J @ R_cw) @ (R * s[:, None, :])  # [N, 2, 3]
+    cov = M @ M.transpose(1, 2)
+    a = cov[:, 0, 0] + eps2d_px2
+    b = cov[:, 0, 1]
+    c = cov[:, 1, 1] + eps2d_px2
+    det = (a * c - b * b).clamp_min(1e-12)
+    conics = torch.stack([c / det, -b / det, a / det], -1)
+    opacity = torch.sigmoid(opacity_logit)
+    with torch.no_grad():
+        ln_ratio = torch.log((opacity / alpha_min).clamp_min(1.0))
+        ext = torch.stack([(2 * ln_ratio * a).sqrt(), (2 * ln_ratio * c).sqrt()], -1) + 1e-3
+        valid = in_front & (opacity >= alpha_min) & torch.isfinite(ext).all(-1)
+        valid &= (u + ext[:, 0] >= 0) & (u - ext[:, 0] <= width - 1)
+        valid &= (v + ext[:, 1] >= 0) & (v - ext[:, 1] <= height - 1)
+    return Projected(torch.stack([u, v], -1), conics, z, opacity, valid, ext)
+
+
+@dataclass
+class TileBins:
+    """Per-tile depth-sorted Gaussian lists: ``gauss_ids[tile_offsets[t]:tile_offsets[t+1]]``.
+
+    ``tile_offsets`` [n_tiles + 1] int64, ``gauss_ids`` [M] int64; tiles are row-major,
+    ``tiles_x * tiles_y`` of ``tile_px`` square pixels. ``extent_px`` [N, 2] the support half
+    widths (:attr:`Projected.extent_px`), which the C++ kernel uses to visit only covered pixels.
+    """
+
+    tile_offsets: torch.Tensor
+    gauss_ids: torch.Tensor
+    tiles_x: int
+    tiles_y: int
+    tile_px: int
+    extent_px: torch.Tensor
+
+
+@torch.no_grad()
+def bin_tiles(proj: Projected, width: int, height: int, tile_px: int) -> TileBins:
+    """Assign every valid Gaussian to the tiles its support box overlaps, sorted by depth."""
+    tiles_x, tiles_y = math.ceil(width / tile_px), math.ceil(height / tile_px)
+    n_tiles = tiles_x * tiles_y
+    order = torch.argsort(proj.depths_m.detach().float(), stable=True)
+    order = order[proj.valid[order]]
+    uv = proj.means2d_px.detach()[order].double()
+    ext = proj.extent_px[order].double()
+    x0 = torch.ceil(uv[:, 0] - ext[:, 0]).clamp(0, width - 1).long() // tile_px
+    x1 = torch.floor(uv[:, 0] + ext[:, 0]).clamp(0, width - 1).long() // tile_px
+    y0 = torch.ceil(uv[:, 1] - ext[:, 1]).clamp(0, height - 1).long() // tile_px
+    y1 = torch.floor(uv[:, 1] + ext[:, 1]).clamp(0, height - 1).long() // tile_px
+    nx = (x1 - x0 + 1).clamp_min(0)
+    ny = (y1 - y0 + 1).clamp_min(0)
+    counts = nx * ny
+    total = int(counts.sum())
+    if total == 0:
+        return TileBins(
+            torch.zeros(n_tiles + 1, dtype=torch.long),
+            torch.zeros(0, dtype=torch.long),
+            tiles_x,
+            tiles_y,
+            tile_px,
+            proj.extent_px,
+        )
+    owner = torch.repeat_interleave(torch.arange(len(order)), counts)
+    start = torch.cumsum(counts, 0) - counts
+    local = torch.arange(total) - start[owner]
+    tx = x0[owner] + local % nx[owner]
+    ty = y0[owner] + local // nx[owner]
+    tile_id = ty * tiles_x + tx
+    tile_sorted, perm = torch.sort(tile_id, stable=True)  # stable: keeps depth order per tile
+    gauss_ids = order[owner[perm]]
+    per_tile = torch.bincount(tile_sorted, minlength=n_tiles)
+    offsets = torch.zeros(n_tiles + 1, dtype=torch.long)
+    offsets[1:] = torch.cumsum(per_tile, 0)
+    return TileBins(offsets, gauss_ids, tiles_x, tiles_y, tile_px, proj.extent_px)

@@ -1,0 +1,171 @@
+"""The rasterizer interface: render colour, depth and alpha of a Gaussian set for one camera.
+
+:func:`render` = :func:`~mogs_node.mapper.projection.project_gaussians` (EWA projection, 3DGS
+section 4) + :func:`~mogs_node.mapper.projection.bin_tiles` + front-to-back compositing
+(:mod:`mogs_node.mapper.composite`, 3DGS section 6). It is differentiable for every Gaussian
+parameter and for a 6-DoF camera pose tangent ``pose_tangent`` (left perturbation,
+``T_cam_world <- exp(xi) T_cam_world``, as MonoGS uses for tracking and window pose refinement).
+
+Backends (``RasterParams.backend``): ``"auto"`` picks ``"gsplat"`` when the tensors live on a CUDA
+device and gsplat imports, else the CPU tile rasterizer (C++/OpenMP extension when it compiles,
+pure PyTorch otherwise); ``"cpp"``, ``"torch"``, ``"gsplat"`` force one.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+
+from mogs_node.errors import ConfigError, ShapeError
+from mogs_node.mapper.composite import composite
+from mogs_node.mapper.projection import bin_tiles, project_gaussians, se3_exp_torch
+
+__all__ = ["GaussianTensors", "RasterParams", "RenderOutput", "check_gaussians", "render"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RasterParams:
+    """Rasterizer settings (defaults follow 3DGS / MonoGS)."""
+
+    backend: str = "auto"  # auto | cpp | torch | gsplat
+    tile_px: int = 16  # square tile size in pixels
+    near_m: float = 0.01  # Gaussians with camera z <= near_m are not drawn
+    eps2d_px2: float = 0.3  # screen-space dilation added to the 2D covariance (anti-aliasing)
+    alpha_min: float = 1.0 / 255.0  # smaller per-Gaussian alphas are skipped
+    alpha_max: float = 0.99  # per-Gaussian alpha clamp
+    t_min: float = 1e-4  # a pixel stops when its transmittance would fall below this
+    log_scale_min: float = -12.0  # log-scales are clamped into [min, max] before exp
+    log_scale_max: float = 8.0
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("auto", "cpp", "torch", "gsplat"):
+            raise ConfigError(f"RasterParams.backend: unknown backend {self.backend!r}")
+        if self.tile_px <= 0 or self.near_m <= 0 or not 0 < self.alpha_min < self.alpha_max < 1:
+            raise ConfigError(
+                "RasterParams: tile_px, near_m must be > 0; 0 < alpha_min < alpha_max < 1"
+            )
+
+
+@dataclass
+class GaussianTensors:
+    """A set of N Gaussians as tensors (world frame).
+
+    ``means`` [N, 3], ``quats_wxyz`` [N, 4] (normalised inside), ``log_scales`` [N, 3],
+    ``opacity_logit`` [N], ``colors`` [N, 3] (rgb in [0, 1], used as-is).
+    """
+
+    means: torch.Tensor
+    quats_wxyz: torch.Tensor
+    log_scales: torch.Tensor
+    opacity_logit: torch.Tensor
+    colors: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+
+@dataclass
+class RenderOutput:
+    """``color`` [H, W, 3], ``depth`` [H, W] (z-depth weighted by alpha, not normalised: divide
+    by ``alpha`` for the expected depth of the covered part), ``alpha`` [H, W] accumulated opacity,
+    ``counts`` [N] int32 number of pixels each Gaussian contributed to (visibility)."""
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    counts: torch.Tensor
+
+
+def check_gaussians(g: GaussianTensors) -> None:
+    """Raise :class:`ShapeError` naming the field if shapes/dtypes are inconsistent."""
+    n = g.means.shape[0] if g.means.ndim == 2 else -1
+    want = {
+        "means": (n, 3),
+        "quats_wxyz": (n, 4),
+        "log_scales": (n, 3),
+        "opacity_logit": (n,),
+        "colors": (n, 3),
+    }
+    for name, shape in want.items():
+        t = getattr(g, name)
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
+            got = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+            raise ShapeError(f"gaussians.{name}: expected shape {list(shape)}, got {got}")
+        if not t.is_floating_point() or t.dtype != g.means.dtype:
+            raise ShapeError(f"gaussians.{name}: expected dtype {g.means.dtype}, got {t.dtype}")
+
+
+def render(
+    gaussians: GaussianTensors,
+    T_cam_world: torch.Tensor,
+    K: tuple[float, float, float, float],
+    width: int,
+    height: int,
+    *,
+    background: torch.Tensor | None = None,
+    pose_tangent: torch.Tensor | None = None,
+    params: RasterParams = RasterParams(),  # noqa: B008 - frozen dataclass
+) -> RenderOutput:
+    """Render ``gaussians`` seen from ``T_cam_world`` [4, 4] (world -> camera).
+
+    ``K = (fx, fy, cx, cy)`` pixels; ``background`` [3] rgb (default black); ``pose_tangent``
+    [6] optional SE(3) tangent ``[rho, phi]`` applied on the left of ``T_cam_world`` (pass a
+    zero tensor with ``requires_grad`` to get the pose gradient).
+    """
+    check_gaussians(gaussians)
+    if not isinstance(T_cam_world, torch.Tensor) or tuple(T_cam_world.shape) != (4, 4):
+        raise ShapeError("T_cam_world: expected a [4, 4] tensor")
+    if width <= 0 or height <= 0:
+        raise ShapeError(f"width/height: must be positive, got {width}x{height}")
+    dt, dev = gaussians.means.dtype, gaussians.means.device
+    T = T_cam_world.to(dtype=dt, device=dev)
+    if pose_tangent is not None:
+        if tuple(pose_tangent.shape) != (6,):
+            raise ShapeError("pose_tangent: expected shape [6]")
+        T = se3_exp_torch(pose_tangent.to(dt)) @ T
+    bg = torch.zeros(3, dtype=dt, device=dev) if background is None else background.to(dt)
+    backend = params.backend
+    if backend == "gsplat" or (backend == "auto" and dev.type == "cuda"):
+        from mogs_node.mapper.raster_gsplat import gsplat_available, render_gsplat
+
+        if gsplat_available() and dev.type == "cuda":
+            return render_gsplat(gaussians, T, K, width, height, bg, params)
+        raise ConfigError(
+            "RasterParams.backend: CUDA tensors need gsplat (pip install 'mogs-node[cuda]'); "
+            "gsplat needs CUDA tensors and a usable gsplat install"
+        )
+    proj = project_gaussians(
+        gaussians.means,
+        gaussians.quats_wxyz,
+        gaussians.log_scales,
+        gaussians.opacity_logit,
+        T,
+        K,
+        width,
+        height,
+        near_m=params.near_m,
+        eps2d_px2=params.eps2d_px2,
+        alpha_min=params.alpha_min,
+        log_scale_range=(params.log_scale_min, params.log_scale_max),
+    )
+    bins = bin_tiles(proj, width, height, params.tile_px)
+    ones = torch.ones_like(proj.depths_m)[:, None]
+    feats = torch.cat([gaussians.colors, proj.depths_m[:, None], ones], 1)
+    bg5 = torch.cat([bg, torch.zeros(2, dtype=dt, device=dev)])
+    out, _, counts = composite(
+        proj.means2d_px,
+        proj.conics,
+        proj.opacity,
+        feats,
+        bg5,
+        bins,
+        width,
+        height,
+        (params.alpha_min, params.alpha_max, params.t_min),
+        backend="torch" if backend == "torch" else "auto",
+    )
+    return RenderOutput(out[..., :3], out[..., 3], out[..., 4], counts)

@@ -1,0 +1,263 @@
+"""Mapper core: Gaussian map bookkeeping, insertion, window, optimisation, PLY."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+
+from mogs_node.errors import ConfigError, ShapeError
+from mogs_node.geometry import make_T, rotmat_from_rpy
+from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap
+from mogs_node.mapper.insertion import (
+    InsertionParams,
+    insertion_mask,
+    random_depth,
+    sample_gaussians,
+)
+from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
+from mogs_node.mapper.ply import PLY_PROPERTIES, read_gaussian_ply, write_gaussian_ply
+from mogs_node.mapper.window import overlap_coefficient, update_window
+
+W, H = 64, 32
+K = np.array([[40.0, 0, 31.5], [0, 40.0, 15.5], [0, 0, 1]])
+
+
+def plane_view(depth_m: float = 5.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A textured fronto-parallel wall: smooth random colours (uint8) and constant depth."""
+    rng = np.random.default_rng(seed)
+    coarse = rng.uniform(0, 1, size=(H // 8 + 1, W // 8 + 1, 3))
+    yy, xx = np.mgrid[0:H, 0:W] / 8.0
+    y0, x0 = yy.astype(int), xx.astype(int)
+    fy, fx = (yy - y0)[..., None], (xx - x0)[..., None]
+    img = (
+        coarse[y0, x0] * (1 - fx) * (1 - fy)
+        + coarse[y0, x0 + 1] * fx * (1 - fy)
+        + coarse[y0 + 1, x0] * (1 - fx) * fy
+        + coarse[y0 + 1, x0 + 1] * fx * fy
+    )
+    return (img * 255).astype(np.uint8), np.full((H, W), depth_m, np.float32)
+
+
+def random_values(n: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "means": torch.randn(n, 3, generator=g),
+        "quats_wxyz": torch.randn(n, 4, generator=g),
+        "log_scales": torch.randn(n, 3, generator=g),
+        "opacity_logit": torch.randn(n, generator=g),
+        "colors": torch.rand(n, 3, generator=g),
+    }
+
+
+def test_gaussian_map_ids_changes_and_sparse_adam() -> None:
+    m = GaussianMap()
+    ids_a = m.add(random_values(5), birth_kf=0)
+    ids_b = m.add(random_values(3, 1), birth_kf=1)
+    assert ids_a.tolist() == [0, 1, 2, 3, 4] and ids_b.tolist() == [5, 6, 7]
+    first = m.drain_changes()
+    assert first.ids.tolist() == list(range(8)) and len(first.removed_ids) == 0
+    np.testing.assert_array_equal(first.means[5:], random_values(3, 1)["means"].numpy())
+    assert len(m.drain_changes().ids) == 0  # nothing changed since
+    before = {k: v.clone() for k, v in m.params.items()}
+    rows = torch.tensor([1, 6])
+    m.adam_step(
+        rows,
+        {k: torch.ones_like(m.params[k][rows]) for k in PARAM_NAMES},
+        {k: 0.1 for k in PARAM_NAMES},
+    )
+    moved = (m.params["means"] != before["means"]).any(1)
+    assert moved.tolist() == [False, True, False, False, False, False, True, False]
+    # first Adam step moves by exactly lr * sign(grad)
+    torch.testing.assert_close(
+        before["means"][rows] - m.params["means"][rows], torch.full((2, 3), 0.1)
+    )
+    m.remove(torch.tensor([True, False, False, False, False, False, True, False]))
+    ch = m.drain_changes()
+    assert ch.removed_ids.tolist() == [0, 6] and ch.ids.tolist() == [1]
+    assert m.ids.tolist() == [1, 2, 3, 4, 5, 7]
+    with pytest.raises(ShapeError, match="colors"):
+        m.add({**random_values(2), "colors": torch.zeros(3, 3)}, birth_kf=2)
+
+
+def test_insertion_mask_explained_unexplained_and_disagreeing() -> None:
+    p = InsertionParams()
+    d = np.full((4, 4), 10.0, np.float32)
+    d[0, 0] = 0.0  # no depth here
+    c = np.ones_like(d)
+    assert insertion_mask(d, c, None, None, p).sum() == 15
+    alpha = np.ones_like(d)
+    agree = d.copy()
+    assert insertion_mask(d, c, alpha, agree, p).sum() == 0
+    alpha[1, 1] = 0.2  # low rendered opacity
+    agree[2, 2] = 13.0  # depth disagreement (30 %)
+    m = insertion_mask(d, c, alpha, agree, p)
+    assert m.sum() == 2 and m[1, 1] and m[2, 2]
+    c[2, 2] = 0.1  # unconfident depth does not count as disagreement
+    assert insertion_mask(d, c, alpha, agree, p).sum() == 1
+    assert (
+        insertion_mask(d, np.ones_like(d), alpha, agree, InsertionParams(check_depth=False)).sum()
+        == 1
+    )
+
+
+def test_sample_gaussians_backprojects_to_their_pixels_with_footprint_scale() -> None:
+    img, depth = plane_view(8.0)
+    depth[:, W // 2 :] = 60.0  # far half: coarser stride
+    T_world_cam = make_T(rotmat_from_rpy(0.1, -0.2, 0.3), np.array([1.0, 2.0, -3.0]))
+    p = InsertionParams(stride_px=2, far_depth_m=25.0)
+    g = sample_gaussians(img, depth, np.ones_like(depth), np.ones((H, W), bool), K, T_world_cam, p)
+    means = g["means"].numpy().astype(np.float64)
+    p_cam = (means - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+    u = K[0, 0] * p_cam[:, 0] / p_cam[:, 2] + K[0, 2]
+    v = K[1, 1] * p_cam[:, 1] / p_cam[:, 2] + K[1, 2]
+    np.testing.assert_allclose(u, np.round(u), atol=1e-3)
+    np.testing.assert_allclose(v, np.round(v), atol=1e-3)
+    ui, vi = np.round(u).astype(int), np.round(v).astype(int)
+    np.testing.assert_allclose(p_cam[:, 2], depth[vi, ui], rtol=1e-5)
+    np.testing.assert_allclose(g["colors"].numpy(), img[vi, ui] / 255.0, atol=1e-6)
+    near, far = ui < W // 2, ui >= W // 2
+    assert near.sum() == (H // 2) * (W // 4)  # stride 2 on the near half
+    assert far.sum() == (H // 8) * (W // 16)  # 60 m: two octaves beyond 25 m -> stride 8
+    sigma = np.exp(g["log_scales"].numpy()[:, 0])
+    np.testing.assert_allclose(sigma[near], 2 * 8.0 / 40.0, rtol=1e-5)
+    np.testing.assert_allclose(sigma[far], 8 * 60.0 / 40.0, rtol=1e-5)
+    r = random_depth((H, W), 1.0, 50.0, seed=3)
+    assert r.shape == (H, W) and r.min() >= 1.0 and r.max() <= 50.0
+
+
+def test_window_keeps_newest_and_drops_least_overlapping() -> None:
+    assert overlap_coefficient(np.array([1, 2, 3]), np.array([2, 3, 4, 5])) == pytest.approx(2 / 3)
+    vis = {
+        0: np.arange(0, 100),
+        1: np.arange(50, 150),
+        2: np.arange(90, 190),
+        3: np.arange(95, 200),
+    }
+    win, dropped = update_window([2, 1, 0], 3, vis, size=2, overlap_min=0.05)
+    assert win == [3, 2] and set(dropped) == {0, 1}
+    win, dropped = update_window([], 0, vis, size=3, overlap_min=0.3)
+    assert win == [0] and dropped == []
+
+
+def test_ply_roundtrip_standard_layout(tmp_path) -> None:
+    v = random_values(7)
+    colors = v["colors"].numpy()
+    path = write_gaussian_ply(
+        tmp_path / "m.ply",
+        v["means"].numpy(),
+        v["quats_wxyz"].numpy(),
+        v["log_scales"].numpy(),
+        v["opacity_logit"].numpy(),
+        colors,
+    )
+    ply = PlyData.read(str(path))
+    assert ply["vertex"].data.dtype.names == PLY_PROPERTIES
+    assert ply["vertex"].count == 7 and not ply.text
+    back = read_gaussian_ply(path)
+    np.testing.assert_allclose(back["means"], v["means"].numpy())
+    np.testing.assert_allclose(back["quats_wxyz"], v["quats_wxyz"].numpy())
+    np.testing.assert_allclose(back["colors_rgb"], colors, atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(ply["vertex"]["f_dc_0"]), (colors[:, 0] - 0.5) / 0.28209479177387814, rtol=1e-6
+    )
+
+
+def _mapper(**kw) -> GaussianMapper:
+    return GaussianMapper(MapperParams(**kw), K, W, H)
+
+
+def test_mapper_fits_a_view_and_does_not_reinsert_explained_parts(tmp_path) -> None:
+    img, depth = plane_view()
+    conf = np.ones_like(depth)
+    m = _mapper(n_random_past=0)
+    n0 = m.add_keyframe(10, img, np.eye(4), depth, conf)
+    assert n0 == len(m.map) > 0
+    psnr_0 = m.optimize(1)["psnr_db"]
+    stats = m.optimize(40)
+    assert stats["psnr_db"] > psnr_0 + 3.0
+    assert stats["iterations"] == 41
+    r = m.render_view(np.eye(4))
+    assert float(r.alpha.mean()) > 0.95
+    # the same view again is explained: (almost) nothing new
+    n1 = m.add_keyframe(11, img, np.eye(4), depth, conf)
+    assert n1 < 0.02 * n0
+    # a view that looks further right explains its left part only
+    T_right = make_T(np.eye(3), np.array([1.5, 0.0, 0.0]))
+    img2, _ = plane_view(seed=0)
+    n2 = m.add_keyframe(12, img2, T_right, depth, conf)
+    assert 0 < n2 < 0.6 * n0
+    export_ply(m, str(tmp_path / "map.ply"))
+    assert len(read_gaussian_ply(tmp_path / "map.ply")["means"]) == len(m.map)
+
+
+def test_mapper_optimises_only_what_the_window_sees() -> None:
+    img, depth = plane_view()
+    m = _mapper(n_random_past=0, window_size=1)
+    m.add_keyframe(0, img, np.eye(4), depth, np.ones_like(depth))
+    m.optimize(2)
+    # a second keyframe looking the other way: its window does not see keyframe 0's Gaussians
+    T_back = make_T(rotmat_from_rpy(0.0, np.pi, 0.0), np.zeros(3))
+    m.add_keyframe(1, img, T_back, depth, np.ones_like(depth))
+    m.drain_changes()
+    old_rows = m.map.birth_kf == 0
+    before = m.map.params["means"][old_rows].clone()
+    m.optimize(3)
+    assert torch.equal(m.map.params["means"][old_rows], before)
+    changed = set(m.drain_changes().ids.tolist())
+    assert changed and changed.isdisjoint(set(m.map.ids[old_rows].tolist()))
+
+
+def test_mapper_prunes_transparent_gaussians_and_reports_removals() -> None:
+    img, depth = plane_view()
+    m = _mapper(n_random_past=0)
+    m.add_keyframe(0, img, np.eye(4), depth, np.ones_like(depth))
+    m.map.params["opacity_logit"][:10] = -20.0
+    m.drain_changes()
+    m.optimize(1)
+    ch = m.drain_changes()
+    assert len(ch.removed_ids) >= 10 and set(range(10)) <= set(ch.removed_ids.tolist())
+    assert m.stats()["n_pruned"] >= 10
+
+
+def test_mapper_rejects_bad_inputs() -> None:
+    img, depth = plane_view()
+    m = _mapper()
+    with pytest.raises(ShapeError, match="depth_m"):
+        m.add_keyframe(0, img, np.eye(4), depth[:-1], np.ones_like(depth))
+    with pytest.raises(ShapeError, match="T_world_cam"):
+        m.add_keyframe(0, img, np.full((4, 4), np.nan), depth, np.ones_like(depth))
+    with pytest.raises(ConfigError):
+        MapperParams(window_size=0)
+
+
+def test_psnr_and_ssim_known_values() -> None:
+    from mogs_node.mapper.image_metrics import psnr_db, ssim
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, (20, 30, 3))
+    assert ssim(img, img) == pytest.approx(1.0)
+    assert psnr_db(0.9 * img + 0.1, 0.9 * img) == pytest.approx(20.0)
+    assert psnr_db(np.full((4, 4, 3), 0.5), np.full((4, 4, 3), 0.6)) == pytest.approx(20.0)
+    noisy = np.clip(img + rng.normal(0, 0.2, img.shape), 0, 1)
+    assert 0.0 < ssim(noisy, img) < 0.9
+    assert psnr_db((img * 255).astype(np.uint8), img) > 40.0
+
+
+def test_map_eval_ratios_bound_when_random_never_reaches_target() -> None:
+    from mogs_node.eval.map import _ratios
+
+    inits = {
+        "mogs": {"iters_to_target": 60, "gaussians_at_target": 900, "gaussians_at_budget": 1000},
+        "random": {"iters_to_target": None, "gaussians_at_target": None, "gaussians_at_budget": 500},
+    }
+    r = _ratios(inits, budget=300)
+    assert r["iters_ratio_mogs_vs_random"] == pytest.approx(0.2) and r["iters_ratio_is_upper_bound"]
+    assert r["gaussians_ratio_mogs_vs_random"] is None
+    assert r["gaussians_at_budget_ratio_mogs_vs_random"] == pytest.approx(2.0)
+    inits["random"]["iters_to_target"] = 120
+    inits["random"]["gaussians_at_target"] = 1800
+    r = _ratios(inits, budget=300)
+    assert r["iters_ratio_mogs_vs_random"] == pytest.approx(0.5) and not r["iters_ratio_is_upper_bound"]
+    assert r["gaussians_ratio_mogs_vs_random"] == pytest.approx(0.5)

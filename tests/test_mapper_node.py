@@ -1,0 +1,133 @@
+"""Mapper node in one process: keyframe + depth in (any order), stats/render/updates out, PLY."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+
+import numpy as np
+import pytest
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.errors import ConfigError
+from mogs_node.geometry import make_T
+from mogs_node.mapper.node import KeyframeDepthPairs, MapperNode
+from mogs_node.mapper.ply import read_gaussian_ply
+
+W, H = 48, 24
+K = np.array([[30.0, 0, 23.5], [0, 30.0, 11.5], [0, 0, 1]])
+
+
+@pytest.fixture
+def inproc_bus():
+    ctx = zmq.Context()
+    name = uuid.uuid4().hex[:8]
+    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=1000)
+    stop, ready = threading.Event(), threading.Event()
+    t = threading.Thread(
+        target=run_broker, args=(bus, stop), kwargs={"ready": ready, "context": ctx}
+    )
+    t.start()
+    assert ready.wait(5)
+    yield bus, ctx
+    stop.set()
+    t.join(5)
+    ctx.term()
+
+
+def messages(kid: int, x_m: float) -> tuple[msgs.Keyframe, msgs.DepthMap]:
+    rng = np.random.default_rng(kid)
+    img = rng.integers(0, 255, size=(H, W, 3), dtype=np.uint8)
+    T = make_T(np.eye(3), np.array([x_m, 0.0, 0.0]))
+    kf = msgs.Keyframe(
+        stamp_ns=kid * 10**8,
+        frame_id="cam",
+        keyframe_id=kid,
+        image=img,
+        K=K,
+        T_world_cam=T,
+        feature_ids=np.zeros(0, np.int64),
+        feature_uv_px=np.zeros((0, 2), np.float32),
+        feature_xyz_cam_m=np.zeros((0, 3), np.float32),
+        feature_weight=np.zeros(0, np.float32),
+    )
+    depth = msgs.DepthMap(
+        stamp_ns=kid * 10**8,
+        frame_id="cam",
+        keyframe_id=kid,
+        kind="metric",
+        depth=np.full((H, W), 6.0, np.float32),
+        confidence=np.ones((H, W), np.float32),
+        source="test",
+    )
+    return kf, depth
+
+
+def test_pairs_match_by_id_in_any_order_and_bound_pending() -> None:
+    p = KeyframeDepthPairs(max_pending=2)
+    assert p.add("depth", 3, "d3") is None
+    assert p.add("keyframe", 1, "k1") is None
+    assert p.add("keyframe", 3, "k3") == ("k3", "d3")
+    assert p.add("keyframe", 4, "k4") is None
+    assert p.add("keyframe", 5, "k5") is None  # evicts keyframe 1
+    assert p.counters == {"paired": 1, "evicted": 1} and len(p) == 2
+    assert p.add("depth", 1, "d1") is None  # its keyframe is gone
+
+
+def test_mapper_node_publishes_stats_render_and_incremental_updates(inproc_bus, tmp_path) -> None:
+    bus, ctx = inproc_bus
+    ply = tmp_path / "map.ply"
+    node = MapperNode(
+        "mapper",
+        {"iters_per_keyframe": 3, "ply_path": str(ply), "threads": 1},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
+    watcher = Subscriber(bus, context=ctx)
+    for topic in ("/mapper/stats", "/mapper/render", "/mapper/gaussians"):
+        watcher.subscribe(topic)
+    pub = Publisher(bus, context=ctx)
+    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
+    assert pub.wait_for_subscriber("/metrizer/depth", 5)
+    assert node._pub.wait_for_subscriber("/mapper/gaussians", 5)
+    kf0, d0 = messages(0, 0.0)
+    kf1, d1 = messages(1, 0.5)
+    pub.publish("/metrizer/depth", d0)  # depth before its keyframe
+    pub.publish("/frontend/keyframe", kf0)
+    pub.publish("/frontend/keyframe", kf1)
+    pub.publish("/metrizer/depth", d1)
+    got: dict[str, list] = {"/mapper/stats": [], "/mapper/render": [], "/mapper/gaussians": []}
+    deadline = time.monotonic() + 60
+    while len(got["/mapper/gaussians"]) < 2 and time.monotonic() < deadline:
+        node.spin_once(50)
+        env = watcher.receive(timeout_ms=20)
+        while env is not None:
+            got[env.topic].append(env.msg)
+            env = watcher.receive(timeout_ms=20)
+    s0, s1 = got["/mapper/stats"]
+    assert (s0.keyframe_id, s1.keyframe_id) == (0, 1)
+    assert s1.n_keyframes == 2 and s1.iterations == 6 and s1.n_gaussians > 0
+    r0 = got["/mapper/render"][0]
+    assert r0.image.shape == (H, W, 3) and r0.depth is not None
+    assert np.abs(r0.depth[r0.depth > 0] - 6.0).max() < 1.0  # rendered depth near the wall
+    u0, u1 = got["/mapper/gaussians"]
+    # the first update carries every Gaussian of keyframe 0; the second only what changed since
+    ids_after_kf0 = set(u0.ids.tolist())
+    assert len(ids_after_kf0) == s0.n_gaussians
+    live = (ids_after_kf0 | set(u1.ids.tolist())) - set(u1.removed_ids.tolist())
+    assert len(live) == s1.n_gaussians
+    node.teardown()
+    node.close()
+    assert len(read_gaussian_ply(ply)["means"]) == s1.n_gaussians
+
+
+def test_mapper_node_params_are_validated(inproc_bus) -> None:
+    bus, ctx = inproc_bus
+    with pytest.raises(ConfigError):
+        MapperNode("mapper", {"iters_per_keyframe": -1}, bus, context=ctx, diagnostics_period_s=0)
+    with pytest.raises(ConfigError):
+        MapperNode("mapper", {"no_such_param": 1}, bus, context=ctx, diagnostics_period_s=0)
