@@ -1,0 +1,498 @@
+"""Sliding-window visual-inertial estimator on GTSAM (VINS-Mono style backend, paper's frontend).
+
+State per window frame k: IMU pose ``X(k)`` (``T_world_imu``), world velocity ``V(k)`` and IMU biases
+``B(k)``. Factors: ``CombinedImuFactor`` between consecutive frames, ``GenericProjectionFactor`` with
+the camera-IMU extrinsics and a Huber loss for every observation of a triangulated landmark ``L(i)``,
+zero-motion factors when the platform stands still, and the marginalisation prior.
+
+The window holds the last ``window_size`` keyframes plus the newest frame; a newest frame that is not
+a keyframe is dropped when the next frame arrives (its IMU span is re-preintegrated from the last
+keyframe). When the window is full, the oldest keyframe (pose, velocity, biases) is marginalised by
+Schur complement on the linearised factors touching it (GTSAM partial elimination); the result
+stays in the graph as ``LinearContainerFactor``s. Its visual observations are dropped (default) or,
+with ``marginalize_landmarks``, every landmark it observes is marginalised with it: the landmark
+keeps its track id and its later observations start a new landmark, so no measurement is used
+twice. Each update is a windowed Levenberg-Marquardt solve.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import ConfigError, MogsError
+from mogs_node.frontend.keyframes import landmark_covariance, triangulate_midpoint
+from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params, preintegrate
+from mogs_node.geometry import PinholeCamera, check_array, se3_inverse
+
+__all__ = ["EstimatorDivergedError", "EstimatorParams", "EstimatorState", "LandmarkView", "VioEstimator"]
+
+log = logging.getLogger(__name__)
+
+
+def X(k: int) -> int:
+    return gtsam.symbol("x", k)
+
+
+def V(k: int) -> int:
+    return gtsam.symbol("v", k)
+
+
+def B(k: int) -> int:
+    return gtsam.symbol("b", k)
+
+
+def L(i: int) -> int:
+    return gtsam.symbol("l", i)
+
+
+class EstimatorDivergedError(MogsError, RuntimeError):
+    """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise."""
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    """Parameters of :class:`VioEstimator`."""
+
+    window_size: int = 8  # keyframes kept in the window (the newest frame comes on top)
+    lm_iterations: int = 3  # Levenberg-Marquardt iterations per update (warm-started)
+    pixel_sigma_px: float = 4.0  # reprojection noise (undistorted px); KLT on rendered or real
+    # images has heavy-tailed errors: 1 px lets vision override the IMU (jittery attitude)
+    huber_k: float = 1.345  # Huber threshold in sigmas
+    min_parallax_deg: float = 1.0  # triangulate only with at least this ray angle
+    min_depth_m: float = 0.5  # landmark depth bounds at triangulation
+    max_depth_m: float = 150.0
+    outlier_reproj_px: float = 5.0  # a landmark with a larger reprojection error is removed
+    marginalize_landmarks: bool = False  # Schur-complement the oldest keyframe's landmarks too
+    # (True: exact but restarts every landmark it saw; False: its observations are dropped)
+    zero_motion_sigma_m: float = 2e-3  # translation sigma of a zero-motion factor
+    zero_motion_sigma_rad: float = 2e-3  # rotation sigma of a zero-motion factor
+    init_rot_sigma_rad: float = 0.01  # prior on the first state (roll/pitch from gravity)
+    init_pos_sigma_m: float = 0.01
+    init_vel_sigma_m_s: float = 0.1
+    init_gyro_bias_sigma_rad_s: float = 5e-3
+    init_accel_bias_sigma_m_s2: float = 0.1
+    max_gyro_bias_rad_s: float = 0.3  # failure bounds
+    max_accel_bias_m_s2: float = 2.0
+    max_speed_m_s: float = 80.0
+
+    def __post_init__(self) -> None:
+        if self.window_size < 2 or self.lm_iterations < 1 or self.pixel_sigma_px <= 0:
+            raise ConfigError("estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px > 0")
+
+
+@dataclass
+class _Frame:
+    seq: int
+    t_ns: int
+    ids: NDArray[np.int64]
+    uv_px: NDArray[np.float64]
+    track_len: NDArray[np.int32]
+    is_keyframe: bool
+    stationary: bool
+
+
+@dataclass
+class EstimatorState:
+    """Estimate at the newest frame."""
+
+    t_ns: int
+    T_world_imu: NDArray[np.float64]  # [4, 4]
+    velocity_world_m_s: NDArray[np.float64]  # [3]
+    gyro_bias_rad_s: NDArray[np.float64]  # [3]
+    accel_bias_m_s2: NDArray[np.float64]  # [3]
+    n_landmarks: int
+    stats: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class LandmarkView:
+    """Landmarks seen in one frame, in that frame's camera. Arrays share length ``N``."""
+
+    track_ids: NDArray[np.int64]  # [N]
+    uv_px: NDArray[np.float32]  # [N, 2] undistorted pixel of the observation
+    xyz_cam_m: NDArray[np.float32]  # [N, 3] metric point in the camera frame
+    cov_cam_m2: NDArray[np.float32]  # [N, 3, 3] its covariance (poses fixed)
+    reproj_err_px: NDArray[np.float32]  # [N] worst reprojection error over the window
+    track_len: NDArray[np.int32]  # [N]
+
+
+class VioEstimator:
+    """Windowed VI estimator. Call :meth:`initialize` once, then :meth:`add_frame` per frame."""
+
+    def __init__(self, params: EstimatorParams, camera: PinholeCamera, T_imu_cam: NDArray,
+                 noise: ImuNoise) -> None:
+        self.params = params
+        self.camera = camera
+        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(float)
+        self.noise = noise
+        self._pim_params = make_params(noise)
+        self._cal = gtsam.Cal3_S2(camera.fx_px, camera.fy_px, 0.0, camera.cx_px, camera.cy_px)
+        self._body_P_cam = gtsam.Pose3(self.T_imu_cam)
+        self._proj_noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, params.pixel_sigma_px))
+        zs = np.r_[[params.zero_motion_sigma_rad] * 3, [params.zero_motion_sigma_m] * 3]
+        self._zero_noise = gtsam.noiseModel.Diagonal.Sigmas(zs)
+        self._zero_vel_noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
+        self.reset()
+
+    # ------------------------------------------------------------------------------------ state
+
+    def reset(self) -> None:
+        self.frames: list[_Frame] = []
+        self.values = gtsam.Values()
+        self._priors: list[gtsam.NonlinearFactor] = []
+        self._imu: dict[int, gtsam.CombinedImuFactor] = {}  # keyed by the later frame's seq
+        self._zero: dict[int, list[gtsam.NonlinearFactor]] = {}
+        self._lid_of_track: dict[int, int] = {}
+        self._min_seq_of_track: dict[int, int] = {}
+        self._next_lid = 0
+        self._obs_cache: dict[int, tuple] = {}
+        self._seq = 0
+        self.initialized = False
+        self.last_error = 0.0  # graph error after the last solve
+        self.last_n_factors = 0
+        self.last_imu_error = 0.0  # error of the IMU factors alone after the last solve
+
+    @property
+    def newest_seq(self) -> int:
+        return self.frames[-1].seq
+
+    def initialize(self, t_ns: int, T_world_imu: NDArray, velocity_world_m_s: NDArray,
+                   gyro_bias_rad_s: NDArray, accel_bias_m_s2: NDArray, ids: NDArray,
+                   uv_px: NDArray, track_len: NDArray | None = None,
+                   vel_sigma_m_s: float | None = None, tilt_sigma_rad: float | None = None) -> None:
+        """Start the window at one frame with a prior from an initialiser (static or dynamic);
+        ``vel_sigma_m_s`` / ``tilt_sigma_rad`` override the velocity / roll-pitch prior sigmas."""
+        self.reset()
+        p = self.params
+        T = check_array("T_world_imu", T_world_imu, shape=(4, 4), finite=True)
+        v = check_array("velocity_world_m_s", velocity_world_m_s, shape=(3,), finite=True)
+        bias = gtsam.imuBias.ConstantBias(np.asarray(accel_bias_m_s2, float),
+                                          np.asarray(gyro_bias_rad_s, float))
+        f = self._new_frame(t_ns, ids, uv_px, track_len, True, False)
+        k = f.seq
+        self.values.insert(X(k), gtsam.Pose3(T))
+        self.values.insert(V(k), np.asarray(v, float))
+        self.values.insert(B(k), bias)
+        sig = np.r_[[tilt_sigma_rad or p.init_rot_sigma_rad] * 2, 1e-3, [p.init_pos_sigma_m] * 3]
+        self._priors = [
+            gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(sig)),
+            gtsam.PriorFactorVector(V(k), np.asarray(v, float),
+                                    gtsam.noiseModel.Isotropic.Sigma(
+                                        3, vel_sigma_m_s or p.init_vel_sigma_m_s)),
+            gtsam.PriorFactorConstantBias(B(k), bias, gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[[p.init_accel_bias_sigma_m_s2] * 3, [p.init_gyro_bias_sigma_rad_s] * 3])),
+        ]
+        self.initialized = True
+
+    def _new_frame(self, t_ns: int, ids: NDArray, uv_px: NDArray, track_len: NDArray | None,
+                   is_keyframe: bool, stationary: bool) -> _Frame:
+        ids = check_array("ids", ids, shape=(None,), dtype=np.integer).astype(np.int64)
+        uv = check_array("uv_px", uv_px, shape=(len(ids), 2), finite=True).astype(np.float64)
+        tl = (np.ones(len(ids), np.int32) if track_len is None
+              else check_array("track_len", track_len, shape=(len(ids),)).astype(np.int32))
+        f = _Frame(self._seq, int(t_ns), ids, uv, tl, is_keyframe, stationary)
+        self._seq += 1
+        self.frames.append(f)
+        return f
+
+    def _bias(self, k: int) -> gtsam.imuBias.ConstantBias:
+        return self.values.atConstantBias(B(k))
+
+    def gyro_bias(self) -> NDArray[np.float64]:
+        """Gyroscope bias [3] of the newest frame (zero before initialisation)."""
+        if not self.frames:
+            return np.zeros(3)
+        return np.asarray(self._bias(self.newest_seq).gyroscope(), float)
+
+    def state(self) -> EstimatorState:
+        """Estimate at the newest frame."""
+        return self._state(0)
+
+    def pose(self, k: int) -> NDArray[np.float64]:
+        return self.values.atPose3(X(k)).matrix()
+
+    # ------------------------------------------------------------------------------------ update
+
+    def add_frame(self, t_ns: int, ids: NDArray, uv_px: NDArray, imu: ImuSamples, *,
+                  is_keyframe: bool, stationary: bool = False,
+                  track_len: NDArray | None = None) -> EstimatorState:
+        """Add the newest frame (undistorted pixels ``uv_px`` [N, 2] of tracks ``ids`` [N]), with the
+        IMU samples covering the span since the previous frame, and solve the window."""
+        if not self.initialized:
+            raise EstimatorDivergedError("add_frame before initialize")
+        if t_ns <= self.frames[-1].t_ns:
+            raise ConfigError(f"t_ns: {t_ns} not after the previous frame {self.frames[-1].t_ns}")
+        if len(self.frames) > 1 and not self.frames[-1].is_keyframe:
+            self._drop_newest()
+        while sum(f.is_keyframe for f in self.frames) > self.params.window_size:
+            self._marginalize_oldest()
+        prev = self.frames[-1]
+        pim = preintegrate(imu, prev.t_ns, t_ns, self._pim_params, self._bias(prev.seq))
+        f = self._new_frame(t_ns, ids, uv_px, track_len, is_keyframe, stationary)
+        k, j = f.seq, prev.seq
+        nav = pim.predict(gtsam.NavState(self.values.atPose3(X(j)), self.values.atVector(V(j))),
+                          self._bias(j))
+        self.values.insert(X(k), nav.pose())
+        self.values.insert(V(k), nav.velocity())
+        self.values.insert(B(k), self._bias(j))
+        self._imu[k] = gtsam.CombinedImuFactor(X(j), V(j), X(k), V(k), B(j), B(k), pim)
+        if stationary:
+            self._zero[k] = [
+                gtsam.BetweenFactorPose3(X(j), X(k), gtsam.Pose3(), self._zero_noise),
+                gtsam.PriorFactorVector(V(k), np.zeros(3), self._zero_vel_noise),
+            ]
+        self._triangulate_new(f)
+        self._solve()
+        n_removed = self._reject_outliers()
+        return self._state(n_removed)
+
+    def _drop_newest(self) -> None:
+        f = self.frames.pop()
+        for key in (X(f.seq), V(f.seq), B(f.seq)):
+            self.values.erase(key)
+        self._imu.pop(f.seq, None)
+        self._zero.pop(f.seq, None)
+
+    def _obs(self, f: _Frame) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """Valid landmark observations of frame ``f``: (track ids, landmark ids, uv). Cached until
+        the landmark bookkeeping changes (:meth:`_touch`)."""
+        hit = self._obs_cache.get(f.seq)
+        if hit is not None:
+            return hit
+        if not self._lid_of_track:
+            out = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+        else:
+            get_l, get_m = self._lid_of_track.get, self._min_seq_of_track.get
+            tl = f.ids.tolist()
+            lid = np.array([get_l(t, -1) for t in tl], np.int64)
+            mins = np.array([get_m(t, 0) for t in tl], np.int64)
+            ok = (lid >= 0) & (f.seq >= mins)
+            out = (f.ids[ok], lid[ok], f.uv_px[ok])
+        self._obs_cache[f.seq] = out
+        return out
+
+    def _touch(self) -> None:
+        self._obs_cache: dict[int, tuple] = {}
+
+    def _cam_poses(self) -> NDArray[np.float64]:
+        return np.stack([self.pose(f.seq) @ self.T_imu_cam for f in self.frames])
+
+    def _triangulate_new(self, newest: _Frame) -> None:
+        """Triangulate tracks of the newest frame that have no landmark yet (two-ray midpoint
+        between their earliest valid observation in the window and the newest one)."""
+        p = self.params
+        cand = np.array([t for t in newest.ids.tolist() if t not in self._lid_of_track], np.int64)
+        if len(cand) == 0 or len(self.frames) < 2:
+            return
+        Tc = self._cam_poses()
+        K_inv = np.linalg.inv(self.camera.K)
+        first_uv = np.full((len(cand), 2), np.nan)
+        first_f = np.full(len(cand), -1, np.int64)
+        for fi, f in enumerate(self.frames[:-1]):
+            _, ia, ib = np.intersect1d(cand, f.ids, assume_unique=True, return_indices=True)
+            mins = np.array([self._min_seq_of_track.get(int(t), 0) for t in cand[ia]], np.int64)
+            new = (first_f[ia] < 0) & (f.seq >= mins)
+            first_uv[ia[new]] = f.uv_px[ib[new]]
+            first_f[ia[new]] = fi
+        has = first_f >= 0
+        if not np.any(has):
+            return
+        cand, first_uv, first_f = cand[has], first_uv[has], first_f[has]
+        _, ia, ib = np.intersect1d(cand, newest.ids, assume_unique=True, return_indices=True)
+        cand, first_uv, first_f = cand[ia], first_uv[ia], first_f[ia]
+        last_uv = newest.uv_px[ib]
+        Ta, Tb = Tc[first_f], Tc[-1]
+        ra = np.c_[first_uv, np.ones(len(cand))] @ K_inv.T
+        rb = np.c_[last_uv, np.ones(len(cand))] @ K_inv.T
+        da = np.einsum("nij,nj->ni", Ta[:, :3, :3], ra)
+        db = rb @ Tb[:3, :3].T
+        pts, ang = triangulate_midpoint(Ta[:, :3, 3], da, np.broadcast_to(Tb[:3, 3], da.shape), db)
+        ok = np.all(np.isfinite(pts), axis=1) & (np.degrees(ang) >= p.min_parallax_deg)
+        for T in (Tb[None], Ta):
+            Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+            z = np.einsum("nij,nj->ni", np.broadcast_to(Rt, (len(pts), 3, 3)),
+                          np.nan_to_num(pts) - np.broadcast_to(T[..., :3, 3], pts.shape))[:, 2]
+            ok &= (z > p.min_depth_m) & (z < p.max_depth_m)
+        self._touch()
+        for t, x in zip(cand[ok].tolist(), pts[ok], strict=True):
+            lid = self._next_lid
+            self._next_lid += 1
+            self._lid_of_track[t] = lid
+            self.values.insert(L(lid), gtsam.Point3(*x))
+
+    def _graph(self) -> gtsam.NonlinearFactorGraph:
+        g = gtsam.NonlinearFactorGraph()
+        for fac in self._priors:
+            g.add(fac)
+        for fac in self._imu.values():
+            g.add(fac)
+        for facs in self._zero.values():
+            for fac in facs:
+                g.add(fac)
+        for f in self.frames:
+            _, lids, uv = self._obs(f)
+            for lid, m in zip(lids.tolist(), uv, strict=True):
+                g.add(gtsam.GenericProjectionFactorCal3_S2(
+                    m, self._proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam))
+        return g
+
+    def _solve(self) -> None:
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(self.params.lm_iterations)
+        lm.setRelativeErrorTol(1e-4)
+        try:
+            graph = self._graph()
+            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, lm).optimize()
+            self.last_error = float(graph.error(self.values))
+            self.last_n_factors = int(graph.size())
+            self.last_imu_error = float(sum(f.error(self.values) for f in self._imu.values()))
+        except RuntimeError as err:
+            raise EstimatorDivergedError(f"window solve failed: {err}") from err
+        p = self.params
+        k = self.newest_seq
+        b = self._bias(k)
+        speed = float(np.linalg.norm(self.values.atVector(V(k))))
+        if (not np.all(np.isfinite(self.pose(k))) or not np.isfinite(speed)
+                or speed > p.max_speed_m_s
+                or np.linalg.norm(b.gyroscope()) > p.max_gyro_bias_rad_s
+                or np.linalg.norm(b.accelerometer()) > p.max_accel_bias_m_s2):
+            raise EstimatorDivergedError(f"state out of bounds: speed {speed:.1f} m/s, bias "
+                                    f"gyro {b.gyroscope()}, accel {b.accelerometer()}")
+
+    def _reproj(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """All valid observations: (frame index, landmark id, track id, error px)."""
+        fi_l, lid_l, tid_l, err_l = [], [], [], []
+        for fi, f in enumerate(self.frames):
+            tids, lids, uv = self._obs(f)
+            if len(lids) == 0:
+                continue
+            P = np.array([self.values.atPoint3(L(i)) for i in lids.tolist()])
+            T_cam_world = se3_inverse(self.pose(f.seq) @ self.T_imu_cam)
+            Pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+            pix, front = self.camera.project(Pc)
+            err = np.where(front, np.linalg.norm(pix - uv, axis=1), np.inf)
+            fi_l.append(np.full(len(lids), fi))
+            lid_l.append(lids)
+            tid_l.append(tids)
+            err_l.append(err)
+        if not fi_l:
+            z = np.zeros(0, np.int64)
+            return z, z, z, np.zeros(0)
+        return (np.concatenate(fi_l), np.concatenate(lid_l), np.concatenate(tid_l),
+                np.concatenate(err_l))
+
+    def _reject_outliers(self) -> int:
+        _, lids, tids, err = self._reproj()
+        bad = np.unique(tids[err > self.params.outlier_reproj_px])
+        if len(bad):
+            self._touch()
+        for t in bad.tolist():
+            lid = self._lid_of_track.pop(t)
+            self.values.erase(L(lid))
+            self._min_seq_of_track[t] = self._seq  # never reuse this track's past observations
+        return len(bad)
+
+    def _marginalize_oldest(self) -> None:
+        """Schur-complement the oldest keyframe and its landmarks into a linear prior."""
+        f0 = self.frames[0]
+        _, lids0, _ = self._obs(f0)
+        lid_set = set(lids0.tolist()) if self.params.marginalize_landmarks else set()
+        elim = {X(f0.seq), V(f0.seq), B(f0.seq)} | {L(i) for i in lid_set}
+        g = gtsam.NonlinearFactorGraph()
+        keep_priors = []
+        for fac in self._priors:
+            if set(fac.keys()) & elim:
+                g.add(fac)
+            else:
+                keep_priors.append(fac)
+        f1 = self.frames[1]
+        g.add(self._imu.pop(f1.seq))
+        for fac in self._zero.pop(f1.seq, []):
+            g.add(fac)
+        for f in self.frames:
+            _, lids, uv = self._obs(f)
+            for lid, m in zip(lids.tolist(), uv, strict=True):
+                if lid in lid_set:
+                    g.add(gtsam.GenericProjectionFactorCal3_S2(
+                        m, self._proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam))
+        lin = g.linearize(self.values)
+        for lid in lid_set:  # keeps elimination determinate for poorly constrained points
+            lin.add(gtsam.JacobianFactor(L(lid), np.eye(3) * 1e-2, np.zeros(3),
+                                         gtsam.noiseModel.Unit.Create(3)))
+        order = gtsam.Ordering()
+        for key in sorted(elim):
+            order.push_back(key)
+        try:
+            _, remaining = lin.eliminatePartialMultifrontal(order)
+            new_priors = [gtsam.LinearContainerFactor(remaining.at(i), self.values)
+                          for i in range(remaining.size()) if remaining.at(i) is not None]
+        except RuntimeError as err:
+            log.warning("marginalisation failed (%s); dropping the oldest keyframe's information", err)
+            new_priors = [gtsam.PriorFactorPose3(X(f1.seq), self.values.atPose3(X(f1.seq)),
+                                                 gtsam.noiseModel.Isotropic.Sigma(6, 0.01))]
+        self._priors = keep_priors + new_priors
+        self.frames.pop(0)
+        self._touch()
+        for key in elim:
+            self.values.erase(key)
+        # Landmarks left without observations in the window are forgotten.
+        seen = set()
+        for f in self.frames:
+            seen.update(self._obs(f)[1].tolist())
+        for t, lid in list(self._lid_of_track.items()):
+            if lid in lid_set or lid not in seen:
+                del self._lid_of_track[t]
+                self._min_seq_of_track[t] = self._seq
+                if lid not in lid_set:
+                    self.values.erase(L(lid))
+        self._touch()
+        # Tracks whose landmark was never triangulated keep all their observations.
+
+    # ------------------------------------------------------------------------------------ output
+
+    def _state(self, n_removed: int) -> EstimatorState:
+        k = self.newest_seq
+        b = self._bias(k)
+        return EstimatorState(
+            t_ns=self.frames[-1].t_ns, T_world_imu=self.pose(k),
+            velocity_world_m_s=np.asarray(self.values.atVector(V(k)), float),
+            gyro_bias_rad_s=np.asarray(b.gyroscope(), float),
+            accel_bias_m_s2=np.asarray(b.accelerometer(), float),
+            n_landmarks=len(self._lid_of_track),
+            stats={"outliers_removed": float(n_removed), "window_frames": float(len(self.frames)),
+                   "priors": float(len(self._priors))})
+
+    def newest_landmarks(self) -> LandmarkView:
+        """Triangulated landmarks seen in the newest frame, in its camera frame."""
+        f = self.frames[-1]
+        tids, lids, uv = self._obs(f)
+        fi, all_lids, _, err = self._reproj()
+        mx = np.zeros(self._next_lid + 1)
+        np.maximum.at(mx, all_lids, np.where(np.isfinite(err), err, 1e3))
+        worst = mx[lids]
+        P = (np.array([self.values.atPoint3(L(i)) for i in lids.tolist()]).reshape(-1, 3))
+        Tc = self._cam_poses()
+        obs = np.zeros((len(lids), len(self.frames)), bool)
+        lid_index = {lid: n for n, lid in enumerate(lids.tolist())}
+        for a, b in zip(fi.tolist(), all_lids.tolist(), strict=True):
+            n = lid_index.get(b)
+            if n is not None:
+                obs[n, a] = True
+        cov_w = landmark_covariance(P, Tc, obs, self.camera, self.params.pixel_sigma_px)
+        T_cam_world = se3_inverse(Tc[-1])
+        Rcw = T_cam_world[:3, :3]
+        xyz = P @ Rcw.T + T_cam_world[:3, 3]
+        cov_c = Rcw[None] @ cov_w @ Rcw.T[None]
+        tl_of = dict(zip(f.ids.tolist(), f.track_len.tolist(), strict=True))
+        tl = np.array([tl_of[t] for t in tids.tolist()], np.int32)
+        return LandmarkView(track_ids=tids.astype(np.int64), uv_px=uv.astype(np.float32),
+                            xyz_cam_m=xyz.astype(np.float32), cov_cam_m2=cov_c.astype(np.float32),
+                            reproj_err_px=worst.astype(np.float32),
+                            track_len=np.asarray(tl, np.int32))

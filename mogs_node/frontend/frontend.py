@@ -1,0 +1,350 @@
+"""The frontend core: images and IMU samples in, odometry per frame and keyframes out (pure).
+
+Wires :class:`~mogs_node.frontend.tracker.FeatureTracker`, the initialisers of
+:mod:`~mogs_node.frontend.initialization`, :class:`~mogs_node.frontend.estimator.VioEstimator` and the
+keyframe policy. It owns the sensor-stream checks (time going backwards, IMU gaps, frames that wait
+for their IMU) and counts every rejection in :attr:`Frontend.counters`. No I/O, no bus.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.estimator import EstimatorDivergedError, EstimatorParams, VioEstimator
+from mogs_node.frontend.initialization import (
+    DynamicInitializer,
+    InitParams,
+    is_still,
+    static_init,
+)
+from mogs_node.frontend.keyframes import KeyframeParams, is_keyframe, omega_weight
+from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
+from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
+from mogs_node.geometry import check_array, so3_exp
+
+__all__ = ["FrameOutput", "Frontend", "FrontendParams", "KeyframeOutput"]
+
+log = logging.getLogger(__name__)
+
+INIT_MODES = ("auto", "static", "dynamic")
+
+
+@dataclass(frozen=True)
+class FrontendParams:
+    """Parameters of the whole frontend (one group per component)."""
+
+    tracker: TrackerParams = field(default_factory=TrackerParams)  # feature tracking
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)  # sliding window
+    keyframes: KeyframeParams = field(default_factory=KeyframeParams)  # keyframe policy, omega
+    init: InitParams = field(default_factory=InitParams)  # static / dynamic initialisation
+    imu: ImuNoise = field(default_factory=ImuNoise)  # IMU noise densities and gravity
+    init_mode: str = "auto"  # 'auto' (static when still, else dynamic), 'static' or 'dynamic'
+    window_every_frame: bool = True  # every frame enters the estimator's window (not only the
+    # published keyframes): shorter window span, more IMU-vision coupling, better accuracy
+    time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns (camera-IMU time offset)
+    max_imu_gap_s: float = 0.05  # a larger hole in the IMU stream between frames resets the window
+    max_pending_frames: int = 5  # frames waiting for their IMU; older ones are dropped (counted)
+    imu_history_s: float = 30.0  # IMU kept in memory
+
+    def __post_init__(self) -> None:
+        if self.init_mode not in INIT_MODES:
+            raise ConfigError(f"frontend.init_mode: {self.init_mode!r} not in {INIT_MODES}")
+        if self.max_imu_gap_s <= 0 or self.max_pending_frames < 1:
+            raise ConfigError("frontend: max_imu_gap_s > 0 and max_pending_frames >= 1")
+
+
+@dataclass
+class KeyframeOutput:
+    """A keyframe with the metric sparse points of its tracked features (camera frame)."""
+
+    keyframe_id: int
+    stamp_ns: int  # camera time
+    image: NDArray[np.uint8]  # [H, W, 3] or [H, W], undistorted
+    K: NDArray[np.float64]  # [3, 3] of the undistorted image
+    T_world_cam: NDArray[np.float64]  # [4, 4]
+    feature_ids: NDArray[np.int64]  # [N]
+    feature_uv_px: NDArray[np.float32]  # [N, 2]
+    feature_xyz_cam_m: NDArray[np.float32]  # [N, 3]
+    feature_cov_cam_m2: NDArray[np.float32]  # [N, 3, 3]
+    feature_weight: NDArray[np.float32]  # [N] omega
+
+
+@dataclass
+class FrameOutput:
+    """Result of one processed camera frame."""
+
+    stamp_ns: int  # camera time
+    frame_index: int
+    status: str  # 'initializing', 'tracking', 'reset'
+    T_world_cam: NDArray[np.float64] | None  # [4, 4], None while initialising
+    velocity_world_m_s: NDArray[np.float64] | None  # [3]
+    keyframe: KeyframeOutput | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, float] = field(default_factory=dict)
+
+
+class _ImuBuffer:
+    """Append-only IMU stream with amortised O(1) appends and trimming of old samples."""
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0, np.int64)
+        self.g = np.zeros((0, 3))
+        self.a = np.zeros((0, 3))
+        self._pending: list[tuple[int, tuple, tuple]] = []
+
+    def append(self, t_ns: int, g: tuple, a: tuple) -> None:
+        self._pending.append((t_ns, g, a))
+
+    def flush(self) -> None:
+        if self._pending:
+            t, g, a = zip(*self._pending, strict=True)
+            self.t = np.concatenate([self.t, np.asarray(t, np.int64)])
+            self.g = np.concatenate([self.g, np.asarray(g, float).reshape(-1, 3)])
+            self.a = np.concatenate([self.a, np.asarray(a, float).reshape(-1, 3)])
+            self._pending = []
+
+    @property
+    def last_ns(self) -> int | None:
+        if self._pending:
+            return self._pending[-1][0]
+        return int(self.t[-1]) if len(self.t) else None
+
+    def trim(self, before_ns: int) -> None:
+        self.flush()
+        k = int(np.searchsorted(self.t, before_ns))
+        if k > 0:
+            self.t, self.g, self.a = self.t[k:], self.g[k:], self.a[k:]
+
+    def samples(self) -> ImuSamples:
+        self.flush()
+        return ImuSamples(self.t, self.g, self.a)
+
+    def max_gap_s(self, t0_ns: int, t1_ns: int) -> float:
+        self.flush()
+        inner = self.t[(self.t > t0_ns) & (self.t < t1_ns)]
+        knots = np.concatenate([[t0_ns], inner, [t1_ns]])
+        return float(np.max(np.diff(knots))) * 1e-9
+
+
+class Frontend:
+    """Streaming VI frontend: :meth:`add_imu` for every IMU sample, :meth:`add_image` per frame.
+
+    Both return the frames processed by the call (a frame is processed once the IMU covers it).
+    """
+
+    def __init__(self, params: FrontendParams, camera: CameraModel, T_imu_cam: NDArray) -> None:
+        self.params = params
+        self.camera = camera
+        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(float)
+        self.tracker = FeatureTracker(params.tracker, camera)
+        self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
+        self._pim_params = make_params(params.imu)
+        self.imu = _ImuBuffer()
+        self._pending: deque[tuple[int, NDArray]] = deque()
+        self._last_image_ns: int | None = None
+        self._last_frame_ns: int | None = None  # IMU time of the last processed frame
+        self._frame_index = 0
+        self._keyframe_id = 0
+        self._dyn_init = DynamicInitializer(params.init, params.estimator, camera.pinhole,
+                                            self.T_imu_cam, params.imu)
+        self._last_kf: tuple[int, NDArray, NDArray] | None = None
+        self._undistort_maps = None
+        if camera.model != "none":
+            K = camera.K
+            D = np.asarray(camera.coeffs, float)
+            size = (camera.pinhole.width, camera.pinhole.height)
+            if camera.model == "radtan":
+                self._undistort_maps = cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
+            else:
+                self._undistort_maps = cv2.fisheye.initUndistortRectifyMap(
+                    K, D, np.eye(3), K, size, cv2.CV_32FC1)
+        self.counters: dict[str, int] = {
+            "frames": 0, "keyframes": 0, "imu_samples": 0, "imu_time_backwards": 0,
+            "image_time_backwards": 0, "imu_gap_resets": 0, "divergence_resets": 0,
+            "frames_dropped_waiting_imu": 0, "bad_input": 0, "static_inits": 0, "dynamic_inits": 0,
+        }
+
+    @property
+    def initialized(self) -> bool:
+        return self.estimator.initialized
+
+    # ------------------------------------------------------------------------------------ input
+
+    def add_imu(self, t_ns: int, gyro_rad_s: tuple | NDArray, accel_m_s2: tuple | NDArray
+                ) -> list[FrameOutput]:
+        """One IMU sample (IMU clock). Out-of-order or non-finite samples are rejected and counted."""
+        g = np.asarray(gyro_rad_s, float).reshape(-1)
+        a = np.asarray(accel_m_s2, float).reshape(-1)
+        if g.shape != (3,) or a.shape != (3,) or not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
+            self.counters["bad_input"] += 1
+            return []
+        last = self.imu.last_ns
+        if last is not None and t_ns <= last:
+            self.counters["imu_time_backwards"] += 1
+            return []
+        self.imu.append(int(t_ns), tuple(g), tuple(a))
+        self.counters["imu_samples"] += 1
+        return self._drain()
+
+    def add_imu_batch(self, stamps_ns: NDArray, gyro_rad_s: NDArray, accel_m_s2: NDArray
+                      ) -> list[FrameOutput]:
+        out: list[FrameOutput] = []
+        for t, g, a in zip(np.asarray(stamps_ns).tolist(), np.asarray(gyro_rad_s),
+                           np.asarray(accel_m_s2), strict=True):
+            out += self.add_imu(int(t), g, a)
+        return out
+
+    def add_image(self, stamp_ns: int, image: NDArray) -> list[FrameOutput]:
+        """One camera frame (camera clock). Frames not after the previous one are rejected."""
+        if self._last_image_ns is not None and stamp_ns <= self._last_image_ns:
+            self.counters["image_time_backwards"] += 1
+            return []
+        self._last_image_ns = int(stamp_ns)
+        self._pending.append((int(stamp_ns), image))
+        while len(self._pending) > self.params.max_pending_frames:
+            self._pending.popleft()
+            self.counters["frames_dropped_waiting_imu"] += 1
+        return self._drain()
+
+    def _drain(self) -> list[FrameOutput]:
+        out = []
+        last = self.imu.last_ns
+        while self._pending and last is not None and \
+                self._pending[0][0] + self.params.time_offset_ns <= last:
+            stamp, img = self._pending.popleft()
+            out.append(self._process(stamp, img))
+        return out
+
+    # ------------------------------------------------------------------------------------ core
+
+    def _process(self, stamp_ns: int, image: NDArray) -> FrameOutput:
+        p = self.params
+        t_ns = stamp_ns + p.time_offset_ns
+        t0 = time.perf_counter()
+        R_pred = self._predicted_rotation(t_ns)
+        tr = self.tracker.track(image, R_pred)
+        t1 = time.perf_counter()
+        self.counters["frames"] += 1
+        idx = self._frame_index
+        self._frame_index += 1
+        status, kf = "initializing", None
+        T_wc = v = None
+        stats = {"features": float(len(tr.ids)), "tracked_ratio": tr.kept_ratio}
+        flow = tr.stats.get("median_flow_px", 0.0)
+        prev_t = self._last_frame_ns
+        self._last_frame_ns = t_ns
+        if self.initialized and prev_t is not None and self.imu.max_gap_s(prev_t, t_ns) > p.max_imu_gap_s:
+            self.counters["imu_gap_resets"] += 1
+            log.warning("IMU gap before frame %d: re-initialising", idx)
+            self._reset()
+            status = "reset"
+        imu = self.imu.samples()
+        if not self.initialized:
+            if status != "reset":  # the frame after a reset starts the new initialisation
+                self._try_init((t_ns, tr.ids, tr.uv_px, tr.track_len), imu, flow)
+            if self.initialized:
+                status = "tracking"
+                st = self.estimator.state()
+                T_wc, v = st.T_world_imu @ self.T_imu_cam, st.velocity_world_m_s
+                kf = self._make_keyframe(stamp_ns, image, T_wc)
+        else:
+            dt_kf = (t_ns - self._last_kf[0]) * 1e-9
+            make_kf, parallax = is_keyframe(p.keyframes, self._last_kf[1], self._last_kf[2],
+                                            tr.ids, tr.uv_px, dt_kf)
+            still = is_still(p.init, imu, t_ns, flow)
+            stats["parallax_px"] = parallax
+            try:
+                st = self.estimator.add_frame(t_ns, tr.ids, tr.uv_px, imu,
+                                              is_keyframe=make_kf or p.window_every_frame,
+                                              stationary=still, track_len=tr.track_len)
+            except EstimatorDivergedError as err:
+                self.counters["divergence_resets"] += 1
+                log.warning("frame %d: %s; re-initialising", idx, err)
+                self._reset()
+                status = "reset"
+            else:
+                status = "tracking" if status != "reset" else status
+                stats.update(st.stats)
+                stats["landmarks"] = float(st.n_landmarks)
+                T_wc, v = st.T_world_imu @ self.T_imu_cam, st.velocity_world_m_s
+                if make_kf:
+                    self._last_kf = (t_ns, tr.ids, tr.uv_px)
+                    kf = self._make_keyframe(stamp_ns, image, T_wc)
+        if self.estimator.frames:
+            self.imu.trim(self.estimator.frames[0].t_ns - int(1e9))
+        else:
+            self.imu.trim(t_ns - int(p.imu_history_s * 1e9))
+        t2 = time.perf_counter()
+        return FrameOutput(stamp_ns=stamp_ns, frame_index=idx, status=status, T_world_cam=T_wc,
+                           velocity_world_m_s=v, keyframe=kf,
+                           timings_ms={"tracking": 1e3 * (t1 - t0), "estimation": 1e3 * (t2 - t1)},
+                           stats=stats)
+
+    def _reset(self) -> None:
+        self.estimator.reset()
+        self._dyn_init.reset()
+        self._last_kf = None
+
+    def _predicted_rotation(self, t_ns: int) -> NDArray | None:
+        """Camera rotation since the previous frame from the gyro (bias-corrected when known)."""
+        if self._last_frame_ns is None or self.imu.last_ns is None:
+            return None
+        imu = self.imu.samples()
+        m = (imu.stamps_ns > self._last_frame_ns) & (imu.stamps_ns <= t_ns)
+        if not np.any(m):
+            return None
+        bg = self.estimator.gyro_bias()
+        w = (imu.gyro_rad_s[m].mean(axis=0) - bg) * (t_ns - self._last_frame_ns) * 1e-9
+        R_imu = so3_exp(w)  # R_prev_cur in the IMU frame
+        R_ic = self.T_imu_cam[:3, :3]
+        R_prev_cur_cam = R_ic.T @ R_imu @ R_ic
+        return R_prev_cur_cam.T
+
+    def _try_init(self, frame: tuple, imu: ImuSamples, flow: float) -> None:
+        p = self.params
+        t_ns = frame[0]
+        if p.init_mode in ("auto", "static") and len(imu.stamps_ns) and \
+                (imu.stamps_ns[0] <= t_ns - int(p.init.still_window_s * 1e9)) and \
+                is_still(p.init, imu, t_ns, flow):
+            res = static_init(p.init, imu, t_ns)
+            self._dyn_init.reset()
+            _, ids, uv, tl = frame
+            self.estimator.initialize(t_ns, res.T_world_imu[-1], res.velocity_world_m_s[-1],
+                                      res.gyro_bias_rad_s, res.accel_bias_m_s2, ids, uv, tl)
+            self.counters["static_inits"] += 1
+            self._last_kf = (t_ns, ids, uv)
+            log.info("static initialisation at %.3f s", t_ns * 1e-9)
+            return
+        if p.init_mode == "static":
+            return
+        est = self._dyn_init.add_frame(*frame, imu)
+        if est is not None:
+            self.estimator = est
+            f = est.frames[-1]
+            self._last_kf = (f.t_ns, f.ids, f.uv_px)
+            self.counters["dynamic_inits"] += 1
+            log.info("dynamic initialisation at %.3f s (speed %.2f m/s)", f.t_ns * 1e-9,
+                     float(np.linalg.norm(est.state().velocity_world_m_s)))
+
+    def _make_keyframe(self, stamp_ns: int, image: NDArray, T_world_cam: NDArray) -> KeyframeOutput:
+        lm = self.estimator.newest_landmarks()
+        w = omega_weight(lm.track_len, lm.reproj_err_px, self.params.keyframes)
+        img = np.asarray(image)
+        if self._undistort_maps is not None:
+            img = cv2.remap(img, *self._undistort_maps, cv2.INTER_LINEAR)
+        kf = KeyframeOutput(
+            keyframe_id=self._keyframe_id, stamp_ns=stamp_ns, image=img, K=self.camera.K.copy(),
+            T_world_cam=T_world_cam.copy(), feature_ids=lm.track_ids, feature_uv_px=lm.uv_px,
+            feature_xyz_cam_m=lm.xyz_cam_m, feature_cov_cam_m2=lm.cov_cam_m2, feature_weight=w)
+        self._keyframe_id += 1
+        self.counters["keyframes"] += 1
+        return kf

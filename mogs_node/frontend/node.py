@@ -1,0 +1,131 @@
+"""Frontend node: ``/camera/image`` + ``/imu`` -> ``/frontend/odometry`` (every frame) and
+``/frontend/keyframe`` (per keyframe). The shell only converts messages; the algorithm is
+:class:`mogs_node.frontend.frontend.Frontend`.
+
+Images are best-effort (latest wins, drops counted by the shell); IMU samples are reliable (ordered,
+bounded queue, gaps counted): the preintegration needs every sample. The frontend's own counters
+(time going backwards, IMU gaps, resets) are merged into ``/diagnostics``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mogs_node import msgs
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.estimator import EstimatorParams
+from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams
+from mogs_node.frontend.initialization import InitParams
+from mogs_node.frontend.keyframes import KeyframeParams
+from mogs_node.frontend.preintegration import ImuNoise
+from mogs_node.frontend.tracker import TrackerParams
+from mogs_node.geometry import PinholeCamera
+from mogs_node.node import Node, parse_params
+
+__all__ = ["FrontendNode", "FrontendNodeParams"]
+
+_KITTI_T_IMU_CAM = (0.0, 0.0, 1.0, 0.81, -1.0, 0.0, 0.0, -0.32, 0.0, -1.0, 0.0, 0.72,
+                    0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class FrontendNodeParams:
+    """Parameters of the frontend node: the camera, the camera-IMU calibration, the groups."""
+
+    fx_px: float = 360.77  # pinhole intrinsics of the raw image (default: KITTI at 621x188)
+    fy_px: float = 361.73
+    cx_px: float = 304.53
+    cy_px: float = 86.41
+    width: int = 621  # image size (px)
+    height: int = 188
+    distortion_model: str = "none"  # 'none', 'radtan' (k1 k2 p1 p2) or 'equidistant' (k1..k4)
+    distortion_coeffs: tuple[float, ...] = ()  # coefficients of the distortion model
+    T_imu_cam: tuple[float, ...] = _KITTI_T_IMU_CAM  # camera pose in the IMU frame, row-major 4x4
+    time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns
+    init_mode: str = "auto"  # 'auto', 'static' or 'dynamic'
+    tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
+    estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
+    keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
+    init: dict[str, Any] = field(default_factory=dict)  # InitParams fields
+    imu: dict[str, Any] = field(default_factory=dict)  # ImuNoise fields
+    image_topic: str = "/camera/image"
+    imu_topic: str = "/imu"
+    odometry_topic: str = "/frontend/odometry"
+    keyframe_topic: str = "/frontend/keyframe"
+    frame_id: str = "world"
+
+    def __post_init__(self) -> None:
+        if len(self.T_imu_cam) != 16:
+            raise ConfigError(f"frontend.T_imu_cam: need 16 numbers, got {len(self.T_imu_cam)}")
+
+    def build(self, where: str = "frontend") -> tuple[FrontendParams, CameraModel, np.ndarray]:
+        """The algorithm's parameters, camera model and ``T_imu_cam`` [4, 4]."""
+        groups = {
+            "tracker": parse_params(TrackerParams, self.tracker, where=f"{where}.tracker"),
+            "estimator": parse_params(EstimatorParams, self.estimator, where=f"{where}.estimator"),
+            "keyframes": parse_params(KeyframeParams, self.keyframes, where=f"{where}.keyframes"),
+            "init": parse_params(InitParams, self.init, where=f"{where}.init"),
+            "imu": parse_params(ImuNoise, self.imu, where=f"{where}.imu"),
+        }
+        params = FrontendParams(init_mode=self.init_mode, time_offset_ns=self.time_offset_ns,
+                                **groups)
+        cam = CameraModel(PinholeCamera(self.fx_px, self.fy_px, self.cx_px, self.cy_px,
+                                        self.width, self.height),
+                          self.distortion_model, tuple(self.distortion_coeffs))
+        T = np.asarray(self.T_imu_cam, dtype=np.float64).reshape(4, 4)
+        if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5) or \
+                not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ConfigError(f"{where}.T_imu_cam: not a rigid transform")
+        return params, cam, T
+
+
+class FrontendNode(Node):
+    """Visual-inertial frontend process."""
+
+    Params = FrontendNodeParams
+
+    def setup(self) -> None:
+        p: FrontendNodeParams = self.params
+        fp, cam, T_imu_cam = p.build(self.name)
+        self.frontend = Frontend(fp, cam, T_imu_cam)
+        self.subscribe(p.imu_topic, self.on_imu, reliable=True, msg_type=msgs.Imu)
+        self.subscribe(p.image_topic, self.on_image, reliable=False, msg_type=msgs.Image)
+
+    def on_imu(self, msg: msgs.Imu) -> None:
+        for out in self.frontend.add_imu(msg.stamp_ns, msg.gyro_rad_s, msg.accel_m_s2):
+            self._publish(out)
+
+    def on_image(self, msg: msgs.Image) -> None:
+        img = msg.data
+        if msg.encoding == "bgr8":
+            img = np.ascontiguousarray(img[..., ::-1])
+        for out in self.frontend.add_image(msg.stamp_ns, img):
+            self._publish(out)
+
+    def _publish(self, out: FrameOutput) -> None:
+        p: FrontendNodeParams = self.params
+        if out.T_world_cam is not None:
+            v = out.velocity_world_m_s
+            self.publish(p.odometry_topic, msgs.Odometry(
+                stamp_ns=out.stamp_ns, frame_id=p.frame_id, frame_index=out.frame_index,
+                T_world_cam=np.ascontiguousarray(out.T_world_cam, dtype=np.float64),
+                velocity_world_m_s=(float(v[0]), float(v[1]), float(v[2])), status=out.status))
+        kf = out.keyframe
+        if kf is not None:
+            self.publish(p.keyframe_topic, msgs.Keyframe(
+                stamp_ns=kf.stamp_ns, frame_id=p.frame_id, keyframe_id=kf.keyframe_id,
+                image=np.ascontiguousarray(kf.image), K=kf.K.astype(np.float64),
+                T_world_cam=kf.T_world_cam.astype(np.float64),
+                feature_ids=kf.feature_ids.astype(np.int64),
+                feature_uv_px=kf.feature_uv_px.astype(np.float32),
+                feature_xyz_cam_m=kf.feature_xyz_cam_m.astype(np.float32),
+                feature_weight=kf.feature_weight.astype(np.float32)))
+
+    def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
+        d = super().diagnostics(status)
+        d.counters.update({f"frontend_{k}": float(v) for k, v in self.frontend.counters.items()})
+        return d

@@ -1,0 +1,166 @@
+"""Offline runs of the frontend on a whole sequence (sim, sim along the KITTI OXTS drive, EuRoC),
+used by ``mogs eval traj`` and ``bench/frontend.py``. Ground truth is read here only to score."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import DatasetError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams
+from mogs_node.frontend.trajectory_io import write_kitti, write_tum
+from mogs_node.geometry import se3_inverse
+
+__all__ = ["RunResult", "load_dataset", "run_dataset", "run_frontend", "score_run"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+@dataclass
+class RunResult:
+    """Per-frame outputs of a run with the ground truth at the same frames."""
+
+    outputs: list[FrameOutput]
+    gt_T_world_cam: NDArray[np.float64]  # [F, 4, 4] for every input frame
+    stamps_ns: NDArray[np.int64]  # [F]
+    counters: dict[str, int]
+    wall_s: float
+    timings_ms: dict[str, float] = field(default_factory=dict)  # mean per frame
+
+
+def run_frontend(frontend: Frontend, stamps_ns: NDArray, images: Iterable[NDArray],
+                 imu_stamps_ns: NDArray, gyro_rad_s: NDArray, accel_m_s2: NDArray
+                 ) -> list[FrameOutput]:
+    """Stream a recorded sequence into ``frontend`` in time order (IMU up to each frame first)."""
+    outs: list[FrameOutput] = []
+    k = 0
+    n_imu = len(imu_stamps_ns)
+    for t, img in zip(np.asarray(stamps_ns).tolist(), images, strict=True):
+        t_imu = t + frontend.params.time_offset_ns
+        while k < n_imu and imu_stamps_ns[k] <= t_imu:
+            outs += frontend.add_imu(int(imu_stamps_ns[k]), gyro_rad_s[k], accel_m_s2[k])
+            k += 1
+        outs += frontend.add_image(int(t), img)
+    return outs
+
+
+def load_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
+                 data: str | Path | None = None, size: tuple[int, int] = (621, 188)) -> dict:
+    """Sequence as plain arrays: stamps, image loader, IMU, camera model, ``T_imu_cam`` and GT."""
+    if dataset in ("sim", "oxts"):
+        from mogs_node.sim import SimConfig, make_sequence
+
+        kw = {}
+        if dataset == "oxts":
+            oxts_dir = Path(data) if data else DEFAULT_DATA / "kitti_raw_2011_09_26_drive_0001_oxts"
+            kw = {"trajectory": "oxts", "oxts_dir": str(oxts_dir)}
+            seconds = min(seconds or 10.5, 10.5)
+        else:
+            seconds = seconds or 60.0
+        cfg = SimConfig(seed=seed, n_frames=int(round(seconds * 10.0)) + 1, width=size[0],
+                        height=size[1], **kw)
+        seq = make_sequence(cfg)
+        return dict(stamps_ns=seq.stamps_ns, image=lambda i: seq.render(i).rgb,
+                    imu=(seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2),
+                    camera=CameraModel(seq.camera), T_imu_cam=seq.T_imu_cam,
+                    gt=seq.T_world_cam, name=f"{dataset} seed {seed} {seconds:.1f}s")
+    if dataset == "euroc":
+        from mogs_node.datasets.euroc import read_euroc
+
+        root = Path(data) if data else DEFAULT_DATA / "euroc_v1_01_micro"
+        if not root.exists():
+            raise DatasetError(f"{root}: EuRoC excerpt not found")
+        seq = read_euroc(root, undistort=False)
+        frames = list(seq.frames)
+        if seconds:
+            t0 = frames[0].stamp_ns
+            frames = [f for f in frames if f.stamp_ns - t0 <= seconds * 1e9]
+        if any(f.T_world_cam is None for f in frames):
+            raise DatasetError(f"{root}: ground truth does not cover every frame")
+        dist = seq.distortion or {"model": "radial-tangential", "coeffs": []}
+        cam = CameraModel(frames[0].camera, "radtan" if dist["coeffs"] else "none",
+                          tuple(float(c) for c in dist["coeffs"]))
+        return dict(stamps_ns=np.array([f.stamp_ns for f in frames], np.int64),
+                    image=lambda i: frames[i].image,
+                    imu=(seq.imu.stamps_ns, seq.imu.gyro_rad_s, seq.imu.accel_m_s2),
+                    camera=cam, T_imu_cam=seq.T_imu_cam,
+                    gt=np.stack([f.T_world_cam for f in frames]), name=f"euroc {root.name}")
+    raise DatasetError(f"dataset: unknown {dataset!r} (sim, oxts, euroc)")
+
+
+def run_dataset_frames(d: dict, params: FrontendParams | None = None,
+                       on_frame: Callable[[FrameOutput], None] | None = None) -> RunResult:
+    fe = Frontend(params or FrontendParams(), d["camera"], d["T_imu_cam"])
+    t0 = time.perf_counter()
+    images = (d["image"](i) for i in range(len(d["stamps_ns"])))
+    outs = run_frontend(fe, d["stamps_ns"], images, *d["imu"])
+    wall = time.perf_counter() - t0
+    if on_frame:
+        for o in outs:
+            on_frame(o)
+    timings = {k: float(np.mean([o.timings_ms[k] for o in outs])) for k in ("tracking", "estimation")}
+    return RunResult(outs, d["gt"], d["stamps_ns"], dict(fe.counters), wall, timings)
+
+
+def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
+    """Figures of DESIGN.md section 7 (on keyframes by default) plus run facts."""
+    from mogs_node.eval.traj import trajectory_metrics
+
+    stamp_index = {int(t): i for i, t in enumerate(run.stamps_ns)}
+    sel = [o for o in run.outputs if o.T_world_cam is not None
+           and (o.keyframe is not None or not keyframes_only)]
+    if len(sel) < 3:
+        raise DatasetError(f"run: only {len(sel)} estimated poses, cannot score")
+    idx = np.array([stamp_index[o.stamp_ns] for o in sel])
+    est = np.stack([o.T_world_cam for o in sel])
+    ref = run.gt_T_world_cam[idx]
+    rate = (len(run.stamps_ns) - 1) / max((run.stamps_ns[-1] - run.stamps_ns[0]) * 1e-9, 1e-9)
+    per_s = max(1, int(round(len(sel) / max((sel[-1].stamp_ns - sel[0].stamp_ns) * 1e-9, 1e-9))))
+    out = trajectory_metrics(run.stamps_ns[idx], est, ref, rpe_delta_frames=per_s)
+    E = se3_inverse(se3_inverse(ref[0]) @ ref[-1]) @ (se3_inverse(est[0]) @ est[-1])
+    out.update({
+        "end_drift_m": float(np.linalg.norm(E[:3, 3])),
+        "ate_se3_percent_of_path": 100.0 * out["ate_se3_rmse_m"] / max(out["path_length_m"], 1e-9),
+        "poses_scored": len(sel),
+        "frames": len(run.stamps_ns),
+        "first_pose_s": float((sel[0].stamp_ns - run.stamps_ns[0]) * 1e-9),
+        "frame_rate_hz": float(rate),
+        "tracking_ms_per_frame": run.timings_ms.get("tracking", 0.0),
+        "estimation_ms_per_frame": run.timings_ms.get("estimation", 0.0),
+        "resets": int(run.counters.get("divergence_resets", 0) + run.counters.get("imu_gap_resets", 0)),
+    })
+    return out
+
+
+def run_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
+                data: str | Path | None = None, out_dir: str | Path | None = None,
+                params: FrontendParams | None = None) -> dict:
+    """Run the frontend on ``dataset`` and score it; optionally write TUM/KITTI trajectories."""
+    d = load_dataset(dataset, seconds=seconds, seed=seed, data=data)
+    log.info("running the frontend on %s (%d frames)", d["name"], len(d["stamps_ns"]))
+    run = run_dataset_frames(d, params)
+    figures = {"dataset": dataset, **score_run(run)}
+    all_frames = score_run(run, keyframes_only=False)
+    figures["ate_se3_rmse_m_all_frames"] = all_frames["ate_se3_rmse_m"]
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        sel = [o for o in run.outputs if o.T_world_cam is not None]
+        idx = {int(t): i for i, t in enumerate(run.stamps_ns)}
+        stamps = np.array([o.stamp_ns for o in sel], np.int64)
+        est = np.stack([o.T_world_cam for o in sel])
+        ref = run.gt_T_world_cam[[idx[int(t)] for t in stamps]]
+        write_tum(out / "estimate_tum.txt", stamps, est)
+        write_tum(out / "groundtruth_tum.txt", stamps, ref)
+        write_kitti(out / "estimate_kitti.txt", est)
+        write_kitti(out / "groundtruth_kitti.txt", ref)
+    return figures

@@ -1,0 +1,152 @@
+"""The frontend core on rendered sim images: tracking quality at 10 Hz, the stream guards (time
+going backwards, IMU gaps, late IMU, dropped frames, bad samples) and keyframe output."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.initialization import InitParams
+from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
+from mogs_node.geometry import se3_inverse
+from mogs_node.sim import GRAVITY_WORLD_M_S2, SimConfig, make_sequence
+
+
+@cache
+def sim(n_frames: int = 12, width: int = 621, height: int = 188):
+    seq = make_sequence(SimConfig(seed=0, n_frames=n_frames, width=width, height=height))
+    frames = [seq.render(i) for i in range(n_frames)]
+    return seq, frames
+
+
+def test_tracker_keeps_80_percent_of_trackable_features_on_sim_at_10hz():
+    """Of the features whose true position stays in the image (ground-truth depth and poses), at
+    least 80 % are kept frame to frame, and kept tracks are accurate."""
+    seq, frames = sim()
+    cam = seq.camera
+    tr = FeatureTracker(TrackerParams(), CameraModel(cam))
+    kept = trackable = 0
+    errs = []
+    prev = None
+    for i, fr in enumerate(frames):
+        res = tr.track(fr.rgb)
+        if prev is not None:
+            ids0, uv0, d0 = prev
+            P = cam.backproject(uv0, np.where(np.isfinite(d0), d0, 1.0))  # sky: masked below
+            T = se3_inverse(seq.T_world_cam[i]) @ seq.T_world_cam[i - 1]
+            uv_true, front = cam.project(P @ T[:3, :3].T + T[:3, 3])
+            inside = front & cam.in_image(uv_true) & np.isfinite(d0)
+            inside &= (uv_true[:, 0] > 3) & (uv_true[:, 0] < cam.width - 4)
+            inside &= (uv_true[:, 1] > 3) & (uv_true[:, 1] < cam.height - 4)
+            is_kept = np.isin(ids0, res.ids)
+            kept += np.count_nonzero(inside & is_kept)
+            trackable += np.count_nonzero(inside)
+            _, ia, ib = np.intersect1d(ids0, res.ids, return_indices=True)
+            errs.append(np.linalg.norm(uv_true[ia] - res.uv_px[ib], axis=1)[inside[ia]])
+        r = np.clip(np.round(res.uv_px).astype(int), 0, [cam.width - 1, cam.height - 1])
+        prev = (res.ids, res.uv_px, fr.depth_m[r[:, 1], r[:, 0]].astype(float))
+    assert trackable > 500
+    assert kept / trackable >= 0.8
+    assert np.median(np.concatenate(errs)) < 0.5
+
+
+def parked_stream(seconds: float, rate_hz: float = 10.0, imu_hz: float = 200.0, seed: int = 0):
+    """A parked car: one rendered view repeated, IMU reading gravity plus noise and bias."""
+    seq, frames = sim()
+    rng = np.random.default_rng(seed)
+    R = seq.T_world_imu[0, :3, :3]
+    t_img = (1_000_000_000 + np.arange(int(seconds * rate_hz)) * 1e9 / rate_hz).astype(np.int64)
+    t_imu = (t_img[0] - 1_100_000_000 + np.arange(int((seconds + 1.2) * imu_hz)) * 1e9 / imu_hz)
+    t_imu = t_imu.astype(np.int64)
+    gyro = np.array([1e-3, -2e-3, 5e-4]) + rng.normal(0, 2.4e-3, (len(t_imu), 3))
+    acc = R.T @ -GRAVITY_WORLD_M_S2 + rng.normal(0, 0.03, (len(t_imu), 3))
+    return seq, frames[0].rgb, t_img, t_imu, gyro, acc
+
+
+def feed(fe, t_img, image, t_imu, gyro, acc, *, skip=()):
+    outs, k = [], 0
+    for i, t in enumerate(t_img.tolist()):
+        while k < len(t_imu) and t_imu[k] <= t:
+            outs += fe.add_imu(int(t_imu[k]), gyro[k], acc[k])
+            k += 1
+        if i not in skip:
+            outs += fe.add_image(t, image)
+    return outs
+
+
+def test_parked_static_init_and_no_drift():
+    seq, img, t_img, t_imu, gyro, acc = parked_stream(3.0)
+    fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
+    outs = feed(fe, t_img, img, t_imu, gyro, acc)
+    assert fe.counters["static_inits"] == 1 and fe.counters["dynamic_inits"] == 0
+    poses = np.array([o.T_world_cam for o in outs if o.T_world_cam is not None])
+    assert len(poses) >= len(t_img) - 2
+    assert np.all(np.isfinite(poses))
+    assert np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max() < 0.02
+    # gravity: the camera's world-up is the truth's (the world frame's yaw is arbitrary)
+    up_est = poses[-1, :3, :3].T @ np.array([0, 0, 1.0])
+    up_true = seq.T_world_cam[0, :3, :3].T @ np.array([0, 0, 1.0])
+    assert np.degrees(np.arccos(np.clip(up_est @ up_true, -1, 1))) < 1.0
+    kfs = [o.keyframe for o in outs if o.keyframe is not None]
+    assert kfs and all(k.image.shape == img.shape for k in kfs)
+    assert [k.keyframe_id for k in kfs] == list(range(len(kfs)))
+
+
+def test_time_going_backwards_and_bad_samples_are_rejected_and_counted():
+    seq, img, t_img, t_imu, gyro, acc = parked_stream(1.5)
+    fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
+    feed(fe, t_img, img, t_imu, gyro, acc)
+    n_frames = fe.counters["frames"]
+    assert fe.add_image(int(t_img[-1]), img) == []  # same stamp
+    assert fe.add_image(int(t_img[0]), img) == []  # back in time
+    assert fe.counters["image_time_backwards"] == 2
+    assert fe.add_imu(int(t_imu[5]), gyro[5], acc[5]) == []
+    assert fe.counters["imu_time_backwards"] == 1
+    assert fe.add_imu(int(t_imu[-1]) + 5_000_000, (np.nan, 0, 0), acc[0]) == []
+    assert fe.add_imu(int(t_imu[-1]) + 5_000_000, (0, 0), acc[0]) == []
+    assert fe.counters["bad_input"] == 2
+    assert fe.counters["frames"] == n_frames
+
+
+def test_frame_waits_for_its_imu():
+    seq, img, t_img, t_imu, gyro, acc = parked_stream(1.0)
+    fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
+    k = int(np.searchsorted(t_imu, t_img[0]))
+    fe.add_imu_batch(t_imu[:k - 3], gyro[:k - 3], acc[:k - 3])
+    assert fe.add_image(int(t_img[0]), img) == []  # IMU not there yet
+    outs = fe.add_imu_batch(t_imu[k - 3:k + 1], gyro[k - 3:k + 1], acc[k - 3:k + 1])
+    assert len(outs) == 1 and outs[0].stamp_ns == t_img[0]
+
+
+def test_imu_gap_resets_and_recovers_without_nan():
+    seq, img, t_img, t_imu, gyro, acc = parked_stream(4.0)
+    hole = (t_imu > t_img[20]) & (t_imu < t_img[22])  # 200 ms without IMU after init
+    fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
+    outs = feed(fe, t_img, img, t_imu[~hole], gyro[~hole], acc[~hole])
+    assert fe.counters["imu_gap_resets"] == 1
+    assert fe.counters["static_inits"] == 2  # re-initialised after the gap
+    assert any(o.status == "reset" for o in outs)
+    assert all(np.all(np.isfinite(o.T_world_cam)) for o in outs if o.T_world_cam is not None)
+    assert outs[-1].T_world_cam is not None
+
+
+def test_dropped_frames_keep_tracking():
+    seq, img, t_img, t_imu, gyro, acc = parked_stream(3.0)
+    fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
+    outs = feed(fe, t_img, img, t_imu, gyro, acc, skip=set(range(15, 25)))
+    assert fe.counters["imu_gap_resets"] == 0
+    poses = np.array([o.T_world_cam for o in outs if o.T_world_cam is not None])
+    assert np.all(np.isfinite(poses))
+    assert np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max() < 0.02
+
+
+def test_params_are_validated():
+    with pytest.raises(ConfigError):
+        FrontendParams(init_mode="magic")
+    with pytest.raises(ConfigError):
+        InitParams(dyn_frames=2)

@@ -1,0 +1,106 @@
+"""Frontend node in one process over an in-process bus: /imu + /camera/image in, odometry and
+keyframes out; params validated; frontend counters in /diagnostics."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+
+import numpy as np
+import pytest
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.node import FrontendNode, FrontendNodeParams
+from mogs_node.sim import GRAVITY_WORLD_M_S2, SimConfig, make_sequence
+
+
+@pytest.fixture
+def inproc_bus():
+    ctx = zmq.Context()
+    name = uuid.uuid4().hex[:8]
+    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=10000)
+    stop, ready = threading.Event(), threading.Event()
+    t = threading.Thread(target=run_broker, args=(bus, stop),
+                         kwargs={"ready": ready, "context": ctx})
+    t.start()
+    assert ready.wait(5)
+    yield bus, ctx
+    stop.set()
+    t.join(5)
+    ctx.term()
+
+
+def test_params_build_and_validation():
+    p = FrontendNodeParams(estimator={"window_size": 5}, tracker={"max_features": 80})
+    fp, cam, T = p.build()
+    assert fp.estimator.window_size == 5 and fp.tracker.max_features == 80
+    assert cam.pinhole.width == 621 and T.shape == (4, 4)
+    with pytest.raises(ConfigError, match="estimator"):
+        FrontendNodeParams(estimator={"no_such_knob": 1}).build()
+    with pytest.raises(ConfigError, match="T_imu_cam"):
+        FrontendNodeParams(T_imu_cam=(1.0,) * 16).build()
+    with pytest.raises(ConfigError, match="T_imu_cam"):
+        FrontendNodeParams(T_imu_cam=(1.0, 2.0))
+
+
+def test_node_streams_odometry_and_keyframes(inproc_bus):
+    bus, ctx = inproc_bus
+    seq = make_sequence(SimConfig(seed=0, n_frames=2, width=621, height=188))
+    img = seq.render(0).rgb
+    c = seq.camera
+    params = {"fx_px": c.fx_px, "fy_px": c.fy_px, "cx_px": c.cx_px, "cy_px": c.cy_px,
+              "width": c.width, "height": c.height,
+              "T_imu_cam": [float(x) for x in seq.T_imu_cam.ravel()]}
+    node = FrontendNode("frontend", params, bus, context=ctx, diagnostics_period_s=0)
+    watcher = Subscriber(bus, context=ctx)
+    for topic in ("/frontend/odometry", "/frontend/keyframe"):
+        watcher.subscribe(topic)
+    pub = Publisher(bus, context=ctx)
+    try:
+        assert pub.wait_for_subscriber("/imu", 5) and pub.wait_for_subscriber("/camera/image", 5)
+        assert node._pub.wait_for_subscriber("/frontend/odometry", 5)
+        # a parked car: 1.2 s of IMU, then 15 frames at 10 Hz with IMU in between
+        rng = np.random.default_rng(0)
+        f_true = seq.T_world_imu[0, :3, :3].T @ -GRAVITY_WORLD_M_S2
+        t_imu = 1_000_000_000 + np.arange(int(2.8 * 200)) * 5_000_000
+        t_img = t_imu[0] + 1_200_000_000 + np.arange(15) * 100_000_000
+        got: dict[str, list] = {"/frontend/odometry": [], "/frontend/keyframe": []}
+        k = 0
+
+        def drain() -> None:
+            env = watcher.receive(timeout_ms=5)
+            while env is not None:
+                got[env.topic].append(env.msg)
+                env = watcher.receive(timeout_ms=5)
+
+        for i, t in enumerate(t_img):
+            while k < len(t_imu) and t_imu[k] <= t:
+                g = tuple(float(x) for x in rng.normal(0, 2e-3, 3))
+                a = tuple(float(x) for x in f_true + rng.normal(0, 0.03, 3))
+                pub.publish("/imu", msgs.Imu(stamp_ns=int(t_imu[k]), frame_id="imu",
+                                             gyro_rad_s=g, accel_m_s2=a))
+                k += 1
+            pub.publish("/camera/image", msgs.Image(stamp_ns=int(t), frame_id="cam",
+                                                    encoding="rgb8", data=img))
+            deadline = time.monotonic() + 10
+            while node.frontend.counters["frames"] < i + 1 and time.monotonic() < deadline:
+                node.spin_once(20)
+                drain()
+        for _ in range(20):
+            node.spin_once(10)
+            drain()
+        diag = node.diagnostics()
+    finally:
+        watcher.close()
+        pub.close(0)
+        node.close()
+    odo, kfs = got["/frontend/odometry"], got["/frontend/keyframe"]
+    assert node.frontend.counters["static_inits"] == 1
+    assert len(odo) >= 3 and all(o.status == "tracking" for o in odo)
+    assert all(np.all(np.isfinite(o.T_world_cam)) for o in odo)
+    assert kfs and kfs[0].image.shape == img.shape and kfs[0].K.shape == (3, 3)
+    assert diag.counters["frontend_static_inits"] == 1
