@@ -26,7 +26,13 @@ import time
 import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.bus import (
+    BusConfig,
+    Publisher,
+    Subscriber,
+    run_broker,
+    tune_malloc_for_large_messages,
+)
 from mogs_node.demo_nodes import make_keyframe
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json
 
@@ -88,6 +94,7 @@ def bare_pub(endpoint: str, kind: str, n: int, ready: mp.Event) -> None:
 
 
 def mogs_sub(bus_d: dict, kind: str, n: int, q: mp.Queue, ready: mp.Event) -> None:
+    tune_malloc_for_large_messages()  # as `mogs node` does at start
     sub = Subscriber(BusConfig.from_dict(bus_d), hwm=0)
     sub.subscribe(TOPIC[kind])
     ready.set()
@@ -105,6 +112,7 @@ def mogs_sub(bus_d: dict, kind: str, n: int, q: mp.Queue, ready: mp.Event) -> No
 
 
 def mogs_pub(bus_d: dict, kind: str, n: int, ready: mp.Event) -> None:
+    tune_malloc_for_large_messages()
     pub = Publisher(BusConfig.from_dict(bus_d), hwm=0)
     ready.wait(10)
     assert pub.wait_for_subscriber(TOPIC[kind], 10)
@@ -117,6 +125,7 @@ def mogs_pub(bus_d: dict, kind: str, n: int, ready: mp.Event) -> None:
 
 
 def broker_proc(bus_d: dict, stop: mp.Event) -> None:
+    tune_malloc_for_large_messages()  # as `mogs broker` does at start
     ev = threading.Event()
     t = threading.Thread(target=run_broker, args=(BusConfig.from_dict(bus_d), ev))
     t.start()

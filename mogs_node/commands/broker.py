@@ -7,7 +7,7 @@ import json
 import signal
 import threading
 
-from mogs_node.bus import BusConfig, default_bus_config, run_broker
+from mogs_node.bus import BusConfig, default_bus_config, run_broker, tune_malloc_for_large_messages
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +36,7 @@ def bus_from_args(args: argparse.Namespace) -> BusConfig:
 
 def command(args: argparse.Namespace) -> int:
     config = bus_from_args(args)
+    tune_malloc_for_large_messages()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -6,6 +6,7 @@ import argparse
 import importlib
 import json
 
+from mogs_node.bus import tune_malloc_for_large_messages
 from mogs_node.commands.broker import bus_from_args
 from mogs_node.errors import ConfigError
 from mogs_node.node import Node
@@ -37,6 +38,7 @@ def load_node_class(spec: str) -> type[Node]:
 
 
 def command(args: argparse.Namespace) -> int:
+    tune_malloc_for_large_messages()
     cls = load_node_class(args.cls)
     try:
         params = json.loads(args.params_json)
