@@ -20,10 +20,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import msgpack
 import numpy as np
+import zmq
 
 from mogs_node.errors import MessageError
 
@@ -396,15 +397,20 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 }
 
 
-@dataclass(frozen=True)
-class Envelope:
-    """A decoded message with its transport metadata."""
+class Envelope(NamedTuple):
+    """A decoded message with its transport metadata (a tuple: cheap to make per message)."""
 
     topic: str
     seq: int
     src: int
     msg: Message
     nbytes: int
+
+
+_HEADER_KEYS = frozenset({"t", "v", "seq", "src", "f", "a"})
+_SCALAR_SETS: dict[type, frozenset[str]] = {
+    cls: frozenset(cls.SCALARS) for cls in MESSAGE_TYPES.values()
+}
 
 
 # ---------------------------------------------------------------------------------------- checks
@@ -534,9 +540,13 @@ def _check_array(name: str, spec: ArraySpec, arr: Any, symbols: dict[str, int]) 
 def _validate_fields(cls: type[Message], values: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, kind in cls.SCALARS.items():
-        if name not in values:
-            raise MessageError("missing field", field=name)
-        out[name] = _check_scalar(kind, name, values[name])
+        try:
+            value = values[name]
+        except KeyError:
+            raise MessageError("missing field", field=name) from None
+        out[name] = _check_scalar(kind, name, value)
+    if not cls.ARRAYS:
+        return _check_enums(cls, out)
     symbols: dict[str, int] = {}
     for name, spec in cls.ARRAYS.items():
         arr = values.get(name)
@@ -546,6 +556,10 @@ def _validate_fields(cls: type[Message], values: dict[str, Any]) -> dict[str, An
             out[name] = None
             continue
         out[name] = _check_array(name, spec, arr, symbols)
+    return _check_enums(cls, out)
+
+
+def _check_enums(cls: type[Message], out: dict[str, Any]) -> dict[str, Any]:
     enc = getattr(cls, "ENCODINGS", None)
     if enc is not None and out.get("encoding") not in enc:
         raise MessageError(
@@ -616,7 +630,7 @@ def decode(frames: Sequence[Any], *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
     """Decode multipart ``frames`` into an :class:`Envelope`; strict, see the module docstring."""
     if not isinstance(frames, list | tuple) or len(frames) < 2:
         raise MessageError("expected at least [topic, header] frames", field="frames")
-    views = [_frame_bytes(f) for f in frames]
+    views = [f.buffer if type(f) is zmq.Frame else _frame_bytes(f) for f in frames]
     total = sum(v.nbytes for v in views)
     if total > max_bytes:
         raise MessageError(
@@ -650,9 +664,8 @@ def decode(frames: Sequence[Any], *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
         ) from err
     if not isinstance(header, dict):
         raise MessageError("header is not a map", field="header")
-    expected_keys = {"t", "v", "seq", "src", "f", "a"}
-    if set(header) != expected_keys:
-        missing, extra = expected_keys - set(header), set(header) - expected_keys
+    if header.keys() != _HEADER_KEYS:
+        missing, extra = _HEADER_KEYS - set(header), set(header) - _HEADER_KEYS
         raise MessageError(
             f"header keys: missing {sorted(missing)}, unexpected {sorted(map(str, extra))}",
             field="header",
@@ -668,7 +681,7 @@ def decode(frames: Sequence[Any], *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
     scalars = header["f"]
     if not isinstance(scalars, dict):
         raise MessageError("scalar fields are not a map", field="f")
-    extra = set(scalars) - set(cls.SCALARS)
+    extra = scalars.keys() - _SCALAR_SETS[cls]
     if extra:
         raise MessageError(
             f"unexpected field(s) {sorted(map(str, extra))} for {cls.TYPE}",
@@ -709,5 +722,6 @@ def decode(frames: Sequence[Any], *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
             )
         values[name] = np.frombuffer(view, dtype=dtype).reshape(shape)
     checked = _validate_fields(cls, values)
-    msg = cls(**checked)
-    return Envelope(topic=topic, seq=seq, src=src, msg=msg, nbytes=total)
+    msg = object.__new__(cls)  # the dataclass __init__ would only assign what is validated here
+    msg.__dict__.update(checked)
+    return Envelope(topic, seq, src, msg, total)

@@ -1,7 +1,9 @@
-"""``mogs demo``: run the demo launch graph and leave its outputs in ``runs/<timestamp>/``.
+"""``mogs demo``: the whole pipeline on the embedded synthetic drive; outputs in ``runs/<ts>/``.
 
-Until the pipeline nodes land (issue 8), the demo graph is the runtime's pass-through pipeline
-(synthetic source -> relay -> recorder); the recorder's summary is the run's output.
+Runs ``launch/demo.yaml`` (player -> frontend -> segmentation + depth prior -> metrizer -> mapper,
+and a report node) as separate processes, then prints where the outputs are and a summary line:
+trajectories (TUM, KITTI), metrized depth per keyframe, the Gaussian map (PLY), renders and a
+``report.md`` scored against the simulator's ground truth.
 """
 
 from __future__ import annotations
@@ -20,25 +22,46 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"), help="launch file"
     )
     parser.add_argument("--out", default=None, help="output folder (default runs/<timestamp>)")
+    parser.add_argument("--frames", type=int, default=None, help="frames of the synthetic drive")
     parser.add_argument(
-        "--timeout", type=float, default=600.0, help="give up after this many seconds"
+        "--timeout", type=float, default=1200.0, help="give up after this many seconds"
     )
 
 
 def command(args: argparse.Namespace) -> int:
     out = Path(args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    summary = out / "recorder.json"
-    launch = load_launch_file(args.launch, overrides={"recorder": {"summary_path": str(summary)}})
+    overrides = {"report": {"out_dir": str(out)}, "mapper": {"ply_path": str(out / "map.ply")}}
+    if args.frames is not None:
+        base = load_launch_file(args.launch)
+        sim = dict(next(n for n in base.nodes if n.name == "player").params.get("sim", {}))
+        sim["n_frames"] = args.frames
+        overrides["player"] = {"sim": sim}
+    launch = load_launch_file(args.launch, overrides=overrides)
     t0 = time.monotonic()
     code = Launcher(launch).run(timeout_s=args.timeout)
     dt = time.monotonic() - t0
-    if summary.exists():
-        data = json.loads(summary.read_text())
-        counts = ", ".join(f"{k}: {v}" for k, v in data["count"].items())
-        lost = sum(t.get("lost", 0) for t in data["topics"].values())
-        print(f"demo finished in {dt:.1f} s: received {counts}; lost {lost}. Outputs in {out}")
-    else:
-        print(f"demo ended (code {code}) without a summary; see the log above. Outputs in {out}")
+    summary = out / "summary.json"
+    if not summary.exists():
+        print(
+            f"demo ended (code {code}) after {dt:.0f} s without a report; see the log above. "
+            f"Partial outputs in {out}"
+        )
         return code or 1
+    figures = json.loads(summary.read_text())
+    parts = [
+        f"{figures['keyframes']} keyframes ({figures['keyframes_with_depth']} metrized, "
+        f"{figures['keyframes_mapped']} mapped)"
+    ]
+    if "depth" in figures:
+        parts.append(f"depth AbsRel {figures['depth']['absrel']:.3f}")
+    traj = figures.get("trajectory", {})
+    if "ate_se3_rmse_m" in traj:
+        parts.append(f"ATE {traj['ate_se3_rmse_m']:.2f} m over {traj['path_length_m']:.0f} m")
+    if "mapper" in figures:
+        parts.append(f"{figures['mapper'].get('n_gaussians', 0)} Gaussians")
+    print(f"demo finished in {dt:.0f} s: " + ", ".join(parts))
+    print(
+        f"outputs in {out}: report.md, summary.json, trajectory_*.tum|kitti, map.ply, depth/, renders/"
+    )
     return code
