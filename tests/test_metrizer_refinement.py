@@ -58,6 +58,19 @@ def test_fast_solver_matches_dense_reference(seed):
     )
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_sparse_and_dense_solves_agree(seed, monkeypatch):
+    """solve_cdr factorises small systems densely, large ones with SuperLU: same solution."""
+    import mogs_node.metrizer.refinement as refinement
+
+    prob = _random_problem(np.random.default_rng(seed), n=20, P=200, G=60, B=100)
+    params = CdrParams(irls_iters=3, tol=0.0)
+    dense = solve_cdr(prob, params)
+    monkeypatch.setattr(refinement, "_DENSE_MAX", 0)
+    sparse = solve_cdr(prob, params)
+    assert_allclose(dense, sparse, rtol=1e-9, atol=1e-12)
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 6))
 def test_fast_solver_matches_reference_property(seed, n):

@@ -43,8 +43,11 @@ def prepare_labels(labels: NDArray[np.integer]) -> tuple[I32, int, NDArray[np.bo
     flat = lab.ravel()
     masked = None if mn >= 0 else flat >= 0
     if mx >= 0:
-        counts = np.bincount(flat if masked is None else flat[masked], minlength=mx + 1)
-        present = counts > 0
+        # labels present = labels of the last pixel of every raster run (cheaper than bincount)
+        ends = np.flatnonzero(flat[1:] != flat[:-1])
+        run_labels = np.concatenate([flat[ends], flat[-1:]])
+        present = np.zeros(mx + 1, bool)
+        present[run_labels[run_labels >= 0]] = True
     else:
         present = np.zeros(0, bool)
     n_masked = int(present.sum())
@@ -101,11 +104,13 @@ def associate_features(obj: I32, uv_px: NDArray[np.floating], radius: int = 1) -
 def boundary_pairs(obj: I32) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Flat indices ``(p, q)`` of every 4-neighbour pixel pair whose objects differ."""
     H, W = obj.shape
-    idx = np.arange(H * W).reshape(H, W)
-    dh = obj[:, :-1] != obj[:, 1:]
-    dv = obj[:-1, :] != obj[1:, :]
-    p = np.concatenate([idx[:, :-1][dh], idx[:-1, :][dv]])
-    q = np.concatenate([idx[:, 1:][dh], idx[1:, :][dv]])
+    # horizontal pairs: index i in the [H, W-1] difference grid is pixel i + i // (W - 1)
+    ih = np.flatnonzero(obj[:, :-1] != obj[:, 1:]) if W > 1 else np.zeros(0, np.intp)
+    ph = ih + ih // max(W - 1, 1)
+    # vertical pairs: index i in the [H-1, W] difference grid is pixel i itself
+    pv = np.flatnonzero(obj[:-1, :] != obj[1:, :])
+    p = np.concatenate([ph, pv])
+    q = np.concatenate([ph + 1, pv + W])
     return p, q
 
 

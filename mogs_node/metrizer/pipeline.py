@@ -203,7 +203,7 @@ class _Frame:
     theta0: F64  # [2] global affine
     stats: dict[str, Any]
     G: int = 0  # objects after merging
-    gobj: NDArray[np.int32] | None = None  # [HW] object per pixel
+    gobj: NDArray[np.intp] | None = None  # [HW] object per pixel
     feat_g: NDArray[np.intp] | None = None  # [N] object per feature
     n_feat_g: NDArray[np.int64] | None = None  # [G]
     sky: NDArray[np.bool_] | None = None  # [G]
@@ -215,6 +215,19 @@ class _Frame:
     cm: F64 | None = None  # [G]
     zlo: F64 | None = None  # [G] model depth valid range
     zhi: F64 | None = None  # [G]
+    run_label: NDArray[np.intp] | None = None  # [R] object of each raster run of gobj
+    run_len: NDArray[np.intp] | None = None  # [R] its length in pixels
+
+    def per_pixel(self, table: NDArray) -> NDArray:
+        """``table[gobj]`` ``[HW]`` for a per-object ``table`` ``[G]``: the object map is
+        piecewise constant, so its raster runs are expanded (``np.repeat``), which is cheaper
+        than a per-pixel gather."""
+        if self.run_label is None:
+            g = self.gobj
+            starts = np.concatenate([[0], np.flatnonzero(g[1:] != g[:-1]) + 1])
+            self.run_label = g[starts]
+            self.run_len = np.diff(np.append(starts, len(g)))
+        return np.repeat(table[self.run_label], self.run_len)
 
 
 class _Timer:
@@ -245,6 +258,14 @@ def _far_and_norm(y: F64, kind: str, p: MetrizerParams) -> tuple[NDArray[np.bool
             y, 1.0 / p.d_max_m, 1.0 / p.d_min_m
         )
     return y >= p.sky_depth_frac * p.d_max_m, np.clip(y, p.d_min_m, p.d_max_m)
+
+
+def _object_map(table: NDArray[np.intp], obj_i: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Object id per pixel ``[HW]`` from the compact labels ``obj_i`` ``[HW]`` and a look-up table
+    ``[n_obj]`` (``obj_i`` itself when the table is the identity)."""
+    if np.array_equal(table, np.arange(len(table))):
+        return obj_i
+    return np.take(table, obj_i)
 
 
 def _pixel_xy(flat_idx: NDArray[np.intp], W: int, K: F64) -> tuple[F64, F64]:
@@ -283,7 +304,8 @@ def _prior_edges(
     prior: NDArray[np.float32], conf: NDArray[np.float32], H: int, W: int, p: MetrizerParams
 ) -> NDArray[np.uint8]:
     """Depth-edge neighbourhood of the prior (relative gradient), at quarter resolution."""
-    x = np.where(conf > 0, prior, 0.0).reshape(H, W).astype(np.float32)
+    x = prior if conf.min(initial=1.0) > 0 else np.where(conf > 0, prior, np.float32(0.0))
+    x = x.reshape(H, W).astype(np.float32, copy=False)
     h4, w4 = max(1, H // 4), max(1, W // 4)
     xs = cv2.resize(x, (w4, h4), interpolation=cv2.INTER_AREA)
     gx = np.abs(cv2.Sobel(xs, cv2.CV_32F, 1, 0, ksize=3))
@@ -397,17 +419,20 @@ def metrize_depth(
     else:
         group, n_merges = np.arange(n_obj), 0
     G = int(group.max()) + 1 if n_obj else 0
-    gobj = (obj if n_merges == 0 else np.take(group, obj)).astype(np.intp)  # intp: fast takes
+    # intp indices: np.take with int32 indices is several times slower (index conversion); the
+    # full-resolution object map is built once, after the last merge (absorption in mode full)
+    obj_i = obj.astype(np.intp)
+    group = group.astype(np.intp, copy=False)
     feat_g = group[feat_obj]
     n_feat_g = np.bincount(feat_g, minlength=G)
     # CDR sample pixels: a strided grid plus every pixel of objects the grid misses
     s = p.sample_stride
     grid = (np.arange(0, H, s)[:, None] * W + np.arange(0, W, s)[None, :]).ravel()
-    missing = np.bincount(gobj[grid], minlength=G) == 0
+    missing = np.bincount(group[obj_i[grid]], minlength=G) == 0
     if missing.any():
-        grid = np.concatenate([grid, np.flatnonzero(missing[gobj])])
+        grid = np.concatenate([grid, np.flatnonzero(np.take(missing[group], obj_i))])
     grid = grid[has_prior[grid]]
-    gg_grid = gobj[grid]
+    gg_grid = group[obj_i[grid]]
     y_grid = theta0[0] * prior[grid].astype(np.float64) + theta0[1]
     far_grid, norm_grid = _far_and_norm(y_grid, prior_kind, p)
     n_prior_g = np.bincount(gg_grid, minlength=G)
@@ -433,7 +458,7 @@ def metrize_depth(
         theta0=theta0,
         stats=stats,
         G=G,
-        gobj=gobj,
+        gobj=None if mode == "full" else _object_map(group, obj_i),
         feat_g=feat_g,
         n_feat_g=n_feat_g,
         sky=sky,
@@ -471,6 +496,7 @@ def metrize_depth(
             zhi[g] = min(zi.max() * p.model_extrapolation, p.d_max_m)
     tm.lap("consensus")
     n_absorbed = 0
+    obj_to_g = group  # [n_obj] object -> group (after absorption in mode full)
     if mode == "full" and p.absorb and (kind_g > 0).any():
         remap = _absorb(
             group,
@@ -500,7 +526,7 @@ def metrize_depth(
             keep_ids, remap = remap
             n_absorbed = G - len(keep_ids)
             G = len(keep_ids)
-            gobj = np.take(remap, gobj)
+            obj_to_g = remap[group]
             gg_grid, feat_g = remap[gg_grid], remap[feat_g]
             n_feat_g = np.bincount(feat_g, minlength=G)
             sky, kind_g, conf_g = sky[keep_ids], kind_g[keep_ids], conf_g[keep_ids]
@@ -511,7 +537,10 @@ def metrize_depth(
                 zlo[keep_ids],
                 zhi[keep_ids],
             )
-            fr.G, fr.gobj, fr.feat_g, fr.n_feat_g, fr.sky = G, gobj, feat_g, n_feat_g, sky
+            fr.G, fr.feat_g, fr.n_feat_g, fr.sky = G, feat_g, n_feat_g, sky
+    if fr.gobj is None:
+        fr.gobj = _object_map(obj_to_g, obj_i)
+    gobj = fr.gobj
     stats.update(
         n_objects=G,
         absorbed=n_absorbed,
@@ -753,20 +782,17 @@ def _model_output(fr: _Frame, depth: NDArray[np.float32], special) -> tuple:
         hi = np.where(plane, 1.0 / zlo.clip(min=1e-12), -np.inf).astype(np.float32)
         xg = ((np.arange(W) - K[0, 2]) / K[0, 0]).astype(np.float32)
         yg = ((np.arange(H) - K[1, 2]) / K[1, 1]).astype(np.float32)
-        # full-resolution passes, in place into two float32 buffers (memory bound)
+        # full-resolution float32 passes; per-object values expanded from the raster runs
         c32 = coef.astype(np.float32)
-        inv = np.take(c32[:, 0], gobj).reshape(H, W)
+        inv = fr.per_pixel(c32[:, 0]).reshape(H, W)
         inv *= xg[None, :]
-        tmp = np.take(c32[:, 1], gobj).reshape(H, W)
+        tmp = fr.per_pixel(c32[:, 1]).reshape(H, W)
         tmp *= yg[:, None]
         inv += tmp
         inv, tmp = inv.ravel(), tmp.ravel()
-        np.take(c32[:, 2], gobj, out=tmp)
-        inv += tmp
-        np.take(lo, gobj, out=tmp)
-        ok = inv >= tmp
-        np.take(hi, gobj, out=tmp)
-        ok &= inv <= tmp
+        inv += fr.per_pixel(c32[:, 2])
+        ok = inv >= fr.per_pixel(lo)
+        ok &= inv <= fr.per_pixel(hi)
         r = np.multiply(inv, depth, out=tmp)  # calibrated / model
         okg = r >= np.float32(1.0 / g1)
         if g1 < 2:
@@ -788,7 +814,7 @@ def _model_output(fr: _Frame, depth: NDArray[np.float32], special) -> tuple:
         out_ratio.append(-np.log(r[idx].astype(np.float64)))
         np.divide(np.float32(1.0), inv, out=depth, where=ok)
     if quad.any():
-        qpix = np.flatnonzero(np.take(quad, gobj))
+        qpix = np.flatnonzero(fr.per_pixel(quad))
         if special is not None:
             qpix = qpix[~special[qpix]]
         g = gobj[qpix]
@@ -829,14 +855,14 @@ def _compose(fr: _Frame, tm: _Timer, global_only: bool) -> MetrizedDepth:
             np.where(n_feat_g > 0, 0.5 * np.minimum(1.0, n_feat_g / p.n_min), 0.25),
         )
     # calibrated prior, eq. (6), everywhere (float32, in place)
-    depth = np.take(theta[:, 0].astype(np.float32), gobj)
+    depth = fr.per_pixel(theta[:, 0].astype(np.float32))
     depth *= prior
-    depth += np.take(theta[:, 1].astype(np.float32), gobj)
+    depth += fr.per_pixel(theta[:, 1].astype(np.float32))
     _to_depth(depth, kind, p)
-    out_conf = np.take(q_g.astype(np.float32), gobj)
+    out_conf = fr.per_pixel(q_g.astype(np.float32))
     out_conf *= conf
     n_model_px = n_model_fill = n_edge_fill = 0
-    sky_pix = np.take(sky, gobj) if sky.any() else None
+    sky_pix = fr.per_pixel(sky) if sky.any() else None
     special = None if sky_pix is None else sky_pix.copy()
     if not fr.all_prior:
         special = ~has_prior if special is None else special | ~has_prior

@@ -21,8 +21,10 @@ pair is divided by the mean border-pair count of its two objects), so 30 feature
 tiny ridge towards the global affine keeps objects with a constant prior well posed.
 
 IRLS: the Huber weights are re-evaluated from the current estimate, the 2x2 per-object blocks of the
-normal equations are accumulated with ``bincount``, the (fixed, quadratic) smoothness couplings are
-pre-aggregated once, and the sparse ``2M x 2M`` system is solved exactly each iteration.
+normal equations are accumulated with ``bincount`` (eq.-(7) and eq.-(8) rows together, their fixed
+Jacobians computed once), the (fixed, quadratic) smoothness couplings are pre-aggregated once, and
+the ``2M x 2M`` system is solved exactly each iteration: densely (LAPACK) up to ``2M = 256``, where
+that is cheaper than assembling and factorising a sparse matrix, else with SuperLU.
 :func:`solve_cdr_reference` is the slow dense reference used by the tests.
 """
 
@@ -41,6 +43,7 @@ __all__ = ["CdrProblem", "CdrParams", "huber_weight", "solve_cdr", "solve_cdr_re
 log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 IDX = NDArray[np.intp]
+_DENSE_MAX = 256  # 2n at most: solve the normal equations densely (LAPACK), else SuperLU
 
 
 @dataclass(frozen=True)
@@ -87,7 +90,7 @@ class CdrProblem:
     sm_w: F64
 
 
-def huber_weight(e: F64, delta: float) -> F64:
+def huber_weight(e: F64, delta: float | F64) -> F64:
     """IRLS weight of the Huber loss: 1 inside ``|e| <= delta``, ``delta / |e|`` outside."""
     ae = np.abs(e)
     return np.where(ae <= delta, 1.0, delta / np.maximum(ae, 1e-300))
@@ -107,11 +110,12 @@ def _ridge(prob: CdrProblem, ridge: float) -> tuple[F64, F64]:
     return ra, rb
 
 
-def _smooth_matrix(prob: CdrProblem, lam: float) -> sp.csr_matrix:
-    """Normal-equation contribution of eq. (9), aggregated per object pair with ``bincount``."""
+def _smooth_entries(prob: CdrProblem, lam: float) -> tuple[NDArray[np.intp], NDArray[np.intp], F64]:
+    """Normal-equation contribution of eq. (9) as COO ``(rows, cols, vals)`` of the ``2n x 2n``
+    matrix (duplicates to be summed), aggregated per object pair with ``bincount``."""
     n = prob.n
     if len(prob.sm_k) == 0 or n == 0:
-        return sp.csr_matrix((2 * n, 2 * n))
+        return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0)
     w = lam * prob.sm_w / prob.sm_g**2
     k, l, xk, xl = prob.sm_k, prob.sm_l, prob.sm_xk, prob.sm_xl
     key = k.astype(np.int64) * n + l
@@ -155,22 +159,7 @@ def _smooth_matrix(prob: CdrProblem, lam: float) -> sp.csr_matrix:
                 rows.append(2 * oi + i)
                 cols.append(2 * oj + j)
                 vals.append(m[i][j])
-    return sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * n, 2 * n)
-    )
-
-
-def _data_blocks(obj, x, t, w, theta, delta, lam, n):
-    """Accumulate ``J^T W J`` (2x2 per object) and ``J^T W 1`` for rows ``e = (a x + b)/t - 1``."""
-    j1, j2 = x / t, 1.0 / t
-    e = j1 * theta[obj, 0] + j2 * theta[obj, 1] - 1.0
-    ww = lam * w * huber_weight(e, delta)
-    h11 = np.bincount(obj, ww * j1 * j1, minlength=n)
-    h12 = np.bincount(obj, ww * j1 * j2, minlength=n)
-    h22 = np.bincount(obj, ww * j2 * j2, minlength=n)
-    g1 = np.bincount(obj, ww * j1, minlength=n)
-    g2 = np.bincount(obj, ww * j2, minlength=n)
-    return h11, h12, h22, g1, g2
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
 
 
 def solve_cdr(prob: CdrProblem, params: CdrParams = CdrParams()) -> F64:
@@ -179,42 +168,51 @@ def solve_cdr(prob: CdrProblem, params: CdrParams = CdrParams()) -> F64:
     theta = prob.theta0.astype(np.float64).copy()
     if n == 0:
         return theta
-    S = _smooth_matrix(prob, params.lambda_sm)
+    s_rows, s_cols, s_vals = _smooth_entries(prob, params.lambda_sm)
+    m = 2 * n
+    dense = m <= _DENSE_MAX
+    if dense:  # small systems: LAPACK on the dense matrix beats building + factorising CSC
+        S = np.bincount(s_rows * m + s_cols, s_vals, minlength=m * m).reshape(m, m)
+        S = S.astype(np.float64, copy=False)  # bincount of nothing is int64
+    else:
+        S = sp.csr_matrix((s_vals, (s_rows, s_cols)), shape=(m, m))
     ra, rb = _ridge(prob, params.ridge)
     k = np.arange(n)
     rows = np.concatenate([2 * k, 2 * k, 2 * k + 1, 2 * k + 1])
     cols = np.concatenate([2 * k, 2 * k + 1, 2 * k, 2 * k + 1])
+    # eq. (7) and eq. (8) rows together; their Jacobians (x / t, 1 / t) and products are fixed
+    obj = np.concatenate([prob.geo_obj, prob.nfc_obj]).astype(np.intp, copy=False)
+    j1 = np.concatenate([prob.geo_x / prob.geo_t, prob.nfc_x / prob.nfc_t])
+    j2 = np.concatenate([1.0 / prob.geo_t, 1.0 / prob.nfc_t])
+    j11, j12, j22 = j1 * j1, j1 * j2, j2 * j2
+    n_geo = len(prob.geo_obj)
+    delta = np.concatenate(
+        [np.full(n_geo, params.huber_geo), np.full(len(prob.nfc_obj), params.huber_nfc)]
+    )
+    w_geo = params.lambda_geo * prob.geo_w
     n_it = max(1, params.irls_iters) + int(params.anchor_free_start)
     for it in range(n_it):
         anchor = 0.0 if (params.anchor_free_start and it == 0) else params.lambda_nfc
-        a = _data_blocks(
-            prob.geo_obj,
-            prob.geo_x,
-            prob.geo_t,
-            prob.geo_w,
-            theta,
-            params.huber_geo,
-            params.lambda_geo,
-            n,
-        )
-        b = _data_blocks(
-            prob.nfc_obj,
-            prob.nfc_x,
-            prob.nfc_t,
-            prob.nfc_w,
-            theta,
-            params.huber_nfc,
-            anchor,
-            n,
-        )
-        h11, h12, h22 = a[0] + b[0] + ra, a[1] + b[1], a[2] + b[2] + rb
-        g1 = a[3] + b[3] + ra * prob.theta0[:, 0]
-        g2 = a[4] + b[4] + rb * prob.theta0[:, 1]
-        D = sp.csr_matrix(
-            (np.concatenate([h11, h12, h12, h22]), (rows, cols)), shape=(2 * n, 2 * n)
-        )
+        lw = np.concatenate([w_geo, anchor * prob.nfc_w])
+        e = j1 * theta[obj, 0] + j2 * theta[obj, 1] - 1.0
+        ww = lw * huber_weight(e, delta)
+        h11 = np.bincount(obj, ww * j11, minlength=n) + ra
+        h12 = np.bincount(obj, ww * j12, minlength=n)
+        h22 = np.bincount(obj, ww * j22, minlength=n) + rb
+        g1 = np.bincount(obj, ww * j1, minlength=n) + ra * prob.theta0[:, 0]
+        g2 = np.bincount(obj, ww * j2, minlength=n) + rb * prob.theta0[:, 1]
+        dvals = np.concatenate([h11, h12, h12, h22])
         rhs = np.stack([g1, g2], 1).ravel()
-        sol = spla.spsolve((D + S).tocsc(), rhs)
+        if dense:
+            Mx = S.copy()
+            Mx[rows, cols] += dvals  # (rows, cols) pairs are distinct
+            try:
+                sol = np.linalg.solve(Mx, rhs)
+            except np.linalg.LinAlgError:
+                sol = np.full(m, np.nan)
+        else:
+            D = sp.csr_matrix((dvals, (rows, cols)), shape=(m, m))
+            sol = spla.spsolve((D + S).tocsc(), rhs)
         if not np.all(np.isfinite(sol)):
             log.warning("CDR: singular system, keeping the previous estimate")
             break
