@@ -297,3 +297,35 @@ def test_gtsam_bias_convention():
     b = gtsam.imuBias.ConstantBias(np.array([1.0, 2, 3]), np.array([4.0, 5, 6]))
     np.testing.assert_allclose(b.accelerometer(), [1, 2, 3])
     np.testing.assert_allclose(b.gyroscope(), [4, 5, 6])
+
+
+def test_output_positions_agree_with_velocity_states():
+    """From the true state, the per-frame output positions advance as far as the velocity states
+    say (and as the truth): the previous report of positions advancing ~21 % less than the
+    velocities came from comparing a run-wide median step ratio with the last frame's speed."""
+    s = make_scene(10.0)
+    _, Ts, states = run_window(s)
+    v = np.array([s["v"][0]] + [st.velocity_world_m_s for st in states])
+    dt = np.diff(s["stamps"]) * 1e-9
+    step_est = np.linalg.norm(np.diff(Ts[:, :3, 3], axis=0), axis=1).sum()
+    step_vel = (0.5 * np.linalg.norm(v[1:] + v[:-1], axis=1) * dt).sum()
+    step_true = np.linalg.norm(np.diff(s["T_wi"][:, :3, 3], axis=0), axis=1).sum()
+    assert abs(step_est / step_vel - 1) < 0.02
+    assert abs(step_est / step_true - 1) < 0.03
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open defect: marginalisation of the oldest keyframe drops "
+                   "its visual information, the window's scale drifts (docs/frontend.md)")
+def test_scale_holds_with_a_perfect_imu_and_noisy_pixels(monkeypatch):
+    """A perfect IMU and 0.5 px pixel noise, from the true state, 15 s: the speed should stay
+    within 1 % of the truth. Measured: window 8 loses 4 % (the oldest frame's velocity moves by
+    ~3 cm/s per solve, always slower); with no marginalisation (window 300) it holds to 0.1 %."""
+    from mogs_node.sim.imu import ImuNoise as SimImuNoise
+
+    monkeypatch.setitem(globals(), "simulate_imu_noise",
+                        lambda n, rate, p, rng: SimImuNoise(*[np.zeros((n, 3))] * 4))
+    s = make_scene(15.0, seed=1, px_noise=0.5)
+    _, _, states = run_window(s)
+    speed = np.linalg.norm(states[-1].velocity_world_m_s) / np.linalg.norm(s["v"][-1])
+    assert abs(speed - 1) < 0.01

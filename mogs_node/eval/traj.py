@@ -63,8 +63,12 @@ def trajectory_metrics(stamps_ns: NDArray, poses_est: NDArray, poses_ref: NDArra
 
 
 def evaluate(args: argparse.Namespace) -> dict:
-    """Run the frontend on ``args.dataset`` (sim | oxts | euroc) and score its keyframe poses."""
+    """Run the frontend on ``args.dataset`` (sim | oxts | euroc) and score its keyframe poses.
+
+    The sim drive starts with a standstill (``runs.SIM_STATIC_START_S``, overridable by an
+    ``args.static_start_s`` attribute) so that the static initialisation fixes the metric scale; the
+    OXTS drive has none and uses the dynamic initialisation."""
     from mogs_node.frontend.runs import run_dataset
 
     return run_dataset(args.dataset, seconds=args.seconds, seed=args.seed, data=args.data,
-                       out_dir=args.out)
+                       out_dir=args.out, static_start_s=getattr(args, "static_start_s", None))

@@ -177,6 +177,11 @@ class Frontend:
     def initialized(self) -> bool:
         return self.estimator.initialized
 
+    @property
+    def pending_stamps_ns(self) -> list[int]:
+        """Camera stamps of the frames waiting for their IMU."""
+        return [t for t, _ in self._pending]
+
     # ------------------------------------------------------------------------------------ input
 
     def add_imu(self, t_ns: int, gyro_rad_s: tuple | NDArray, accel_m_s2: tuple | NDArray
@@ -260,7 +265,8 @@ class Frontend:
             dt_kf = (t_ns - self._last_kf[0]) * 1e-9
             make_kf, parallax = is_keyframe(p.keyframes, self._last_kf[1], self._last_kf[2],
                                             tr.ids, tr.uv_px, dt_kf)
-            still = is_still(p.init, imu, t_ns, flow)
+            still = is_still(p.init, imu, t_ns, flow) and \
+                self._compensated_accel_m_s2(imu, t_ns) < p.init.still_accel_dev_m_s2
             stats["parallax_px"] = parallax
             try:
                 st = self.estimator.add_frame(t_ns, tr.ids, tr.uv_px, imu,
@@ -293,6 +299,19 @@ class Frontend:
         self.estimator.reset()
         self._dyn_init.reset()
         self._last_kf = None
+
+    def _compensated_accel_m_s2(self, imu: ImuSamples, t_ns: int) -> float:
+        """Norm of the mean acceleration over the last ``still_accel_window_s`` with gravity and the
+        estimated accelerometer bias removed, at the newest estimated attitude. A vehicle driving
+        off smoothly shows almost no image flow and no IMU spread, but this is well above zero."""
+        span_ns = int(self.params.init.still_accel_window_s * 1e9)
+        m = (imu.stamps_ns <= t_ns) & (imu.stamps_ns >= t_ns - span_ns)
+        if not np.any(m):
+            return np.inf
+        st = self.estimator.state()
+        f = imu.accel_m_s2[m].mean(axis=0) - st.accel_bias_m_s2
+        a_world = st.T_world_imu[:3, :3] @ f - np.array([0.0, 0.0, self.params.imu.gravity_m_s2])
+        return float(np.linalg.norm(a_world))
 
     def _predicted_rotation(self, t_ns: int) -> NDArray | None:
         """Camera rotation since the previous frame from the gyro (bias-corrected when known)."""

@@ -44,6 +44,9 @@ class InitParams:
     still_gyro_std_rad_s: float = 0.1  # stillness: gyro standard deviation below this (vibration)
     still_accel_std_m_s2: float = 1.5  # stillness: accel standard deviation below this (rotors)
     still_flow_px: float = 0.5  # stillness: median image flow below this
+    still_accel_dev_m_s2: float = 0.3  # stillness while tracking: gravity-compensated mean
+    # acceleration below this (a car driving off has little image flow and IMU spread)
+    still_accel_window_s: float = 0.3  # IMU span of that mean (short: drive-off is seen early)
     dyn_frames: int = 10  # frames in the dynamic-initialisation window
     dyn_min_parallax_px: float = 15.0  # parallax of the SfM pair that fixes the scale
     dyn_min_features: int = 30  # common features required by SfM
@@ -52,7 +55,8 @@ class InitParams:
     dyn_hypotheses: int = 8  # scale hypotheses scored by the VI window when the alignment is weak
     min_speed_m_s: float = 0.5  # their speed range
     dyn_select_frames: int = 20  # frames each hypothesis runs before the best one is kept
-    dyn_vel_sigma_rel: float = 1.0  # velocity prior sigma of a hypothesis, relative to its speed
+    dyn_vel_sigma_rel: float = 0.1  # velocity prior sigma of a hypothesis, relative to its speed
+    # (tight: each hypothesis keeps its scale while it is scored; loose ones drift and score alike)
     dyn_tilt_sigma_rad: float = 0.05  # roll/pitch prior sigma of a hypothesis (its gravity is
     # solved at a fixed scale and absorbs part of the acceleration: it must stay free to move)
     max_speed_m_s: float = 40.0

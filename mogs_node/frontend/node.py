@@ -2,6 +2,12 @@
 ``/frontend/keyframe`` (per keyframe). The shell only converts messages; the algorithm is
 :class:`mogs_node.frontend.frontend.Frontend`.
 
+Every handled image gets exactly one odometry message with its ``stamp_ns`` (the player's flow
+control acknowledges frames by these stamps), also while initialising (status ``initializing``,
+the last estimated pose or the identity before any) and after a reset (status ``reset``); an image
+the frontend rejects (time going backwards) or drops (waited too long for its IMU) is acknowledged
+with status ``rejected`` / ``dropped`` and the last pose.
+
 Images are best-effort (latest wins, drops counted by the shell); IMU samples are reliable (ordered,
 bounded queue, gaps counted): the preintegration needs every sample. The frontend's own counters
 (time going backwards, IMU gaps, resets) are merged into ``/diagnostics``.
@@ -92,6 +98,8 @@ class FrontendNode(Node):
         p: FrontendNodeParams = self.params
         fp, cam, T_imu_cam = p.build(self.name)
         self.frontend = Frontend(fp, cam, T_imu_cam)
+        self._last_T_world_cam = np.eye(4)  # best pose so far: acknowledges frames without one
+        self._last_velocity = np.zeros(3)
         self.subscribe(p.imu_topic, self.on_imu, reliable=True, msg_type=msgs.Imu)
         self.subscribe(p.image_topic, self.on_image, reliable=False, msg_type=msgs.Image)
 
@@ -103,17 +111,39 @@ class FrontendNode(Node):
         img = msg.data
         if msg.encoding == "bgr8":
             img = np.ascontiguousarray(img[..., ::-1])
-        for out in self.frontend.add_image(msg.stamp_ns, img):
+        fe = self.frontend
+        pending = fe.pending_stamps_ns
+        rejected = fe.counters["image_time_backwards"]
+        outs = fe.add_image(msg.stamp_ns, img)
+        if fe.counters["image_time_backwards"] > rejected:
+            self._acknowledge(msg.stamp_ns, "rejected")
+        waiting = set(fe.pending_stamps_ns) | {o.stamp_ns for o in outs}
+        for t in pending:  # frames dropped while waiting for their IMU
+            if t not in waiting:
+                self._acknowledge(t, "dropped")
+        for out in outs:
             self._publish(out)
+
+    def _acknowledge(self, stamp_ns: int, status: str) -> None:
+        self._send_odometry(stamp_ns, -1, self._last_T_world_cam, self._last_velocity, status)
+
+    def _send_odometry(self, stamp_ns: int, frame_index: int, T_world_cam: np.ndarray,
+                       velocity: np.ndarray, status: str) -> None:
+        p: FrontendNodeParams = self.params
+        v = velocity
+        self.publish(p.odometry_topic, msgs.Odometry(
+            stamp_ns=int(stamp_ns), frame_id=p.frame_id, frame_index=int(frame_index),
+            T_world_cam=np.ascontiguousarray(T_world_cam, dtype=np.float64),
+            velocity_world_m_s=(float(v[0]), float(v[1]), float(v[2])), status=status))
 
     def _publish(self, out: FrameOutput) -> None:
         p: FrontendNodeParams = self.params
         if out.T_world_cam is not None:
-            v = out.velocity_world_m_s
-            self.publish(p.odometry_topic, msgs.Odometry(
-                stamp_ns=out.stamp_ns, frame_id=p.frame_id, frame_index=out.frame_index,
-                T_world_cam=np.ascontiguousarray(out.T_world_cam, dtype=np.float64),
-                velocity_world_m_s=(float(v[0]), float(v[1]), float(v[2])), status=out.status))
+            self._last_T_world_cam = np.array(out.T_world_cam, dtype=np.float64)
+            self._last_velocity = np.asarray(out.velocity_world_m_s, dtype=np.float64)
+        # one odometry per handled frame, with the best pose available while initialising
+        self._send_odometry(out.stamp_ns, out.frame_index, self._last_T_world_cam,
+                            self._last_velocity, out.status)
         kf = out.keyframe
         if kf is not None:
             self.publish(p.keyframe_topic, msgs.Keyframe(

@@ -53,9 +53,18 @@ def run_frontend(frontend: Frontend, stamps_ns: NDArray, images: Iterable[NDArra
     return outs
 
 
+SIM_STATIC_START_S = 2.0  # default standstill before the sim drive: the static initialisation
+# (gravity from the accelerometer, zero velocity) fixes the metric scale
+
+
 def load_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
-                 data: str | Path | None = None, size: tuple[int, int] = (621, 188)) -> dict:
-    """Sequence as plain arrays: stamps, image loader, IMU, camera model, ``T_imu_cam`` and GT."""
+                 data: str | Path | None = None, size: tuple[int, int] = (621, 188),
+                 static_start_s: float | None = None) -> dict:
+    """Sequence as plain arrays: stamps, image loader, IMU, camera model, ``T_imu_cam`` and GT.
+
+    ``static_start_s``: seconds the sim vehicle stands still before driving off (``sim`` only;
+    default :data:`SIM_STATIC_START_S`, 0 for a moving start). The OXTS drive and EuRoC are
+    replayed as recorded."""
     if dataset in ("sim", "oxts"):
         from mogs_node.sim import SimConfig, make_sequence
 
@@ -64,15 +73,24 @@ def load_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
             oxts_dir = Path(data) if data else DEFAULT_DATA / "kitti_raw_2011_09_26_drive_0001_oxts"
             kw = {"trajectory": "oxts", "oxts_dir": str(oxts_dir)}
             seconds = min(seconds or 10.5, 10.5)
+            if static_start_s:
+                raise DatasetError("static_start_s: the OXTS drive has no standstill")
         else:
             seconds = seconds or 60.0
+            kw = {"static_start_s": SIM_STATIC_START_S if static_start_s is None
+                  else float(static_start_s)}
+            if seconds < kw["static_start_s"] + 1.0:
+                raise DatasetError(f"seconds: {seconds} s leaves the sim parked "
+                                   f"(static_start_s {kw['static_start_s']} s); use >= "
+                                   f"{kw['static_start_s'] + 1.0} s or static_start_s=0")
         cfg = SimConfig(seed=seed, n_frames=int(round(seconds * 10.0)) + 1, width=size[0],
                         height=size[1], **kw)
         seq = make_sequence(cfg)
         return dict(stamps_ns=seq.stamps_ns, image=lambda i: seq.render(i).rgb,
                     imu=(seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2),
                     camera=CameraModel(seq.camera), T_imu_cam=seq.T_imu_cam,
-                    gt=seq.T_world_cam, name=f"{dataset} seed {seed} {seconds:.1f}s")
+                    gt=seq.T_world_cam, velocity=seq.velocity_world_m_s,
+                    name=f"{dataset} seed {seed} {seconds:.1f}s")
     if dataset == "euroc":
         from mogs_node.datasets.euroc import read_euroc
 
@@ -143,12 +161,14 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
 
 def run_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
                 data: str | Path | None = None, out_dir: str | Path | None = None,
-                params: FrontendParams | None = None) -> dict:
+                params: FrontendParams | None = None, static_start_s: float | None = None) -> dict:
     """Run the frontend on ``dataset`` and score it; optionally write TUM/KITTI trajectories."""
-    d = load_dataset(dataset, seconds=seconds, seed=seed, data=data)
+    d = load_dataset(dataset, seconds=seconds, seed=seed, data=data, static_start_s=static_start_s)
     log.info("running the frontend on %s (%d frames)", d["name"], len(d["stamps_ns"]))
     run = run_dataset_frames(d, params)
     figures = {"dataset": dataset, **score_run(run)}
+    if dataset == "sim":
+        figures["static_start_s"] = SIM_STATIC_START_S if static_start_s is None else static_start_s
     all_frames = score_run(run, keyframes_only=False)
     figures["ate_se3_rmse_m_all_frames"] = all_frames["ate_se3_rmse_m"]
     if out_dir is not None:
