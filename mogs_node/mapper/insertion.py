@@ -1,11 +1,18 @@
 """Gaussian insertion from a keyframe's dense depth (MonoGS keyframe initialisation, MOGS depth).
 
 Where the current map does not explain the new view -- its rendered opacity is low, or its
-rendered depth disagrees with the (confident) metrized depth -- pixels are sampled on a grid whose
-stride adapts to depth and confidence, back-projected to 3D, and each becomes an isotropic
-Gaussian whose scale is the sampled pixel footprint (``stride * depth / f``) and whose colour is
-the image colour there. Depth sources for the paper's Table II comparison: the MOGS metrized
-depth, the globally aligned prior (``no_msc_cdr``) and random depth (:func:`random_depth`).
+rendered surface lies behind the new depth by more than a tolerance relative to the depth and
+inversely proportional to its confidence -- pixels are sampled on a grid whose stride adapts to
+depth and confidence, back-projected to 3D, and each becomes an isotropic Gaussian whose scale is
+the sampled pixel footprint (``stride * depth / f``) and whose colour is the image colour there.
+
+One policy for every depth source, a function of (depth, confidence) only: confident metric depth
+pins a surface, so one Gaussian covers a larger footprint (coarser stride, larger initial scale)
+and disagreements with the map count at a tight tolerance; unconfident depth is sampled finely
+(more depth hypotheses for the optimisation to keep or prune) and its disagreements count only at
+a loose tolerance, not at all at confidence 0. Depth sources for the paper's Table II comparison:
+the MOGS metrized depth, the globally aligned prior (``no_msc_cdr``) and random depth
+(:func:`random_depth`, which carries no information: confidence 0).
 """
 
 from __future__ import annotations
@@ -26,14 +33,13 @@ __all__ = ["InsertionParams", "insertion_mask", "random_depth", "sample_gaussian
 class InsertionParams:
     """Where and how densely to insert Gaussians."""
 
-    stride_px: int = 2  # base sampling stride (pixels) for confident, near depth
+    stride_px: int = 2  # base sampling stride (pixels) for near depth
     far_depth_m: float = 25.0  # beyond this depth the stride doubles (and again at 2x, 4x ...)
     max_stride_px: int = 8  # the stride never exceeds this
-    low_conf: float = 0.3  # below this confidence the stride doubles
+    coarse_conf: float = 0.7  # at/above this confidence the stride doubles (larger footprint)
     alpha_explained: float = 0.9  # pixels with rendered alpha above this may be explained ...
-    depth_rel_tol: float = 0.1  # ... unless (rendered - metrized) / metrized exceeds this
-    depth_check_conf: float = 0.5  # the depth disagreement test needs this much confidence
-    check_depth: bool = True  # use the depth disagreement test (off for random-depth init)
+    depth_rel_tol: float = 0.2  # ... unless (rendered - new) / new depth > depth_rel_tol / conf
+    check_depth: bool = True  # use the depth disagreement test at all (ablation switch)
     scale_factor: float = 1.0  # initial sigma = scale_factor * stride * depth / f (MonoGS: NN dist)
     opacity_init: float = 0.5  # initial opacity (MonoGS: 0.5)
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
@@ -62,7 +68,9 @@ def insertion_mask(
 
     ``depth_m`` [H, W] (0 = no value), ``confidence`` [H, W] in [0, 1]; ``rendered_alpha`` [H, W]
     and ``rendered_depth_m`` [H, W] (expected depth, alpha-normalised) of the current map, or
-    ``None`` for an empty map.
+    ``None`` for an empty map. A pixel is unexplained when ``alpha < alpha_explained`` or when
+    ``rendered - depth > depth_rel_tol * depth / confidence`` (relative tolerance, widening as the
+    confidence falls; confidence 0 never disagrees).
     """
     d = check_array("depth_m", depth_m, shape=(None, None), dtype=np.floating)
     c = check_array("confidence", confidence, shape=d.shape, dtype=np.floating)
@@ -77,16 +85,18 @@ def insertion_mask(
     # only a surface *in front of* what the map renders is missing: Gaussians inserted behind the
     # map's surface would be hidden in this view (a wrong surface in front is left to optimisation
     # and pruning)
-    disagree = (c >= params.depth_check_conf) & (
-        rd - d > params.depth_rel_tol * np.maximum(d, 1e-6)
+    disagree = (c > 0) & (
+        (rd - d) * np.maximum(c, 1e-6) > params.depth_rel_tol * np.maximum(d, 1e-6)
     )
     return usable & (unexplained | disagree)
 
 
 def _stride_map(depth_m: np.ndarray, confidence: np.ndarray, p: InsertionParams) -> np.ndarray:
-    """Per-pixel stride: ``stride_px`` doubled per octave beyond ``far_depth_m`` and at low conf."""
+    """Per-pixel stride: ``stride_px`` doubled per octave beyond ``far_depth_m`` and once more where
+    the depth is confident (``confidence >= coarse_conf``: the surface is known, one Gaussian
+    covers a larger footprint)."""
     octaves = np.floor(np.log2(np.maximum(depth_m, 1e-6) / p.far_depth_m) + 1.0)
-    octaves = np.clip(octaves, 0, 8) + (confidence < p.low_conf)
+    octaves = np.clip(octaves, 0, 8) + (confidence >= p.coarse_conf)
     s = p.stride_px * np.power(2.0, octaves)
     return np.minimum(s, p.max_stride_px).astype(np.int64)
 

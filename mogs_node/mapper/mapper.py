@@ -12,9 +12,11 @@ section III-D: the metric, object-consistent depth initialises the Gaussians and
    + lambda_iso |log s - mean(log s)|`` with per-keyframe affine exposure ``exp(a) c + b``; only the
    Gaussians the window sees are optimised (sparse Adam in :class:`GaussianMap`), and the window
    poses optionally too (SE(3) tangents, the oldest window keyframe stays fixed).
-3. After each round: pruning of transparent, oversized and unsupported Gaussians (MonoGS), and
-   optional gradient-based densification (3DGS clone of small Gaussians with large view-space
-   positional gradients).
+3. After each round: pruning of transparent, oversized and unsupported Gaussians (MonoGS) and of
+   redundant ones (their summed blending weight over the window views, ``sum_p alpha_i T_i``, is
+   below ``prune_contrib_px`` pixels), and optional gradient-based densification (3DGS clone of
+   small Gaussians with large view-space positional gradients). The policy is the same for every
+   depth source; it depends on the depth only through the (depth, confidence) pair.
 
 No I/O and no bus: arrays in, arrays out. The node shell is :mod:`mogs_node.mapper.node`.
 """
@@ -66,6 +68,8 @@ class MapperParams:
     support_kfs: int = 3  # after this many newer keyframes, a Gaussian must have ...
     support_min_obs: int = 1  # ... been seen by at least this many window keyframes (MonoGS: 3;
     # 1 here: under forward motion image borders are seen by one keyframe only)
+    prune_contrib_px: float = 1.0  # redundant below this summed blending weight (pixels) over
+    # the window views; applies to Gaussians the window sees, born before the newest keyframe
     densify: bool = False  # clone Gaussians with large view-space positional gradient
     densify_grad_px: float = 0.0005  # mean |d loss / d mean| * depth / f threshold for cloning
     seed: int = 0  # random past keyframe choice
@@ -369,6 +373,40 @@ class GaussianMapper:
         self.map.add(vals, birth_kf=len(self.keyframes) - 1)
         self.n_densified += len(pick)
 
+    def _contribution(self, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-Gaussian summed blending weight ``sum_p alpha_i T_i`` [N] over keyframes ``indices``
+        and whether its centre lies in front of and inside the image of any of them [N] bool.
+
+        The weight is the gradient of the rendered colour's channel sum with respect to the
+        Gaussian's colour (one backward per view); an occluded Gaussian inside the view has weight
+        0."""
+        contrib = torch.zeros(len(self.map))
+        in_view = torch.zeros(len(self.map), dtype=torch.bool)
+        prm = self.map.params
+        fx, fy, cx, cy = self.K
+        for i in indices:
+            kf = self.keyframes[i]
+            colors = prm["colors"].clone().requires_grad_()
+            g = GaussianTensors(**{k: prm[k] for k in PARAM_NAMES if k != "colors"}, colors=colors)
+            out = render(
+                g, kf.T_cam_world, self.K, self.width, self.height, params=self.params.raster
+            )
+            (grad,) = torch.autograd.grad(out.color[..., 0].sum(), colors)
+            contrib += torch.nan_to_num(grad[:, 0].detach())
+            T = kf.T_cam_world.to(prm["means"].dtype)
+            p_cam = prm["means"] @ T[:3, :3].T + T[:3, 3]
+            z = p_cam[:, 2]
+            zs = z.clamp_min(1e-6)
+            u, v = fx * p_cam[:, 0] / zs + cx, fy * p_cam[:, 1] / zs + cy
+            in_view |= (
+                (z > self.params.raster.near_m)
+                & (u >= 0)
+                & (u < self.width)
+                & (v >= 0)
+                & (v < self.height)
+            )
+        return contrib, in_view
+
     def _prune(self) -> None:
         p = self.params
         if len(self.map) == 0:
@@ -382,6 +420,10 @@ class GaussianMapper:
         old = self.map.birth_kf <= len(self.keyframes) - 1 - p.support_kfs
         unsupported = old & (self.map.n_obs < p.support_min_obs)
         mask = (opacity < p.prune_opacity) | too_big | unsupported
+        if p.prune_contrib_px > 0:
+            contrib, in_view = self._contribution(self.window)
+            settled = self.map.birth_kf < newest.index
+            mask |= in_view & settled & (contrib < p.prune_contrib_px)
         self.n_pruned += self.map.remove(mask)
 
     # ------------------------------------------------------------------------------ outputs
