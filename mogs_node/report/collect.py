@@ -46,6 +46,7 @@ class RunCollector:
     depth_scores: list[DepthScore] = field(default_factory=list)
     pending_depth: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     mapped: set[int] = field(default_factory=set)  # keyframe ids the mapper reported
+    unestimated_frames: int = 0  # odometry acknowledgements without a pose (initialising, ...)
     last_stats: dict[str, Any] = field(default_factory=dict)
 
     def add_depth(self, keyframe_id: int, depth_m: np.ndarray, confidence: np.ndarray) -> None:
@@ -114,6 +115,7 @@ def summarise(c: RunCollector) -> dict[str, Any]:
         "keyframes_with_depth": len(set(c.keyframes) & c.depth_done),
         "keyframes_mapped": len(set(c.keyframes) & c.mapped),
         "frames_with_odometry": len(c.odometry),
+        "frames_without_estimate": c.unestimated_frames,
     }
     n = sum(s.count for s in c.depth_scores)
     if n:
@@ -144,8 +146,9 @@ def write_report(path: Path, figures: dict[str, Any], *, title: str = "MOGS run"
     lines = [f"# {title}", ""]
     lines.append(
         f"Keyframes: {figures['keyframes']} (metrized depth: {figures['keyframes_with_depth']}, "
-        f"reached the mapper: {figures['keyframes_mapped']}); frames with odometry: "
-        f"{figures['frames_with_odometry']}."
+        f"reached the mapper: {figures['keyframes_mapped']}); frames with an odometry estimate: "
+        f"{figures['frames_with_odometry']} (plus {figures.get('frames_without_estimate', 0)} "
+        "acknowledged while initialising or rejected)."
     )
     summary = [f"{figures['keyframes']} keyframes"]
     if "depth" in figures:

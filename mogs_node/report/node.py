@@ -23,7 +23,10 @@ from mogs_node.frontend.trajectory_io import write_kitti, write_tum
 from mogs_node.node import Node
 from mogs_node.report.collect import RunCollector, summarise, write_report
 
-__all__ = ["RunReportNode", "RunReportParams"]
+__all__ = ["NOT_ESTIMATED", "RunReportNode", "RunReportParams"]
+
+#: odometry statuses that acknowledge a frame without estimating its pose (frontend node)
+NOT_ESTIMATED = frozenset({"initializing", "reset", "rejected", "dropped"})
 
 
 @dataclass(frozen=True)
@@ -31,7 +34,7 @@ class RunReportParams:
     out_dir: str = "runs/latest"  # where the outputs go
     source_node: str = "player"  # the node whose stop marks the end of the input
     settle_s: float = 2.0  # after the source stopped and all keyframes are done, wait this long
-    idle_timeout_s: float = 120.0  # stop after this long without any input once the source stopped
+    idle_timeout_s: float = 300.0  # stop after this long without any input once the source stopped
     save_depth: bool = True  # write depth/kf_*.npz
     save_renders: bool = True  # write renders/kf_*.png
     title: str = "MOGS run"  # report title
@@ -63,6 +66,9 @@ class RunReportNode(Node):
 
     def on_odometry(self, m: msgs.Odometry) -> None:
         self._touch()
+        if m.status in NOT_ESTIMATED:  # an acknowledgement without an estimate: not scored
+            self.c.unestimated_frames += 1
+            return
         self.c.odometry[m.stamp_ns] = np.array(m.T_world_cam)
 
     def on_keyframe(self, m: msgs.Keyframe) -> None:

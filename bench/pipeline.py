@@ -1,0 +1,181 @@
+"""End-to-end pipeline benchmark on the demo sequence (``launch/demo.yaml``).
+
+Runs the whole pipeline as separate processes (player in ``fast`` mode, so the drive is paced by
+the slowest node) and measures from the bus, in the same run:
+
+- latency per keyframe: image published on ``/camera/image`` -> its metrized depth on
+  ``/metrizer/depth`` (matched through the keyframe's stamp), and -> ``/mapper/stats``;
+- throughput: frames/s and keyframes/s, and the real-time factor (sequence duration / wall time);
+- CPU (% of one core, mean over the run) and peak resident memory of every node process.
+
+Usage::
+
+    python bench/pipeline.py [--frames 100] [--json PATH] [--no-docs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import psutil
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import Subscriber
+from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.launch import Launcher, load_launch_file
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
+    ap.add_argument("--frames", type=int, default=60, help="frames of the synthetic drive")
+    ap.add_argument("--timeout", type=float, default=1500.0)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--no-docs", action="store_true")
+    args = ap.parse_args(argv)
+
+    out = Path(tempfile.mkdtemp(prefix="mogs-bench-pipeline-"))
+    base = load_launch_file(args.launch)
+    sim = dict(next(n for n in base.nodes if n.name == "player").params.get("sim", {}))
+    sim["n_frames"] = args.frames
+    launch = load_launch_file(
+        args.launch,
+        overrides={
+            "player": {"sim": sim},
+            "report": {"out_dir": str(out)},
+            "mapper": {"ply_path": str(out / "map.ply")},
+        },
+    )
+    frame_rate_hz = float(sim.get("frame_rate_hz", 10.0))
+
+    ctx = zmq.Context()
+    sub = Subscriber(launch.bus, context=ctx)
+    for t in ("/camera/image", "/frontend/keyframe", "/metrizer/depth", "/mapper/stats"):
+        sub.subscribe(t)
+    launcher = Launcher(launch, out=open(out / "launch.log", "w"))  # noqa: SIM115 - closed at exit
+    runner = threading.Thread(
+        target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": args.timeout}
+    )
+    t_start = time.monotonic()
+    runner.start()
+
+    image_t: dict[int, float] = {}  # stamp -> arrival
+    kf_stamp: dict[int, int] = {}  # keyframe id -> stamp
+    depth_t: dict[int, float] = {}
+    stats_t: dict[int, float] = {}
+    cpu: dict[str, list[float]] = {}
+    rss: dict[str, float] = {}
+    procs: dict[int, tuple[str, psutil.Process]] = {}
+    last_sample = 0.0
+    while runner.is_alive():
+        env = sub.receive(timeout_ms=100)
+        now = time.monotonic()
+        if env is not None:
+            m = env.msg
+            if env.topic == "/camera/image":
+                image_t.setdefault(m.stamp_ns, now)
+            elif isinstance(m, msgs.Keyframe):
+                kf_stamp[m.keyframe_id] = m.stamp_ns
+            elif env.topic == "/metrizer/depth":
+                depth_t.setdefault(m.keyframe_id, now)
+            elif env.topic == "/mapper/stats":
+                stats_t.setdefault(m.keyframe_id, now)
+        if now - last_sample >= 0.5:
+            last_sample = now
+            for child in launcher.children:
+                if child.proc is not None and child.proc.pid not in procs:
+                    try:
+                        p = psutil.Process(child.proc.pid)
+                        p.cpu_percent(None)
+                        procs[child.proc.pid] = (child.name, p)
+                    except psutil.NoSuchProcess:
+                        pass
+            for _pid, (name, p) in list(procs.items()):
+                try:
+                    with p.oneshot():
+                        cpu.setdefault(name, []).append(p.cpu_percent(None))
+                        rss[name] = max(rss.get(name, 0.0), p.memory_info().rss / 2**20)
+                except psutil.NoSuchProcess:
+                    pass
+    runner.join()
+    sub.close()
+    ctx.term()
+    wall = time.monotonic() - t_start
+
+    lat_depth = [
+        depth_t[k] - image_t[s] for k, s in kf_stamp.items() if k in depth_t and s in image_t
+    ]
+    lat_map = [
+        stats_t[k] - image_t[s] for k, s in kf_stamp.items() if k in stats_t and s in image_t
+    ]
+    first, last = (
+        min(image_t.values(), default=0.0),
+        max([*depth_t.values(), *stats_t.values()], default=0.0),
+    )
+    span = max(last - first, 1e-9)
+    figures: dict[str, float] = {
+        "frames": len(image_t),
+        "keyframes": len(kf_stamp),
+        "keyframes_metrized": len(depth_t),
+        "keyframes_mapped": len(stats_t),
+        "wall_s": round(wall, 1),
+        "latency_image_to_depth_ms_median": round(1000 * statistics.median(lat_depth), 1)
+        if lat_depth
+        else float("nan"),
+        "latency_image_to_depth_ms_max": round(1000 * max(lat_depth), 1)
+        if lat_depth
+        else float("nan"),
+        "latency_image_to_map_ms_median": round(1000 * statistics.median(lat_map), 1)
+        if lat_map
+        else float("nan"),
+        "frames_per_s": round(len(image_t) / span, 2),
+        "keyframes_per_s": round(len(depth_t) / span, 3),
+        "real_time_factor": round((len(image_t) / frame_rate_hz) / span, 3),
+    }
+    for name in cpu:
+        figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(cpu[name]), 1)
+        figures[f"{name}_rss_mib_peak"] = round(rss[name], 1)
+    for k, v in figures.items():
+        print(f"{k:40s} {v}")
+    write_json(args.json, figures)
+    if not args.no_docs:
+        cmd = "python bench/pipeline.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        rows = "\n".join(
+            f"| {n} | {figures[f'{n}_cpu_percent_mean']} | {figures[f'{n}_rss_mib_peak']} |"
+            for n in cpu
+        )
+        body = f"""## Pipeline end to end (issue 8)
+
+Command: `{cmd.strip()}`\
+Machine: {machine_line()}; 2 cores shared by all processes. Demo sequence: synthetic drive at 621x188,
+{args.frames} frames at {frame_rate_hz:g} Hz (2 s standing still), player in `fast` mode (paced by the
+slowest node, no frame or keyframe dropped).
+
+| figure | value |
+| --- | ---: |
+| frames / keyframes / metrized / mapped | {figures["frames"]} / {figures["keyframes"]} / {figures["keyframes_metrized"]} / {figures["keyframes_mapped"]} |
+| latency image -> metrized depth, median / max [ms] | {figures["latency_image_to_depth_ms_median"]} / {figures["latency_image_to_depth_ms_max"]} |
+| latency image -> mapper stats, median [ms] | {figures["latency_image_to_map_ms_median"]} |
+| throughput [frames/s] / [keyframes/s] | {figures["frames_per_s"]} / {figures["keyframes_per_s"]} |
+| real-time factor (sequence time / processing time) | {figures["real_time_factor"]} |
+| wall time incl. start-up and drain [s] | {figures["wall_s"]} |
+
+| node | CPU, mean [% of one core] | peak RSS [MiB] |
+| --- | ---: | ---: |
+{rows}
+"""
+        update_markdown_section("pipeline", body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
