@@ -97,6 +97,8 @@ class PlayerParams:
     max_keyframes_in_flight: int = 0  # fast: keyframes waiting for keyframe_done (0 = unwatched)
     ack_timeout_s: float = 30.0  # fast: give up waiting after this long (counted; 0 = never)
     wait_for_subscriber_s: float = 10.0  # before streaming, wait for a subscriber of image_topic
+    wait_for_nodes: tuple[str, ...] = ()  # before streaming, wait for a heartbeat of these nodes
+    wait_for_nodes_s: float = 60.0  # ... at most this long (their subscriptions exist by then)
     prefetch: int = 4  # images loaded ahead in a worker thread
     progress_period_s: float = 2.0  # seconds between progress lines (0 = none)
     tick_s: float = 0.002  # scheduling period of the player loop
@@ -407,6 +409,8 @@ class PlayerNode(Node):
                     topic,
                     p.wait_for_subscriber_s,
                 )
+            if p.wait_for_nodes:
+                self._wait_for_nodes(p.wait_for_nodes, p.wait_for_nodes_s)
             if self.seq is not None:
                 self._prefetch()
             self.state = "playing"
@@ -463,6 +467,33 @@ class PlayerNode(Node):
                 state=self.state,
             ),
         )
+
+    def _wait_for_nodes(self, names: tuple[str, ...], timeout_s: float) -> None:
+        """Block until every named node has sent a heartbeat on /diagnostics.
+
+        A node sends its first heartbeat after ``setup()``, so its subscriptions exist: messages
+        published from then on reach it. Without this a slow-starting consumer (e.g. the mapper,
+        which loads torch) misses the first keyframes, before its first sequence number.
+        """
+        from mogs_node.bus import Subscriber
+
+        waiting = set(names)
+        sub = Subscriber(self.bus, context=self.context)
+        sub.subscribe("/diagnostics")
+        deadline = time.monotonic() + timeout_s
+        try:
+            while waiting and time.monotonic() < deadline:
+                env = sub.receive(timeout_ms=200)
+                if env is not None and isinstance(env.msg, msgs.Diagnostics):
+                    waiting.discard(env.msg.node)
+        finally:
+            sub.close()
+        if waiting:
+            self.log.warning(
+                "no heartbeat from %s after %.0f s: playing anyway", sorted(waiting), timeout_s
+            )
+        else:
+            self.log.info("all %d pipeline nodes are up", len(names))
 
     def teardown(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)

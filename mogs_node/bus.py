@@ -425,6 +425,7 @@ class TopicStats:
     reordered: int = 0  # sequence number not after the last one of the same publisher session
     dropped: int = 0  # dropped on purpose by a best-effort queue (latest wins)
     malformed: int = 0
+    missed_before_join: int = 0  # first seq seen from a publisher session: what it sent earlier
     last_seq: dict[int, int] = field(default_factory=dict)  # src -> last seq
 
     def as_dict(self) -> dict[str, int]:
@@ -436,6 +437,7 @@ class TopicStats:
             "reordered": self.reordered,
             "dropped": self.dropped,
             "malformed": self.malformed,
+            "missed_before_join": self.missed_before_join,
         }
 
 
@@ -525,7 +527,9 @@ class Subscriber:
         st.received += 1
         st.received_bytes += env.nbytes
         last = st.last_seq.get(env.src)
-        if last is not None:
+        if last is None:
+            st.missed_before_join += env.seq  # published before this subscriber was connected
+        else:
             if env.seq > last + 1:
                 st.gaps += 1
                 st.lost += env.seq - last - 1
