@@ -39,3 +39,30 @@ def _no_leftover_processes():
         with contextlib.suppress(psutil.NoSuchProcess):
             k.kill()
     psutil.wait_procs(kids, timeout=5)
+
+
+@pytest.fixture
+def inproc_bus():
+    """A broker in a thread with inproc endpoints; yields ``(BusConfig, zmq.Context)``.
+
+    For in-process node tests: nodes and publishers must use the yielded context.
+    """
+    import threading
+
+    import zmq
+
+    from mogs_node.bus import BusConfig, run_broker
+
+    ctx = zmq.Context()
+    name = uuid.uuid4().hex[:8]
+    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=10_000)
+    stop, ready = threading.Event(), threading.Event()
+    t = threading.Thread(
+        target=run_broker, args=(bus, stop), kwargs={"ready": ready, "context": ctx}
+    )
+    t.start()
+    assert ready.wait(5)
+    yield bus, ctx
+    stop.set()
+    t.join(5)
+    ctx.term()

@@ -3,39 +3,20 @@
 from __future__ import annotations
 
 import sys
-import threading
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.bus import Publisher, Subscriber
 from mogs_node.depth_prior.node import DepthPriorNode
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import make_T, so3_exp
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _two_view_scene import CAM, render  # noqa: E402
-
-
-@pytest.fixture
-def inproc_bus():
-    ctx = zmq.Context()
-    name = uuid.uuid4().hex[:8]
-    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=1000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(target=run_broker, args=(bus, stop),
-                         kwargs={"ready": ready, "context": ctx})
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.term()
 
 
 def keyframe(kid: int, T: np.ndarray) -> tuple[msgs.Keyframe, np.ndarray]:
@@ -46,16 +27,25 @@ def keyframe(kid: int, T: np.ndarray) -> tuple[msgs.Keyframe, np.ndarray]:
     z = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
     xyz = CAM.backproject(uv.astype(np.float64), z).astype(np.float32)
     kf = msgs.Keyframe(
-        stamp_ns=kid * 100_000_000, frame_id="cam", keyframe_id=kid, image=rgb, K=CAM.K,
-        T_world_cam=T, feature_ids=np.arange(3, dtype=np.int64), feature_uv_px=uv,
-        feature_xyz_cam_m=xyz, feature_weight=np.ones(3, np.float32))
+        stamp_ns=kid * 100_000_000,
+        frame_id="cam",
+        keyframe_id=kid,
+        image=rgb,
+        K=CAM.K,
+        T_world_cam=T,
+        feature_ids=np.arange(3, dtype=np.int64),
+        feature_uv_px=uv,
+        feature_xyz_cam_m=xyz,
+        feature_weight=np.ones(3, np.float32),
+    )
     return kf, depth
 
 
 def test_flow_node_publishes_prior_per_keyframe(inproc_bus) -> None:
     bus, ctx = inproc_bus
-    node = DepthPriorNode("prior", {"flow": {"far_baseline_m": 0.0}}, bus, context=ctx,
-                          diagnostics_period_s=0)
+    node = DepthPriorNode(
+        "prior", {"flow": {"far_baseline_m": 0.0}}, bus, context=ctx, diagnostics_period_s=0
+    )
     watcher = Subscriber(bus, context=ctx)
     watcher.subscribe("/prior/depth")
     pub = Publisher(bus, context=ctx)
@@ -93,12 +83,15 @@ def test_bad_params_and_missing_model_fail_at_start(inproc_bus, tmp_path) -> Non
     with pytest.raises(ConfigError, match="backend"):
         DepthPriorNode("p", {"backend": "midas"}, bus, context=ctx, diagnostics_period_s=0)
     with pytest.raises(ConfigError, match="flow"):
-        DepthPriorNode("p", {"flow": {"min_baseline": 1}}, bus, context=ctx,
-                       diagnostics_period_s=0)
+        DepthPriorNode("p", {"flow": {"min_baseline": 1}}, bus, context=ctx, diagnostics_period_s=0)
     with pytest.raises(ModelError, match="not found"):
-        DepthPriorNode("p", {"backend": "depth_anything",
-                             "onnx": {"model_path": str(tmp_path / "none.onnx")}},
-                       bus, context=ctx, diagnostics_period_s=0)
+        DepthPriorNode(
+            "p",
+            {"backend": "depth_anything", "onnx": {"model_path": str(tmp_path / "none.onnx")}},
+            bus,
+            context=ctx,
+            diagnostics_period_s=0,
+        )
 
 
 def test_depth_anything_node_publishes_declared_kind(inproc_bus, tmp_path) -> None:
@@ -111,9 +104,13 @@ def test_depth_anything_node_publishes_declared_kind(inproc_bus, tmp_path) -> No
         warnings.simplefilter("ignore")
         model = _tiny_onnx.export_depth_anything(tmp_path / "da.onnx", dynamic=True)
     bus, ctx = inproc_bus
-    node = DepthPriorNode("prior", {"backend": "depth_anything",
-                                    "onnx": {"model_path": model, "input_size": 70}},
-                          bus, context=ctx, diagnostics_period_s=0)
+    node = DepthPriorNode(
+        "prior",
+        {"backend": "depth_anything", "onnx": {"model_path": model, "input_size": 70}},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
     watcher = Subscriber(bus, context=ctx)
     watcher.subscribe("/prior/depth")
     pub = Publisher(bus, context=ctx)

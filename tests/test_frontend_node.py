@@ -3,35 +3,16 @@ keyframes out; params validated; frontend counters in /diagnostics."""
 
 from __future__ import annotations
 
-import threading
 import time
-import uuid
 
 import numpy as np
 import pytest
-import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.bus import Publisher, Subscriber
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.node import FrontendNode, FrontendNodeParams
 from mogs_node.sim import GRAVITY_WORLD_M_S2, SimConfig, make_sequence
-
-
-@pytest.fixture
-def inproc_bus():
-    ctx = zmq.Context()
-    name = uuid.uuid4().hex[:8]
-    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=10000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(target=run_broker, args=(bus, stop),
-                         kwargs={"ready": ready, "context": ctx})
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.term()
 
 
 def test_params_build_and_validation():
@@ -52,9 +33,15 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
     seq = make_sequence(SimConfig(seed=0, n_frames=2, width=621, height=188))
     img = seq.render(0).rgb
     c = seq.camera
-    params = {"fx_px": c.fx_px, "fy_px": c.fy_px, "cx_px": c.cx_px, "cy_px": c.cy_px,
-              "width": c.width, "height": c.height,
-              "T_imu_cam": [float(x) for x in seq.T_imu_cam.ravel()]}
+    params = {
+        "fx_px": c.fx_px,
+        "fy_px": c.fy_px,
+        "cx_px": c.cx_px,
+        "cy_px": c.cy_px,
+        "width": c.width,
+        "height": c.height,
+        "T_imu_cam": [float(x) for x in seq.T_imu_cam.ravel()],
+    }
     node = FrontendNode("frontend", params, bus, context=ctx, diagnostics_period_s=0)
     watcher = Subscriber(bus, context=ctx)
     for topic in ("/frontend/odometry", "/frontend/keyframe"):
@@ -82,11 +69,15 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
             while k < len(t_imu) and t_imu[k] <= t:
                 g = tuple(float(x) for x in rng.normal(0, 2e-3, 3))
                 a = tuple(float(x) for x in f_true + rng.normal(0, 0.03, 3))
-                pub.publish("/imu", msgs.Imu(stamp_ns=int(t_imu[k]), frame_id="imu",
-                                             gyro_rad_s=g, accel_m_s2=a))
+                pub.publish(
+                    "/imu",
+                    msgs.Imu(stamp_ns=int(t_imu[k]), frame_id="imu", gyro_rad_s=g, accel_m_s2=a),
+                )
                 k += 1
-            pub.publish("/camera/image", msgs.Image(stamp_ns=int(t), frame_id="cam",
-                                                    encoding="rgb8", data=img))
+            pub.publish(
+                "/camera/image",
+                msgs.Image(stamp_ns=int(t), frame_id="cam", encoding="rgb8", data=img),
+            )
             deadline = time.monotonic() + 10
             while node.frontend.counters["frames"] < i + 1 and time.monotonic() < deadline:
                 node.spin_once(20)

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-import threading
 import time
-import uuid
 
 import numpy as np
 import pytest
-import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.bus import Publisher, Subscriber
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T
 from mogs_node.mapper.node import KeyframeDepthPairs, MapperNode
@@ -19,23 +16,6 @@ from mogs_node.mapper.ply import read_gaussian_ply
 
 W, H = 48, 24
 K = np.array([[30.0, 0, 23.5], [0, 30.0, 11.5], [0, 0, 1]])
-
-
-@pytest.fixture
-def inproc_bus():
-    ctx = zmq.Context()
-    name = uuid.uuid4().hex[:8]
-    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=1000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(
-        target=run_broker, args=(bus, stop), kwargs={"ready": ready, "context": ctx}
-    )
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.term()
 
 
 def messages(kid: int, x_m: float) -> tuple[msgs.Keyframe, msgs.DepthMap]:

@@ -141,30 +141,6 @@ def test_inputs_from_messages_with_resizing_and_missing_parts():
 # ------------------------------------------------------------------------------ node on a bus
 
 
-@pytest.fixture
-def inproc_bus():
-    import threading
-    import uuid
-
-    import zmq
-
-    from mogs_node.bus import BusConfig, run_broker
-
-    ctx = zmq.Context()
-    name = uuid.uuid4().hex[:8]
-    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=1000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(
-        target=run_broker, args=(bus, stop), kwargs={"ready": ready, "context": ctx}
-    )
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.term()
-
-
 def test_node_matches_and_publishes_metric_depth(inproc_bus):
     import time
 

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import threading
 import time
-import uuid
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
-import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, run_broker
+from mogs_node.bus import Publisher
 from mogs_node.errors import ConfigError, MogsError
 from mogs_node.node import Node, parse_params
 
@@ -38,23 +36,6 @@ def test_parse_params_is_strict_and_names_the_key() -> None:
         parse_params(P, {"sizes": [1]})
     with pytest.raises(ConfigError, match="params.gain"):
         parse_params(P, {"gain": True})
-
-
-@pytest.fixture
-def inproc_bus():
-    ctx = zmq.Context()
-    name = uuid.uuid4().hex[:8]
-    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=10_000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(
-        target=run_broker, args=(bus, stop), kwargs={"ready": ready, "context": ctx}
-    )
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.term()
 
 
 class Collect(Node):

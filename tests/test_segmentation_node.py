@@ -2,49 +2,38 @@
 
 from __future__ import annotations
 
-import threading
 import time
-import uuid
 
 import numpy as np
 import pytest
-import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, Subscriber, run_broker
+from mogs_node.bus import Publisher, Subscriber
 from mogs_node.errors import ModelError
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
 from mogs_node.segmentation.node import SegmentationNode
 
 
-@pytest.fixture
-def inproc_bus():
-    ctx = zmq.Context()
-    name = uuid.uuid4().hex[:8]
-    bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=1000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(target=run_broker, args=(bus, stop),
-                         kwargs={"ready": ready, "context": ctx})
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.term()
-
-
 def _kf(kid: int, image: np.ndarray) -> msgs.Keyframe:
     return msgs.Keyframe(
-        stamp_ns=kid, frame_id="cam", keyframe_id=kid, image=image,
-        K=np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]]), T_world_cam=np.eye(4),
-        feature_ids=np.zeros(0, np.int64), feature_uv_px=np.zeros((0, 2), np.float32),
-        feature_xyz_cam_m=np.zeros((0, 3), np.float32), feature_weight=np.zeros(0, np.float32))
+        stamp_ns=kid,
+        frame_id="cam",
+        keyframe_id=kid,
+        image=image,
+        K=np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]]),
+        T_world_cam=np.eye(4),
+        feature_ids=np.zeros(0, np.int64),
+        feature_uv_px=np.zeros((0, 2), np.float32),
+        feature_xyz_cam_m=np.zeros((0, 3), np.float32),
+        feature_weight=np.zeros(0, np.float32),
+    )
 
 
 def test_graph_node_publishes_labels(inproc_bus) -> None:
     bus, ctx = inproc_bus
-    node = SegmentationNode("seg", {"graph": {"scale": 1.0, "k": 200.0}}, bus, context=ctx,
-                            diagnostics_period_s=0)
+    node = SegmentationNode(
+        "seg", {"graph": {"scale": 1.0, "k": 200.0}}, bus, context=ctx, diagnostics_period_s=0
+    )
     watcher = Subscriber(bus, context=ctx)
     watcher.subscribe("/seg/masks")
     pub = Publisher(bus, context=ctx)
@@ -66,8 +55,9 @@ def test_graph_node_publishes_labels(inproc_bus) -> None:
             got.append(env.msg)
     assert [m.keyframe_id for m in got] == [3, 4]
     assert got[0].backend == "graph" and got[0].labels.dtype == np.int32
-    np.testing.assert_array_equal(got[0].labels,
-                                  segment_graph(rgb, GraphSegParams(scale=1.0, k=200.0)))
+    np.testing.assert_array_equal(
+        got[0].labels, segment_graph(rgb, GraphSegParams(scale=1.0, k=200.0))
+    )
     assert got[1].labels.shape == grey.shape
     pub.close(0)
     watcher.close()
@@ -77,9 +67,16 @@ def test_graph_node_publishes_labels(inproc_bus) -> None:
 def test_sam_backend_without_model_fails_at_start(inproc_bus, tmp_path) -> None:
     bus, ctx = inproc_bus
     with pytest.raises(ModelError, match="not found"):
-        SegmentationNode("seg", {"backend": "sam", "sam": {"encoder_path": str(tmp_path / "e"),
-                                                           "decoder_path": str(tmp_path / "d")}},
-                         bus, context=ctx, diagnostics_period_s=0)
+        SegmentationNode(
+            "seg",
+            {
+                "backend": "sam",
+                "sam": {"encoder_path": str(tmp_path / "e"), "decoder_path": str(tmp_path / "d")},
+            },
+            bus,
+            context=ctx,
+            diagnostics_period_s=0,
+        )
 
 
 def test_sam_node_publishes_painted_masks(inproc_bus, tmp_path) -> None:
@@ -95,9 +92,13 @@ def test_sam_node_publishes_painted_masks(inproc_bus, tmp_path) -> None:
         warnings.simplefilter("ignore")
         enc, dec = _tiny_onnx.export(tmp_path)
     bus, ctx = inproc_bus
-    node = SegmentationNode("seg", {"backend": "sam", "sam": {
-        "encoder_path": enc, "decoder_path": dec, "points_per_side": 3}},
-        bus, context=ctx, diagnostics_period_s=0)
+    node = SegmentationNode(
+        "seg",
+        {"backend": "sam", "sam": {"encoder_path": enc, "decoder_path": dec, "points_per_side": 3}},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
     watcher = Subscriber(bus, context=ctx)
     watcher.subscribe("/seg/masks")
     pub = Publisher(bus, context=ctx)
