@@ -155,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         body = f"""## Pipeline end to end (issue 8)
 
-Command: `{cmd.strip()}`\
+Command: `{cmd.strip()}`
+
 Machine: {machine_line()}; 2 cores shared by all processes. Demo sequence: synthetic drive at 621x188,
 {args.frames} frames at {frame_rate_hz:g} Hz (2 s standing still), player in `fast` mode (paced by the
 slowest node, no frame or keyframe dropped).
