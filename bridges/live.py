@@ -33,7 +33,7 @@ import zmq
 
 from bridges.imu_text import REJECT_REASONS, ImuSample, ImuSampleParser, LineSplitter
 from mogs_node import msgs
-from mogs_node.errors import ConfigError, MogsError
+from mogs_node.errors import ConfigError, DeviceError
 from mogs_node.node import Node
 
 __all__ = [
@@ -47,10 +47,6 @@ __all__ = [
     "ZmqImuParams",
     "open_capture",
 ]
-
-
-class DeviceError(MogsError, RuntimeError):
-    """A live device (camera, serial port, socket) is missing or failed; the message names it."""
 
 
 class CameraStamper:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from mogs_node import msgs
-from mogs_node.errors import MessageError, MogsError
+from mogs_node.errors import MessageError, Ros2UnavailableError
 from mogs_node.geometry import make_T, quat_wxyz_from_rotmat, quat_wxyz_to_rotmat
 from mogs_node.node import Node
 
@@ -402,10 +402,6 @@ def to_ros(msg: msgs.Message) -> tuple[str, Any] | None:
 
 
 # ------------------------------------------------------------------------------ rclpy mirror
-
-
-class Ros2UnavailableError(MogsError, RuntimeError):
-    """rclpy (a ROS 2 installation) is needed and missing."""
 
 
 def require_rclpy() -> Any:

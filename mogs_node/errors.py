@@ -10,10 +10,12 @@ __all__ = [
     "BusError",
     "ConfigError",
     "DatasetError",
+    "DeviceError",
     "GeometryError",
     "MessageError",
     "ModelError",
     "MogsError",
+    "Ros2UnavailableError",
     "ShapeError",
 ]
 
@@ -52,3 +54,11 @@ class DatasetError(MogsError, ValueError):
 
 class ModelError(MogsError, RuntimeError):
     """A user-supplied model file is missing, unreadable or has the wrong signature."""
+
+
+class DeviceError(MogsError, RuntimeError):
+    """A live device (camera, serial port, socket) is missing or failed; the message names it."""
+
+
+class Ros2UnavailableError(MogsError, RuntimeError):
+    """rclpy (a ROS 2 installation) is needed and missing."""
