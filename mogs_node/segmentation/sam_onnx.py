@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.depth_prior.ort import check_signature, open_session
+from mogs_node.ort import check_signature, open_session
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
 
