@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.ort import check_signature, open_session
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
+from mogs_node.ort import check_signature, open_session
 
 __all__ = ["DepthAnythingOnnx", "DepthAnythingParams", "MonoDepth", "preprocess_size"]
 

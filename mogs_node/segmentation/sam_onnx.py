@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.ort import check_signature, open_session
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
+from mogs_node.ort import check_signature, open_session
 
 __all__ = [
     "SamMasks",
