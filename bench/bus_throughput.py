@@ -1,13 +1,23 @@
 """Bus throughput: messages/s and MB/s through the MOGS broker vs a bare pyzmq PUB/SUB baseline.
 
-Both cases run publisher and subscriber as separate processes on the same machine and transport.
+Every case runs publisher and subscriber (and the broker, where there is one) as separate
+processes on the same machine and transport; the cases alternate within each repeat so that
+they share whatever else the machine is doing.
 
 - ``bare``: a pyzmq PUB socket bound by the publisher, a SUB socket connected by the subscriber;
   the publisher sends pre-built multipart frames of the same sizes as ours (no codec, no broker).
+  This is the baseline of the issue's goal (MOGS >= 0.8 of it).
+- ``hop``: the same bare pyzmq publisher and subscriber, but through the MOGS broker process
+  (``run_broker``: XSUB/XPUB ``zmq.proxy_steerable``, no Python per message). None of our codec
+  or client code runs: this is what the extra process hop alone costs, i.e. an upper bound for
+  any design that routes through a broker.
 - ``mogs``: ``Publisher.publish(topic, msg)`` (our msgpack header + zero-copy arrays) -> broker
-  process (XSUB/XPUB ``zmq.proxy``) -> ``Subscriber.receive`` (strict decode + gap accounting).
+  -> ``Subscriber.receive`` (strict decode + gap accounting).
 
-The ratio ``mogs / bare`` is measured in the same run. Usage::
+Besides rates, each process reports its CPU time (user + system, all threads) per message over
+the timed window: on a machine with few cores, throughput is bounded by total CPU per message.
+
+Usage::
 
     python bench/bus_throughput.py [--transport ipc|tcp] [--keyframes 300] [--imu 100000] [--json PATH]
 """
@@ -17,6 +27,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import resource
 import socket
 import sys
 import tempfile
@@ -36,6 +47,8 @@ from mogs_node.bus import (
 from mogs_node.demo_nodes import make_keyframe
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json
 
+CASES = ("bare", "hop", "mogs")
+
 
 def imu_msg(k: int) -> msgs.Imu:
     return msgs.Imu(
@@ -50,6 +63,21 @@ def make_msg(kind: str, k: int) -> msgs.Message:
 TOPIC = {"keyframe": "/frontend/keyframe", "imu": "/imu"}
 
 
+def cpu_s() -> float:
+    """CPU time of this process, all threads (ZeroMQ's I/O threads included)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def bare_frames(kind: str) -> list[list[bytes | memoryview]]:
+    """The same frames our codec produces, built once: the bare publisher pays no codec cost."""
+    frames = [msgs.encode(TOPIC[kind], make_msg(kind, k)) for k in range(4)]
+    return [
+        [bytes(f) if not isinstance(f, memoryview) or f.nbytes < 65536 else f for f in fr]
+        for fr in frames
+    ]
+
+
 # ------------------------------------------------------------------------- bare pyzmq
 
 
@@ -61,33 +89,38 @@ def bare_sub(endpoint: str, n: int, q: mp.Queue, ready: mp.Event) -> None:
     s.setsockopt(zmq.SUBSCRIBE, b"/")
     ready.set()
     frames = s.recv_multipart(copy=False)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_s()
     nbytes = sum(len(f.buffer) for f in frames)
     for _ in range(n - 1):
         frames = s.recv_multipart(copy=False)
         nbytes += sum(len(f.buffer) for f in frames)
-    q.put((time.perf_counter() - t0, nbytes))
+    q.put(("sub", time.perf_counter() - t0, cpu_s() - c0, nbytes, 0))
     s.close(0)
     ctx.term()
 
 
-def bare_pub(endpoint: str, kind: str, n: int, ready: mp.Event) -> None:
+def bare_pub(endpoint: str, kind: str, n: int, ready: mp.Event, q: mp.Queue, via: bool) -> None:
+    """Plain pyzmq publisher: binds a PUB socket, or (``via`` the broker) connects an XPUB one
+    and waits for the subscription to come through (XPUB sends exactly like PUB)."""
     ctx = zmq.Context()
-    s = ctx.socket(zmq.PUB)
+    s = ctx.socket(zmq.XPUB if via else zmq.PUB)
     s.sndhwm = 0
-    s.bind(endpoint)
+    if via:
+        s.connect(endpoint)
+    else:
+        s.bind(endpoint)
     ready.wait(10)
-    time.sleep(0.5)  # slow joiner
-    # the same frames our codec produces, built once: the baseline pays no codec cost
-    frames = [msgs.encode(TOPIC[kind], make_msg(kind, k)) for k in range(4)]
-    frames = [
-        [bytes(f) if not isinstance(f, memoryview) or f.nbytes < 65536 else f for f in fr]
-        for fr in frames
-    ]
+    if via:
+        s.recv()  # the subscription, forwarded by the broker
+    else:
+        time.sleep(0.5)  # slow joiner
+    frames = bare_frames(kind)
+    c0 = cpu_s()
     for k in range(n):
         s.send_multipart(frames[k % 4], copy=False)
     s.close(linger=-1)
     ctx.term()
+    q.put(("pub", 0.0, cpu_s() - c0, 0, 0))
 
 
 # ------------------------------------------------------------------------- through the broker
@@ -99,37 +132,45 @@ def mogs_sub(bus_d: dict, kind: str, n: int, q: mp.Queue, ready: mp.Event) -> No
     sub.subscribe(TOPIC[kind])
     ready.set()
     env = sub.receive(timeout_ms=None)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_s()
     nbytes = env.nbytes
     for _ in range(n - 1):
         env = sub.receive(timeout_ms=None)
         nbytes += env.nbytes
-    dt = time.perf_counter() - t0
+    dt, dc = time.perf_counter() - t0, cpu_s() - c0
     st = sub.stats[TOPIC[kind]]
-    q.put((dt, nbytes, st.lost, st.malformed))
+    q.put(("sub", dt, dc, nbytes, st.lost + st.malformed))
     sub.close()
     zmq.Context.instance().term()
 
 
-def mogs_pub(bus_d: dict, kind: str, n: int, ready: mp.Event) -> None:
+def mogs_pub(bus_d: dict, kind: str, n: int, ready: mp.Event, q: mp.Queue) -> None:
     tune_malloc_for_large_messages()
     pub = Publisher(BusConfig.from_dict(bus_d), hwm=0)
     ready.wait(10)
     assert pub.wait_for_subscriber(TOPIC[kind], 10)
     messages = [make_msg(kind, k) for k in range(4)]
     topic = TOPIC[kind]
+    c0 = cpu_s()
     for k in range(n):
         pub.publish(topic, messages[k % 4])
     pub.close(linger_ms=-1)
     zmq.Context.instance().term()  # blocks until every zero-copy frame has been sent
+    q.put(("pub", 0.0, cpu_s() - c0, 0, 0))
 
 
-def broker_proc(bus_d: dict, stop: mp.Event) -> None:
+def broker_proc(bus_d: dict, stop: mp.Event, up: mp.Event, q: mp.Queue) -> None:
     tune_malloc_for_large_messages()  # as `mogs broker` does at start
-    ev = threading.Event()
-    t = threading.Thread(target=run_broker, args=(BusConfig.from_dict(bus_d), ev))
+    ev, ready = threading.Event(), threading.Event()
+    t = threading.Thread(
+        target=run_broker, args=(BusConfig.from_dict(bus_d), ev), kwargs={"ready": ready}
+    )
     t.start()
+    ready.wait(10)
+    c0 = cpu_s()  # idle until the clients start: the window is the traffic
+    up.set()
     stop.wait()
+    q.put(("broker", 0.0, cpu_s() - c0, 0, 0))
     ev.set()
     t.join()
 
@@ -144,49 +185,70 @@ def endpoint(transport: str, tmp: str, name: str) -> str:
     return f"tcp://127.0.0.1:{free_port()}" if transport == "tcp" else f"ipc://{tmp}/{name}.ipc"
 
 
-def run_case(case: str, kind: str, n: int, transport: str, tmp: str) -> dict[str, float]:
+def run_case(
+    case: str, kind: str, n: int, transport: str, tmp: str, sockbuf: int = 0
+) -> dict[str, float]:
     q: mp.Queue = mp.Queue()
     ready = mp.Event()
-    procs = []
+    broker = stop = None
     if case == "bare":
         ep = endpoint(transport, tmp, f"bare-{kind}")
         procs = [
             mp.Process(target=bare_sub, args=(ep, n, q, ready)),
-            mp.Process(target=bare_pub, args=(ep, kind, n, ready)),
+            mp.Process(target=bare_pub, args=(ep, kind, n, ready, q, False)),
         ]
-        stop = None
     else:
         bus = BusConfig(
-            endpoint(transport, tmp, f"p-{kind}"),
-            endpoint(transport, tmp, f"s-{kind}"),
+            endpoint(transport, tmp, f"p-{case}-{kind}"),
+            endpoint(transport, tmp, f"s-{case}-{kind}"),
             reliable_hwm=0,
+            socket_buffer_bytes=sockbuf,  # the broker's, and our ends' (not the bare ends')
         ).to_dict()
-        stop = mp.Event()
-        broker = mp.Process(target=broker_proc, args=(bus, stop))
+        stop, up = mp.Event(), mp.Event()
+        broker = mp.Process(target=broker_proc, args=(bus, stop, up, q))
         broker.start()
-        time.sleep(0.3)
-        procs = [
-            broker,
-            mp.Process(target=mogs_sub, args=(bus, kind, n, q, ready)),
-            mp.Process(target=mogs_pub, args=(bus, kind, n, ready)),
-        ]
-        procs = procs[1:]
-        procs_all = [broker]
+        if not up.wait(30):
+            raise RuntimeError("broker did not come up")
+        if case == "hop":
+            procs = [
+                mp.Process(target=bare_sub, args=(bus["sub_endpoint"], n, q, ready)),
+                mp.Process(target=bare_pub, args=(bus["pub_endpoint"], kind, n, ready, q, True)),
+            ]
+        else:
+            procs = [
+                mp.Process(target=mogs_sub, args=(bus, kind, n, q, ready)),
+                mp.Process(target=mogs_pub, args=(bus, kind, n, ready, q)),
+            ]
     for p in procs:
         p.start()
-    res = q.get(timeout=600)
+    res = {}
+    for _ in procs:
+        role, dt, dc, nbytes, lost = q.get(timeout=600)
+        res[role] = (dt, dc, nbytes, lost)
     for p in procs:
         p.join(60)
-    if stop is not None:
+    if broker is not None and stop is not None:
         stop.set()
-        for p in procs_all:
-            p.join(10)
-    dt, nbytes = res[0], res[1]
-    out = {"msgs_per_s": (n - 1) / dt, "mb_per_s": nbytes / dt / 1e6}
-    if case == "mogs":
-        out["lost"] = res[2]
-        out["malformed"] = res[3]
+        role, _, dc, _, _ = q.get(timeout=60)
+        res[role] = (0.0, dc, 0, 0)
+        broker.join(10)
+    dt, _, nbytes, lost = res["sub"]
+    out = {
+        "msgs_per_s": (n - 1) / dt,
+        "mb_per_s": nbytes / dt / 1e6,
+        "lost": lost,
+    }
+    for role in ("pub", "broker", "sub"):
+        out[f"cpu_us_{role}"] = res[role][1] / n * 1e6 if role in res else 0.0
+    out["cpu_us_total"] = sum(out[f"cpu_us_{r}"] for r in ("pub", "broker", "sub"))
     return out
+
+
+def load_average() -> str:
+    try:
+        return " / ".join(f"{x:.1f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -197,58 +259,134 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keyframes", type=int, default=300, help="1.5 MB keyframes per case")
     ap.add_argument("--imu", type=int, default=100_000, help="IMU messages per case")
     ap.add_argument("--repeats", type=int, default=3, help="best of N runs per case")
+    ap.add_argument(
+        "--socket-buffer",
+        type=int,
+        default=0,
+        help="bus.socket_buffer_bytes for the broker and the MOGS ends (0: OS default)",
+    )
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     args = ap.parse_args(argv)
     mp.set_start_method("spawn", force=True)
-    figures: dict[str, float] = {}
+    figures: dict[str, float | str] = {}
+    load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="mogs-bench-") as tmp:
         for kind, n in (("keyframe", args.keyframes), ("imu", args.imu)):
-            for case in ("bare", "mogs"):
-                runs = [run_case(case, kind, n, args.transport, tmp) for _ in range(args.repeats)]
-                best = max(runs, key=lambda r: r["msgs_per_s"])
-                figures[f"{kind}_{case}_msgs_per_s"] = round(best["msgs_per_s"], 1)
-                figures[f"{kind}_{case}_mb_per_s"] = round(best["mb_per_s"], 1)
-                if case == "mogs":
-                    figures[f"{kind}_mogs_lost_msgs"] = sum(r["lost"] for r in runs)
+            runs: dict[str, list[dict[str, float]]] = {c: [] for c in CASES}
+            for _ in range(args.repeats):  # interleaved: the cases share the machine's state
+                for case in CASES:
+                    runs[case].append(
+                        run_case(case, kind, n, args.transport, tmp, args.socket_buffer)
+                    )
+            for case in CASES:
+                best = max(runs[case], key=lambda r: r["msgs_per_s"])
+                for key in ("msgs_per_s", "mb_per_s", *(k for k in best if k.startswith("cpu"))):
+                    figures[f"{kind}_{case}_{key}"] = round(best[key], 1)
+                figures[f"{kind}_{case}_lost_msgs"] = sum(r["lost"] for r in runs[case])
                 print(
-                    f"{kind:9s} {case:5s} {best['msgs_per_s']:10.1f} msg/s {best['mb_per_s']:9.1f} MB/s",
+                    f"{kind:9s} {case:5s} {best['msgs_per_s']:10.1f} msg/s "
+                    f"{best['mb_per_s']:9.1f} MB/s  CPU us/msg pub {best['cpu_us_pub']:.1f} "
+                    f"broker {best['cpu_us_broker']:.1f} sub {best['cpu_us_sub']:.1f}",
                     flush=True,
                 )
-            figures[f"{kind}_ratio_vs_bare_zmq"] = round(
-                figures[f"{kind}_mogs_msgs_per_s"] / figures[f"{kind}_bare_msgs_per_s"], 3
+            for case in ("mogs", "hop"):
+                figures[f"{kind}_{case}_ratio_vs_bare_zmq"] = round(
+                    figures[f"{kind}_{case}_msgs_per_s"] / figures[f"{kind}_bare_msgs_per_s"], 3
+                )
+            figures[f"{kind}_mogs_ratio_vs_hop"] = round(
+                figures[f"{kind}_mogs_msgs_per_s"] / figures[f"{kind}_hop_msgs_per_s"], 3
             )
             print(
-                f"{kind:9s} ratio mogs/bare = {figures[f'{kind}_ratio_vs_bare_zmq']:.3f}",
+                f"{kind:9s} ratio mogs/bare = {figures[f'{kind}_mogs_ratio_vs_bare_zmq']:.3f}, "
+                f"hop/bare = {figures[f'{kind}_hop_ratio_vs_bare_zmq']:.3f}, "
+                f"mogs/hop = {figures[f'{kind}_mogs_ratio_vs_hop']:.3f}",
                 flush=True,
             )
-    figures["transport"] = args.transport  # type: ignore[assignment]
+    figures["transport"] = args.transport
+    figures["socket_buffer_bytes"] = args.socket_buffer
+    figures["load_average_before"] = load_before
+    figures["load_average_after"] = load_average()
     write_json(args.json, figures)
     if not args.no_docs:
-        cmd = "python bench/bus_throughput.py " + " ".join(
-            argv if argv is not None else sys.argv[1:]
-        )
-        body = [
-            "## Bus throughput (issue 2)",
-            "",
-            f"Command: `{cmd.strip()}`  ",
-            f"Machine: {machine_line()}; transport {args.transport}; best of {args.repeats} runs; "
-            "publisher, broker and subscriber are separate processes.",
-            "",
-            "| message | bare pyzmq msg/s | bare MB/s | MOGS bus msg/s | MOGS MB/s | ratio | lost |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
-        ]
-        for kind, label in (
-            ("keyframe", "Keyframe 800x640 RGB + 500 features (1.55 MB)"),
-            ("imu", "Imu (small)"),
-        ):
-            body.append(
-                f"| {label} | {figures[f'{kind}_bare_msgs_per_s']:.0f} | {figures[f'{kind}_bare_mb_per_s']:.0f} | "
-                f"{figures[f'{kind}_mogs_msgs_per_s']:.0f} | {figures[f'{kind}_mogs_mb_per_s']:.0f} | "
-                f"{figures[f'{kind}_ratio_vs_bare_zmq']:.2f} | {figures[f'{kind}_mogs_lost_msgs']} |"
-            )
-        update_markdown_section("bus_throughput", "\n".join(body))
+        update_markdown_section("bus_throughput", report_md(figures, args, argv))
     return 0
+
+
+def contention_note(figures: dict) -> list[str]:
+    """A warning paragraph when other work competed for the cores during the run."""
+    try:
+        load = max(
+            float(figures[k].split("/")[0]) for k in ("load_average_before", "load_average_after")
+        )
+    except (KeyError, ValueError):
+        return []
+    if load <= (os.cpu_count() or 1) / 2:
+        return []
+    return [
+        f"**Contended run** (1-min load average up to {load:.1f} on {os.cpu_count()} cores): "
+        "the scheduler shares the cores per thread, so a case with more processes (`hop`, "
+        "`MOGS`) gets a larger share and the msg/s ratios are not the bus's; the CPU time per "
+        "message below is the comparable figure. Re-run on an idle machine for the ratios.",
+        "",
+    ]
+
+
+def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -> str:
+    cmd = "python bench/bus_throughput.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    kinds = (
+        ("keyframe", "Keyframe 800x640 RGB + 500 features (1.55 MB)"),
+        ("imu", "Imu (small)"),
+    )
+    f = figures
+    body = [
+        "## Bus throughput (issue 2)",
+        "",
+        f"Command: `{cmd.strip()}`  ",
+        f"Machine: {machine_line()}; {os.cpu_count()} cores; transport {args.transport}; "
+        f"socket buffers {args.socket_buffer or 'OS default'}; best of "
+        f"{args.repeats} interleaved runs; publisher, broker and subscriber are separate "
+        f"processes. Load average (1/5/15 min) before {f['load_average_before']}, after "
+        f"{f['load_average_after']} (anything well above 0 means other work shared the cores).",
+        "",
+        *contention_note(f),
+        "`bare`: plain pyzmq PUB -> SUB, pre-built frames (the baseline). `hop`: the same bare "
+        "pyzmq ends through the MOGS broker process, no MOGS code in the ends (what the extra "
+        "process hop alone allows). `MOGS`: `Publisher.publish` -> broker -> `Subscriber.receive` "
+        "(encode, strict decode, sequence accounting).",
+        "",
+        "| message | bare msg/s | bare MB/s | hop msg/s | MOGS msg/s | MOGS MB/s "
+        "| MOGS / bare | hop / bare | MOGS / hop | lost |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for kind, label in kinds:
+        body.append(
+            f"| {label} | {f[f'{kind}_bare_msgs_per_s']:.0f} | {f[f'{kind}_bare_mb_per_s']:.0f} "
+            f"| {f[f'{kind}_hop_msgs_per_s']:.0f} "
+            f"| {f[f'{kind}_mogs_msgs_per_s']:.0f} | {f[f'{kind}_mogs_mb_per_s']:.0f} "
+            f"| **{f[f'{kind}_mogs_ratio_vs_bare_zmq']:.2f}** "
+            f"| {f[f'{kind}_hop_ratio_vs_bare_zmq']:.2f} | {f[f'{kind}_mogs_ratio_vs_hop']:.2f} "
+            f"| {f[f'{kind}_mogs_lost_msgs']} |"
+        )
+    body += [
+        "",
+        "CPU time per message [us] (user + system, all threads of the process, over the timed "
+        "window of the best run); with two cores, throughput cannot exceed "
+        "2 / total CPU per message:",
+        "",
+        "| message | case | publisher | broker | subscriber | total | total / bare |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for kind, label in kinds:
+        for case in CASES:
+            total = f[f"{kind}_{case}_cpu_us_total"]
+            body.append(
+                f"| {label if case == 'bare' else ''} | {case} "
+                f"| {f[f'{kind}_{case}_cpu_us_pub']:.1f} "
+                f"| {f[f'{kind}_{case}_cpu_us_broker']:.1f} | {f[f'{kind}_{case}_cpu_us_sub']:.1f} "
+                f"| {total:.1f} | {total / max(f[f'{kind}_bare_cpu_us_total'], 1e-9):.2f} |"
+            )
+    return "\n".join(body)
 
 
 if __name__ == "__main__":

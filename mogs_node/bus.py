@@ -50,6 +50,7 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+_SNDMORE = zmq.SNDMORE
 
 
 @dataclass(frozen=True)
@@ -100,6 +101,9 @@ class BusConfig:
     best_effort_hwm: int = 10  # high-water mark of best-effort sockets
     max_message_bytes: int = msgs.DEFAULT_MAX_MESSAGE_BYTES
     linger_ms: int = 2000  # how long closing sockets keep flushing queued messages
+    # kernel socket buffers (SO_SNDBUF of senders, SO_RCVBUF of receivers, broker included);
+    # 0 = the OS default. Capped by net.core.wmem_max / rmem_max. See docs/architecture.md.
+    socket_buffer_bytes: int = 0
     curve: CurveConfig | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -112,6 +116,7 @@ class BusConfig:
                 "best_effort_hwm",
                 "max_message_bytes",
                 "linger_ms",
+                "socket_buffer_bytes",
             )
         }
         if self.curve is not None:
@@ -135,6 +140,7 @@ class BusConfig:
             "best_effort_hwm",
             "max_message_bytes",
             "linger_ms",
+            "socket_buffer_bytes",
             "curve",
         }
         unknown = set(d) - allowed
@@ -150,7 +156,13 @@ class BusConfig:
             "pub_endpoint": d["pub_endpoint"],
             "sub_endpoint": d["sub_endpoint"],
         }
-        for key in ("reliable_hwm", "best_effort_hwm", "max_message_bytes", "linger_ms"):
+        for key in (
+            "reliable_hwm",
+            "best_effort_hwm",
+            "max_message_bytes",
+            "linger_ms",
+            "socket_buffer_bytes",
+        ):
             if key in d:
                 v = d[key]
                 if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -299,6 +311,8 @@ def run_broker(
         # The broker's queues are per peer: give reliable traffic room; subscribers set their own.
         xpub.sndhwm = config.reliable_hwm
         xsub.rcvhwm = config.reliable_hwm
+        if config.socket_buffer_bytes:
+            xsub.rcvbuf = xpub.sndbuf = config.socket_buffer_bytes
         for s, ep in ((xsub, config.pub_endpoint), (xpub, config.sub_endpoint)):
             _check_bind_address(ep, allow_remote)
             try:
@@ -362,6 +376,8 @@ class Publisher:
         self._sock = self._ctx.socket(zmq.XPUB)
         self._sock.sndhwm = config.reliable_hwm if hwm is None else hwm
         self._sock.linger = config.linger_ms
+        if config.socket_buffer_bytes:
+            self._sock.sndbuf = config.socket_buffer_bytes
         _apply_client_curve(self._sock, config.curve, config.pub_endpoint)
         try:
             self._sock.connect(config.pub_endpoint)
@@ -373,9 +389,23 @@ class Publisher:
         seq = self._seq.get(topic, 0)
         frames = msgs.encode(topic, msg, seq=seq, src=self.src)
         self._seq[topic] = seq + 1
-        self._sock.send_multipart(frames, copy=False)
+        # frame by frame rather than send_multipart (which re-checks every frame in Python):
+        # topic and header are small bytes, copied; array buffers go zero-copy (pyzmq still
+        # copies those under its copy threshold, where a copy is cheaper than tracking)
+        send = self._sock.send
+        send(frames[0], _SNDMORE)
+        n = len(frames)
+        nbytes = len(frames[0]) + len(frames[1])
+        if n == 2:
+            send(frames[1])
+        else:
+            send(frames[1], _SNDMORE)
+            for i in range(2, n):
+                f = frames[i]
+                nbytes += f.nbytes
+                send(f, 0 if i == n - 1 else _SNDMORE, copy=False)
         self.published[topic] = self.published.get(topic, 0) + 1
-        self.published_bytes += sum(len(f) if isinstance(f, bytes) else f.nbytes for f in frames)
+        self.published_bytes += nbytes
         return seq
 
     def publish_frames(self, frames: list[Any]) -> None:
@@ -456,6 +486,8 @@ class Subscriber:
         self._sock = self._ctx.socket(zmq.SUB)
         self._sock.rcvhwm = config.reliable_hwm if hwm is None else hwm
         self._sock.linger = 0
+        if config.socket_buffer_bytes:
+            self._sock.rcvbuf = config.socket_buffer_bytes
         _apply_client_curve(self._sock, config.curve, config.sub_endpoint)
         try:
             self._sock.connect(config.sub_endpoint)
@@ -466,6 +498,10 @@ class Subscriber:
         self.malformed = 0  # frames that could not be attributed to a subscribed topic
         self.last_error: str = ""
         self.all_topics = False
+        self._max_bytes = config.max_message_bytes
+        self._topic_names: dict[bytes, str] = {}  # subscribed topic names as they arrive
+        self._poller = zmq.Poller()  # one poller: Socket.poll would build a new one per call
+        self._poller.register(self._sock, zmq.POLLIN)
 
     @property
     def socket(self) -> zmq.Socket:
@@ -476,6 +512,7 @@ class Subscriber:
         if not topic.startswith("/"):
             raise ConfigError(f"topic {topic!r} must start with '/'")
         self.topics[topic] = reliable
+        self._topic_names[topic.encode()] = topic
         if topic == "/":
             self.all_topics = True
         self._sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
@@ -486,18 +523,51 @@ class Subscriber:
             st = self.stats[topic] = TopicStats()
         return st
 
+    def recv_frames(self) -> list[Any] | None:
+        """One multipart message from the socket without waiting (None if none is queued).
+
+        Topic and header frames are small and come as ``bytes`` (what ``msgs.decode`` reads
+        fastest); array frames come zero-copy as ``zmq.Frame``.
+        ZeroMQ delivers multipart messages atomically, so once the first frame is here, all are.
+        """
+        sock = self._sock
+        try:
+            first = sock.recv(zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            return None
+        # Frame.more is a plain read; getsockopt(RCVMORE) would build an enum per call
+        frames: list[Any] = [first.bytes]
+        if first.more:
+            header = sock.recv(copy=False)
+            frames.append(header.bytes)
+            more = header.more
+            while more:
+                frame = sock.recv(copy=False)
+                frames.append(frame)
+                more = frame.more
+        return frames
+
     def receive(self, timeout_ms: int | None = 0) -> msgs.Envelope | None:
         """The next valid message of a subscribed topic, or None if none arrives in time.
 
         Malformed messages are counted (per topic when the topic frame is readable) and skipped;
         this never raises for bad input.
         """
-        deadline = None if timeout_ms is None else time.monotonic() + timeout_ms / 1000
+        deadline = time.monotonic() + timeout_ms / 1000 if timeout_ms else None
         while True:
-            wait = -1 if deadline is None else max(0, int((deadline - time.monotonic()) * 1000))
-            if not self._sock.poll(wait, zmq.POLLIN):
-                return None
-            env = self.decode_frames(self._sock.recv_multipart(copy=False))
+            frames = self.recv_frames()  # queued messages are taken without a poll
+            if frames is None:
+                if timeout_ms == 0:
+                    return None
+                wait = -1  # no deadline: until something arrives
+                if deadline is not None:
+                    wait = int((deadline - time.monotonic()) * 1000)
+                    if wait <= 0:
+                        return None
+                if not self._poller.poll(wait):
+                    return None
+                continue
+            env = self.decode_frames(frames)
             if env is not None:
                 return env
 
@@ -506,40 +576,55 @@ class Subscriber:
         if not frames:
             self.malformed += 1
             return None
-        topic_bytes = bytes(frames[0].buffer) if hasattr(frames[0], "buffer") else bytes(frames[0])
+        t0 = frames[0]
+        topic_bytes = t0 if type(t0) is bytes else _frame_to_bytes(t0)
+        topic = self._topic_names.get(topic_bytes)
+        if topic is None:  # not one of ours by exact name: a tool's "/" or a stranger
+            try:
+                topic = topic_bytes.decode("utf-8")
+            except UnicodeDecodeError:
+                topic = ""
+            if not self.all_topics:
+                if any(topic.startswith(t) for t in self.topics):
+                    return None  # prefix match of another topic (e.g. /imu_raw for /imu): not ours
+                self.malformed += 1
+                return None
+        st = self.stats.get(topic) or self._stats(topic)
         try:
-            topic = topic_bytes.decode("utf-8")
-        except UnicodeDecodeError:
-            topic = ""
-        if not self.all_topics and topic not in self.topics:
-            if any(topic.startswith(t) for t in self.topics):
-                return None  # prefix match of another topic (e.g. /imu_raw for /imu): not ours
-            self.malformed += 1
-            return None
-        st = self._stats(topic)
-        try:
-            env = msgs.decode(frames, max_bytes=self.config.max_message_bytes)
+            env = msgs.decode(frames, max_bytes=self._max_bytes)
         except MessageError as err:
             st.malformed += 1
             self.last_error = f"{topic}: {err}"
             log.debug("malformed message on %s: %s", topic, err)
             return None
+        _, seq, src, _, nbytes = env
         st.received += 1
-        st.received_bytes += env.nbytes
-        last = st.last_seq.get(env.src)
+        st.received_bytes += nbytes
+        last_seq = st.last_seq
+        last = last_seq.get(src)
+        if last is not None and seq == last + 1:  # the common case: the next one in order
+            last_seq[src] = seq
+            return env
         if last is None:
-            st.missed_before_join += env.seq  # published before this subscriber was connected
+            st.missed_before_join += seq  # published before this subscriber was connected
+        elif seq > last + 1:
+            st.gaps += 1
+            st.lost += seq - last - 1
         else:
-            if env.seq > last + 1:
-                st.gaps += 1
-                st.lost += env.seq - last - 1
-            elif env.seq <= last:
-                st.reordered += 1
-        st.last_seq[env.src] = env.seq if last is None else max(last, env.seq)
+            st.reordered += 1
+        last_seq[src] = seq if last is None else max(last, seq)
         return env
 
     def close(self) -> None:
         self._sock.close(linger=0)
+
+
+def _frame_to_bytes(frame: Any) -> bytes:
+    """The bytes of a received frame of any kind (b"" for what is no buffer: then malformed)."""
+    try:
+        return bytes(memoryview(getattr(frame, "buffer", frame)))
+    except TypeError:
+        return b""
 
 
 def with_endpoints(config: BusConfig, pub_endpoint: str, sub_endpoint: str) -> BusConfig:

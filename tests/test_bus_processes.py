@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -151,3 +152,118 @@ def test_overwhelmed_reliable_subscriber_reports_exact_gap_count(
     assert st["lost"] == missing
     holes = sum(1 for a, b in zip(ids, ids[1:]) if b != a + 1) + (ids[0] != 0)
     assert st["gaps"] == holes
+
+
+# ------------------------------------------------------- receive path (in-process broker, fast)
+
+
+@pytest.fixture
+def pub_sub(inproc_bus):
+    """A Publisher and a Subscriber on an in-process broker, closed whatever the test does."""
+    from mogs_node.bus import Publisher, Subscriber
+
+    bus, ctx = inproc_bus
+    sub = Subscriber(bus, context=ctx)
+    pub = Publisher(bus, context=ctx)
+    yield pub, sub
+    pub.close(0)  # open sockets would block the fixture's context termination
+    sub.close()
+
+
+def _imu() -> Any:
+    from mogs_node import msgs
+
+    return msgs.Imu(
+        stamp_ns=1, frame_id="i", gyro_rad_s=(0.0, 0.0, 1.0), accel_m_s2=(0.0, 0.0, 9.8)
+    )
+
+
+def test_frame_by_frame_receive_keeps_message_boundaries(pub_sub) -> None:
+    """recv_frames takes exactly one multipart message, however malformed, never a part of the
+    next one; topic and header arrive as bytes, arrays as zero-copy frames."""
+    import numpy as np
+    import zmq
+
+    from mogs_node import msgs
+
+    pub, sub = pub_sub
+    sub.subscribe("/imu")
+    sub.subscribe("/frontend/keyframe")
+    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
+    imu = _imu()
+    kf = msgs.Keyframe(
+        stamp_ns=2,
+        frame_id="c",
+        keyframe_id=7,
+        image=np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3),
+        K=np.eye(3),
+        T_world_cam=np.eye(4),
+        feature_ids=np.arange(3, dtype=np.int64),
+        feature_uv_px=np.zeros((3, 2), np.float32),
+        feature_xyz_cam_m=np.ones((3, 3), np.float32),
+        feature_weight=np.ones(3, np.float32),
+    )
+    good = msgs.encode("/imu", imu, seq=0, src=5)
+    pub.publish_frames([b"/imu"])  # topic alone
+    pub.publish_frames([*good[:2], b"stray", b"frames"])  # more buffers than descriptors
+    pub.publish_frames(msgs.encode("/imu", imu, seq=1, src=5))
+    assert pub.publish("/frontend/keyframe", kf) == 0
+    env = sub.receive(timeout_ms=2000)
+    assert env is not None and env.seq == 1 and env.msg == imu
+    assert sub.stats["/imu"].malformed == 2 and sub.stats["/imu"].received == 1
+    frames = None
+    for _ in range(200):
+        frames = sub.recv_frames()
+        if frames is not None:
+            break
+        sub.socket.poll(10)
+    assert frames is not None and len(frames) == 2 + len(msgs.Keyframe.ARRAYS)
+    assert [type(f) for f in frames[:2]] == [bytes, bytes]
+    assert all(type(f) is zmq.Frame for f in frames[2:])
+    env = sub.decode_frames(frames)
+    assert env is not None and env.msg == kf
+    sent = msgs.encode("/frontend/keyframe", kf, seq=0, src=pub.src)
+    assert pub.published_bytes == sum(len(bytes(f)) for f in sent)
+    assert sub.receive(timeout_ms=0) is None  # nothing queued: no wait
+    assert sub.receive(timeout_ms=20) is None
+
+
+def test_subscriber_counts_every_gap_and_reordering_exactly(pub_sub) -> None:
+    from mogs_node import msgs
+
+    pub, sub = pub_sub
+    sub.subscribe("/imu")
+    assert pub.wait_for_subscriber("/imu", 5)
+    imu = _imu()
+    # session 5 joins at seq 3, loses 5 and 8..9, repeats 6; session 6 starts at 0
+    order = [(5, 3), (5, 4), (5, 6), (5, 7), (5, 6), (5, 10), (6, 0), (6, 1)]
+    for src, seq in order:
+        pub.publish_frames(msgs.encode("/imu", imu, seq=seq, src=src))
+    got = [sub.receive(timeout_ms=2000) for _ in order]
+    assert [(e.src, e.seq) for e in got] == order
+    st = sub.stats["/imu"]
+    assert (st.received, st.missed_before_join, st.gaps, st.lost, st.reordered) == (8, 3, 2, 3, 1)
+
+
+def test_socket_buffer_size_is_configurable_and_checked(inproc_bus) -> None:
+    from dataclasses import replace
+
+    from mogs_node.bus import Publisher, Subscriber
+    from mogs_node.errors import ConfigError
+
+    bus, ctx = inproc_bus
+    d = {**bus.to_dict(), "socket_buffer_bytes": 1 << 20}
+    cfg = BusConfig.from_dict(d)
+    assert cfg.socket_buffer_bytes == 1 << 20 and BusConfig.from_dict(cfg.to_dict()) == cfg
+    for bad in (-1, True, "4M", 1.5):
+        with pytest.raises(ConfigError, match="socket_buffer_bytes"):
+            BusConfig.from_dict({**d, "socket_buffer_bytes": bad})
+    pub, sub = Publisher(cfg, context=ctx), Subscriber(cfg, context=ctx)
+    default_pub = Publisher(replace(cfg, socket_buffer_bytes=0), context=ctx)
+    try:
+        assert pub._sock.sndbuf == 1 << 20 and sub.socket.rcvbuf == 1 << 20
+        assert default_pub._sock.sndbuf == -1  # 0 leaves the OS default alone
+    finally:
+        for s in (pub, default_pub):
+            s.close(0)
+        sub.close()

@@ -7,6 +7,7 @@ import dataclasses
 import msgpack
 import numpy as np
 import pytest
+import zmq
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -295,3 +296,142 @@ def test_fuzz_10000_malformed_messages_are_all_rejected() -> None:
     sub.close()
     assert rejected + accidentally_valid == n
     assert accidentally_valid < n * 0.02
+
+
+# ------------------------------------------------------------------- fast paths vs the reference
+
+# values at and around every edge of every scalar kind: the fast checkers must agree with the
+# reference checker on all of them (same result, or defer to it with None)
+EDGE_VALUES = st.one_of(
+    st.sampled_from(
+        [
+            -(1 << 63),
+            (1 << 63) - 1,
+            -(1 << 63) - 1,
+            1 << 63,
+            (1 << 64) - 1,
+            0,
+            True,
+            False,
+            None,
+            0.0,
+            -0.0,
+            float("inf"),
+            float("-inf"),
+            float("nan"),
+            1e308,
+            "",
+            "x" * 4096,
+            "x" * 4097,
+            b"bytes",
+            np.int64(3),
+            np.float32(1.5),
+            np.float64("nan"),
+            {},
+        ]
+    ),
+    INT64,
+    st.floats(),
+    TEXT,
+    st.lists(st.one_of(st.floats(), st.integers(-5, 5), st.booleans()), max_size=4),
+    st.tuples(st.floats(), st.floats(), st.floats()),
+    st.dictionaries(TEXT, st.one_of(st.integers(-5, 5), st.floats(), TEXT), max_size=3),
+)
+
+
+def _reference(cls: type[msgs.Message], values: dict) -> tuple[str, object]:
+    try:
+        return "ok", msgs._check_scalars(msgs._SCALAR_TABLES[cls], values)
+    except MessageError as err:
+        return "error", err.field
+
+
+@pytest.mark.parametrize("cls", list(msgs.MESSAGE_TYPES.values()), ids=list(msgs.MESSAGE_TYPES))
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_generated_fast_scalar_checker_agrees_with_the_reference(
+    cls: type[msgs.Message], data: st.DataObject
+) -> None:
+    # mostly valid fields with a few edge values mixed in, and sometimes a field missing
+    values = {
+        name: data.draw(
+            st.one_of(_scalar(kind), EDGE_VALUES) if data.draw(st.booleans()) else _scalar(kind)
+        )
+        for name, kind in cls.SCALARS.items()
+    }
+    if data.draw(st.booleans()) and values:
+        values.pop(data.draw(st.sampled_from(sorted(values))))
+    ref = _reference(cls, values)
+    try:
+        fast = msgs._FAST_SCALARS[cls](values)
+    except MessageError as err:  # only the dict kinds raise inside the fast path
+        assert ref == ("error", err.field)
+        return
+    if fast is None:
+        return  # deferred to the reference
+    assert ref[0] == "ok"
+    assert fast == ref[1]
+    assert [type(v) for v in fast.values()] == [type(v) for v in ref[1].values()]
+
+
+def test_fast_path_defers_non_canonical_values_to_the_reference() -> None:
+    fast = msgs._FAST_SCALARS[msgs.Imu]
+    good = {
+        "stamp_ns": 1,
+        "frame_id": "i",
+        "gyro_rad_s": [0.1, 0.2, 0.3],
+        "accel_m_s2": [0.0, 0.0, 9.8],
+    }
+    assert fast(good) == {**good, "gyro_rad_s": (0.1, 0.2, 0.3), "accel_m_s2": (0.0, 0.0, 9.8)}
+    for name, bad in [
+        ("stamp_ns", True),  # a bool is no int
+        ("stamp_ns", 1 << 63),  # outside int64
+        ("stamp_ns", 1.0),
+        ("frame_id", "x" * 4097),
+        ("gyro_rad_s", [0.1, float("inf"), 0.3]),
+        ("gyro_rad_s", [0.1, float("nan"), 0.3]),
+        ("accel_m_s2", [0, 0, 9.8]),  # ints: valid, but converted by the reference
+        ("accel_m_s2", [0.0, 0.0]),
+    ]:
+        assert fast({**good, name: bad}) is None, name
+    assert fast({k: v for k, v in good.items() if k != "frame_id"}) is None
+    # the reference converts where the wire form is merely non-canonical ...
+    env = msgs.decode(
+        msgs.encode(
+            "/imu",
+            msgs.Imu(stamp_ns=1, frame_id="i", gyro_rad_s=(0, 0, 1), accel_m_s2=(0.0, 0.0, 9.8)),
+        )
+    )
+    assert env.msg.gyro_rad_s == (0.0, 0.0, 1.0) and type(env.msg.gyro_rad_s[0]) is float
+    # ... and rejects the rest, naming the field
+    frames = msgs.encode(
+        "/imu",
+        msgs.Imu(stamp_ns=1, frame_id="i", gyro_rad_s=(0.0, 0.0, 1.0), accel_m_s2=(0.0, 0.0, 9.8)),
+    )
+    h = _header(frames)
+    h["f"]["stamp_ns"] = True
+    with pytest.raises(MessageError) as exc:
+        msgs.decode(_with_header(frames, h))
+    assert exc.value.field == "stamp_ns"
+    h["f"]["stamp_ns"] = 1 << 63
+    with pytest.raises(MessageError) as exc:
+        msgs.decode(_with_header(frames, h))
+    assert exc.value.field == "stamp_ns"
+
+
+def test_decode_takes_bytes_zmq_frames_and_other_buffers_alike() -> None:
+    kf = _kf(4)
+    frames = msgs.encode("/frontend/keyframe", kf, seq=9, src=3)
+    as_bytes = [bytes(f) for f in frames]
+    as_zmq = [zmq.Frame(b) for b in as_bytes]
+    # what Subscriber.recv_frames hands over: topic and header copied, arrays zero-copy frames
+    mixed = as_bytes[:2] + as_zmq[2:]
+    # a 2-D buffer of the image bytes: read as its flat bytes
+    shaped = [*as_bytes[:2], memoryview(np.frombuffer(as_bytes[2], np.uint8).reshape(4, -1))]
+    shaped += as_bytes[3:]
+    for variant in (as_bytes, as_zmq, mixed, shaped, [bytearray(b) for b in as_bytes]):
+        env = msgs.decode(variant)
+        assert env.msg == kf and (env.topic, env.seq, env.src) == ("/frontend/keyframe", 9, 3)
+        assert env.nbytes == sum(len(b) for b in as_bytes)
+    env = msgs.decode(mixed)
+    assert np.shares_memory(env.msg.image, np.frombuffer(as_zmq[2].buffer, np.uint8))
