@@ -73,6 +73,8 @@ def smooth_field(
     scale: float = 0.125,
     clip: float = 0.5,
     exponentiate: bool = False,
+    shrink: float = 0.0,
+    at: NDArray[np.intp] | None = None,
 ) -> F32:
     """Low-frequency field ``[H, W]`` float32 from scattered samples (Gaussian normalised conv.).
 
@@ -80,12 +82,15 @@ def smooth_field(
     Accumulates at ``scale`` resolution (``bincount``), blurs numerator and weight with a Gaussian
     of ``sigma_frac`` times the image width, clips to ``[-clip, clip]`` (0 far from every sample),
     optionally exponentiates (still at low resolution: the field is smooth), and upsamples
-    bilinearly.
+    bilinearly. ``shrink`` adds a pseudo-observation of value 0 with the weight of that many
+    samples per Gaussian footprint: far from the samples the field decays to 0 instead of
+    extrapolating the nearest ones. With ``at`` (flat indices ``[K]``) only the field at those
+    pixels is returned ``[K]`` (the value of their low-resolution cell), skipping the upsampling.
     """
     H, W = shape
     h2, w2 = max(1, round(H * scale)), max(1, round(W * scale))
     if len(flat_idx) == 0:
-        return np.full(shape, 1.0 if exponentiate else 0.0, np.float32)
+        return np.full(shape if at is None else len(at), 1.0 if exponentiate else 0.0, np.float32)
     v = np.minimum((flat_idx // W) * h2 // H, h2 - 1)
     u = np.minimum((flat_idx % W) * w2 // W, w2 - 1)
     cell = v * w2 + u
@@ -95,8 +100,11 @@ def smooth_field(
     num = cv2.GaussianBlur(num, (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
     den = cv2.GaussianBlur(den, (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
     with np.errstate(divide="ignore", invalid="ignore"):
-        f = np.where(den > 1e-12, num / den, 0.0).astype(np.float32)
+        k = np.float32(shrink / (2.0 * np.pi * sig * sig))
+        f = np.where(den + k > 1e-12, num / (den + k), 0.0).astype(np.float32)
     f = np.clip(np.nan_to_num(f), -clip, clip)
     if exponentiate:
         f = np.exp(f)
+    if at is not None:  # the cell of each pixel: the field varies little within a cell
+        return f[np.minimum((at // W) * h2 // H, h2 - 1), np.minimum((at % W) * w2 // W, w2 - 1)]
     return cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)

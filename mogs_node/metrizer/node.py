@@ -180,19 +180,29 @@ class MetrizerNode(Node):
         self.metrizer_params = parse_params(MetrizerParams, top, where=f"{self.name}.metrizer")
         self.matcher = KeyframeMatcher(p.max_wait_s, p.max_pending)
         self.clock = time.monotonic
-        self.subscribe(p.keyframe_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe)
-        self.subscribe(p.masks_topic, self.on_masks, reliable=True, msg_type=msgs.Masks)
-        self.subscribe(p.prior_topic, self.on_prior, reliable=True, msg_type=msgs.DepthMap)
+        for topic, handler, typ in (
+            (p.keyframe_topic, self.on_keyframe, msgs.Keyframe),
+            (p.masks_topic, self.on_masks, msgs.Masks),
+            (p.prior_topic, self.on_prior, msgs.DepthMap),
+        ):
+            self.subscribe(topic, handler, reliable=True, msg_type=typ, idempotent=True)
         self.every(p.poll_period_s, self.on_timer)
+        # after a restart: the inputs of every keyframe without a metrized depth in the journal
+        self.catch_up((p.keyframe_topic, p.masks_topic, p.prior_topic), (p.out_topic,))
+
+    def _add(self, slot: str, msg: Any) -> None:
+        if self.already_published(self.params.out_topic, msg.keyframe_id):
+            return  # metrized before this process restarted
+        self._process(self.matcher.add(slot, msg.keyframe_id, msg, self.clock()))
 
     def on_keyframe(self, msg: msgs.Keyframe) -> None:
-        self._process(self.matcher.add("keyframe", msg.keyframe_id, msg, self.clock()))
+        self._add("keyframe", msg)
 
     def on_masks(self, msg: msgs.Masks) -> None:
-        self._process(self.matcher.add("masks", msg.keyframe_id, msg, self.clock()))
+        self._add("masks", msg)
 
     def on_prior(self, msg: msgs.DepthMap) -> None:
-        self._process(self.matcher.add("prior", msg.keyframe_id, msg, self.clock()))
+        self._add("prior", msg)
 
     def on_timer(self) -> None:
         self._process(self.matcher.expire(self.clock()))

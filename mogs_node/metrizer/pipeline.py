@@ -12,7 +12,8 @@ Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
 5. ``consensus``: Algorithm 1 for all objects (consensus.py), then groups without a shape join an
    adjacent shape that explains them (absorption), mode ``full``.
 6. ``propagate``: model depth by ray-shape intersection at the CDR sample pixels.
-7. ``refine``: CDR, eqs. (6)-(11) by IRLS (refinement.py).
+7. ``refine``: CDR, eqs. (6)-(11) by IRLS (refinement.py); eq. (8) anchors to a locally aligned
+   prior (the global one times a smooth field of the geometric evidence, ``local_anchor``).
 8. ``compose`` / ``model_output`` / ``residual`` / ``sky_holes``: calibrated prior per object;
    model depth where it agrees; the smooth residual correction; sky -> ``d_max``; pixels without
    prior get the model depth (accepted shape) or an edge-aware fill of the sparse points
@@ -86,6 +87,10 @@ class MetrizerParams:
     residual_sigma_frac: float = 0.05  # its Gaussian width, fraction of the image width
     residual_model_weight: float = 0.05  # weight of a model-output sample vs a feature (1)
     absorb: bool = True  # departure: groups without a shape join a neighbour's shape that fits
+    local_anchor: bool = True  # departure: eq. (8) anchors to the globally aligned prior times a
+    # smooth field of the geometric evidence (model depth, features) relative to it
+    anchor_shrink: float = 1.0  # that field decays to 0 where it has less evidence than this
+    # many features per Gaussian footprint (pseudo-observation of "no correction")
     absorb_prior_gate: float = 0.15  # featureless groups: model vs globally aligned prior
     absorb_sample_below: int = 5  # groups with fewer features also use sample-pixel evidence
     model_output: bool = True  # departure: output the model depth where it agrees (below)
@@ -104,6 +109,10 @@ class MetrizerParams:
     def __post_init__(self) -> None:
         if not (0 < self.d_min_m < self.d_max_m and np.isfinite(self.d_max_m)):
             raise ConfigError("MetrizerParams: need 0 < d_min_m < d_max_m < inf")
+        if not self.anchor_shrink >= 0:
+            raise ConfigError(
+                f"MetrizerParams: anchor_shrink >= 0 required, got {self.anchor_shrink}"
+            )
         if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
             raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")
 
@@ -217,6 +226,18 @@ class _Frame:
     zhi: F64 | None = None  # [G]
     run_label: NDArray[np.intp] | None = None  # [R] object of each raster run of gobj
     run_len: NDArray[np.intp] | None = None  # [R] its length in pixels
+    edges: NDArray[np.uint8] | None = None  # quarter-resolution depth-edge band of the prior
+
+    def in_edge_band(self, flat_idx: NDArray[np.intp]) -> NDArray[np.bool_]:
+        """Whether flat pixels lie in the prior's depth-edge band (computed once, on demand)."""
+        if self.edges is None:
+            self.edges = _prior_edges(self.prior, self.conf, self.H, self.W, self.p)
+        v, u = np.divmod(flat_idx, self.W)
+        h4, w4 = self.edges.shape
+        return (
+            self.edges[np.minimum(v * h4 // self.H, h4 - 1), np.minimum(u * w4 // self.W, w4 - 1)]
+            > 0
+        )
 
     def per_pixel(self, table: NDArray) -> NDArray:
         """``table[gobj]`` ``[HW]`` for a per-object ``table`` ``[G]``: the object map is
@@ -499,28 +520,12 @@ def metrize_depth(
     obj_to_g = group  # [n_obj] object -> group (after absorption in mode full)
     if mode == "full" and p.absorb and (kind_g > 0).any():
         remap = _absorb(
+            fr,
             group,
-            adj_k,
-            adj_l,
-            kind_g,
-            sky,
-            Am,
-            bm,
-            cm,
-            zlo,
-            zhi,
+            (adj_k, adj_l),
+            (kind_g, Am, bm, cm, zlo, zhi),
             Xf,
-            z,
-            feat_g,
-            n_feat_g,
-            grid,
-            gg_grid,
-            norm_grid,
-            G,
-            W,
-            K,
-            prior_kind,
-            p,
+            (grid, gg_grid, norm_grid),
         )
         if remap is not None:
             keep_ids, remap = remap
@@ -565,13 +570,7 @@ def metrize_depth(
     if len(mi):
         mdepth[mi] = _model_depth(sidx[mi], sg[mi], kind_g, Am, bm, cm, W, K)
     d_glob = depth_from_space(snorm, prior_kind, p.d_min_m, p.d_max_m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mok = (
-            np.isfinite(mdepth)
-            & (mdepth >= zlo[sg])
-            & (mdepth <= zhi[sg])
-            & (np.abs(mdepth / d_glob - 1.0) <= p.model_prior_gate)
-        )
+    mok = _model_agrees(mdepth, zlo[sg], zhi[sg], d_glob, p.model_prior_gate)
     tm.lap("propagate")
 
     # ---- cross-object depth refinement, eqs. (6)-(11) (III-C)
@@ -594,6 +593,8 @@ def metrize_depth(
         prior_kind,
         sky,
     )
+    if p.local_anchor:
+        snorm = _local_anchor(fr, sidx, mok, mdepth, d_glob, fd_glob, snorm)
     nfc_w = sc / np.maximum(np.bincount(sg, sc, minlength=G), 1e-12)[sg]
     pp, qq = pairs
     gp, gq = gobj[pp], gobj[qq]
@@ -641,6 +642,49 @@ def metrize_depth(
     return _compose(fr, tm, global_only=False)
 
 
+def _model_agrees(dm: F64, lo: F64, hi: F64, d_ref: F64, gate: float) -> NDArray[np.bool_]:
+    """Model depth ``dm`` hit, within the shape's valid range ``[lo, hi]`` and within ``gate``
+    (relative) of the reference depth ``d_ref`` (the globally aligned prior)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.isfinite(dm) & (dm >= lo) & (dm <= hi) & (np.abs(dm / d_ref - 1.0) <= gate)
+
+
+def _local_anchor(fr: _Frame, sidx, mok, mdepth, d_glob, fd_glob, snorm) -> F64:
+    """Eq. (8) target at the CDR samples: the globally aligned prior times a smooth field.
+
+    The field is the Gaussian normalised convolution of ``log(target / globally aligned prior)``
+    over the geometric evidence of eq. (7): model depth at sample pixels outside the prior's
+    depth-edge band (where the blurred prior makes the ratio an edge artefact, not a warp),
+    weight ``residual_model_weight``, and consistent features, weight 1, with the width of the
+    residual field; the factor ``exp(field)`` decays to 1 away from evidence (``anchor_shrink``). An object without
+    geometry is then anchored to the prior as its neighbourhood's geometry aligns it, rather than
+    to one affine for the whole frame (departure 13 in docs/metrizer.md). ``snorm`` (the global
+    target) is returned unchanged when there is no evidence.
+    """
+    p = fr.p
+    mk = mok.copy()
+    mk[mok] = ~fr.in_edge_band(sidx[mok])
+    fok = fr.f_consistent
+    idx = np.concatenate([sidx[mk], fr.fpix[fok]])
+    if len(idx) == 0:
+        return snorm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        val = np.concatenate([np.log(mdepth[mk] / d_glob[mk]), np.log(fr.z[fok] / fd_glob[fok])])
+    wt = np.concatenate([np.full(int(mk.sum()), p.residual_model_weight), np.ones(int(fok.sum()))])
+    good = np.isfinite(val)
+    field = smooth_field(
+        (fr.H, fr.W),
+        idx[good],
+        val[good],
+        wt[good],
+        p.residual_sigma_frac,
+        shrink=p.anchor_shrink,
+        at=sidx,
+    )
+    d = np.clip(d_glob * np.exp(field.astype(np.float64)), p.d_min_m, p.d_max_m)
+    return space_from_depth(d, fr.prior_kind)
+
+
 def _expand(item_group, n_groups, pair_groups):
     """Rows ``(item, pair)`` for every item (feature / sample) of each pair's group, vectorised."""
     order = np.argsort(item_group, kind="stable")
@@ -652,36 +696,21 @@ def _expand(item_group, n_groups, pair_groups):
     return order[starts[pair_groups][row_pair] + offs], row_pair
 
 
-def _absorb(
-    group,
-    adj_k,
-    adj_l,
-    kind_g,
-    sky,
-    Am,
-    bm,
-    cm,
-    zlo,
-    zhi,
-    Xf,
-    z,
-    feat_g,
-    n_feat_g,
-    grid,
-    gg_grid,
-    norm_grid,
-    G,
-    W,
-    K,
-    prior_kind,
-    p,
-):
+def _absorb(fr: _Frame, group, adjacency, model, Xf, samples):
     """Second merging scale (departure, docs/metrizer.md): a group without an accepted shape joins
     an adjacent group whose shape explains it: at least ``tau`` of its features are inliers of that
     model (eq. 2 residual below ``T_s(z)``); a group with fewer than ``absorb_sample_below``
     features also counts its sample pixels, where the model depth must be within
     ``absorb_prior_gate`` of the globally aligned prior.
+    ``adjacency`` = ``(adj_k, adj_l)`` object pairs, ``model`` = ``(kind, A, b, c, zlo, zhi)`` per
+    group, ``samples`` = ``(grid, group of grid, globally aligned normaliser)`` of the CDR samples;
+    features, groups, camera and parameters come from ``fr``.
     Returns ``(kept old ids [G'], old -> new id map [G])`` or None when nothing is absorbed."""
+    adj_k, adj_l = adjacency
+    kind_g, Am, bm, cm, zlo, zhi = model
+    grid, gg_grid, norm_grid = samples
+    p, G, W, K, prior_kind = fr.p, fr.G, fr.W, fr.K, fr.prior_kind
+    z, feat_g, n_feat_g, sky = fr.z, fr.feat_g, fr.n_feat_g, fr.sky
     ga, gb = group[adj_k], group[adj_l]
     diff = ga != gb
     a = np.concatenate([ga[diff], gb[diff]])
@@ -703,13 +732,7 @@ def _absorb(
     us = pu[srow]
     dm = _model_depth(grid[si], us, kind_g, Am, bm, cm, W, K)
     d_glob = depth_from_space(norm_grid[si], prior_kind, p.d_min_m, p.d_max_m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s_ok = (
-            np.isfinite(dm)
-            & (dm >= zlo[us])
-            & (dm <= zhi[us])
-            & (np.abs(dm / d_glob - 1.0) <= p.absorb_prior_gate)
-        )
+    s_ok = _model_agrees(dm, zlo[us], zhi[us], d_glob, p.absorb_prior_gate)
     target = absorb_into_models(
         pg, pu, np.concatenate([frow, srow]), np.concatenate([f_ok, s_ok]), G, p.consensus.tau
     )
@@ -759,15 +782,11 @@ def _model_output(fr: _Frame, depth: NDArray[np.float32], special) -> tuple:
     gobj, kind_g, conf_g = fr.gobj, fr.kind_g, fr.conf_g
     Am, bm, cm, zlo, zhi = fr.Am, fr.bm, fr.cm, fr.zlo, fr.zhi
     trusted = (conf_g >= p.model_edge_min_conf) & (kind_g > 0)
-    edges = None  # quarter-resolution edge band, looked up only where the wide gate matters
-    if p.model_edge_gate > p.model_output_gate and trusted.any():
-        edges = _prior_edges(fr.prior, fr.conf, H, W, p)
+    # the prior's edge band is looked up only where the wide gate matters
+    use_band = p.model_edge_gate > p.model_output_gate and bool(trusted.any())
 
     def in_band(flat_idx):
-        v, u = np.divmod(flat_idx, W)
-        h4, w4 = edges.shape
-        e = edges[np.minimum(v * h4 // H, h4 - 1), np.minimum(u * w4 // W, w4 - 1)] > 0
-        return e & trusted[gobj[flat_idx]]
+        return fr.in_edge_band(flat_idx) & trusted[gobj[flat_idx]]
 
     g1, g2 = 1.0 + p.model_output_gate, 1.0 + p.model_edge_gate
     out_idx, out_ratio = [np.zeros(0, np.intp)], [np.zeros(0)]
@@ -797,7 +816,7 @@ def _model_output(fr: _Frame, depth: NDArray[np.float32], special) -> tuple:
         okg = r >= np.float32(1.0 / g1)
         if g1 < 2:
             okg &= r <= np.float32(1.0 / (2.0 - g1))
-        if edges is not None:  # wider gate in the prior's edge band, for trusted shapes
+        if use_band:  # wider gate in the prior's edge band, for trusted shapes
             oke = r >= np.float32(1.0 / g2)
             if g2 < 2:
                 oke &= r <= np.float32(1.0 / (2.0 - g2))
@@ -821,7 +840,7 @@ def _model_output(fr: _Frame, depth: NDArray[np.float32], special) -> tuple:
         dm = _model_depth(qpix, g, kind_g, Am, bm, cm, W, K)
         dcal = depth[qpix].astype(np.float64)
         gate = np.full(len(qpix), p.model_output_gate)
-        if edges is not None:
+        if use_band:
             gate[in_band(qpix)] = p.model_edge_gate
         with np.errstate(invalid="ignore", divide="ignore"):
             ok = (

@@ -7,10 +7,12 @@ parameters minimise eq. (11), ``E = lambda_geo E_geo + lambda_nfc E_nfc + lambda
 - eq. (7) ``E_geo``: confidence-weighted Huber residuals between the calibrated prior and the
   object's geometric target (the model depth of III-B where a shape was accepted, else the object's
   sparse metric features), ``e = (a x + b) / t - 1`` (relative: near and far objects weigh alike);
-- eq. (8) ``E_nfc``: Huber residuals anchoring the calibrated prior to the *globally* aligned prior
-  ``g = a0 x + b0`` (one robust affine fit of the whole prior to all sparse features), ``e = (a x +
-  b) / g - 1``; with a small Huber width it regularises objects with weak geometry but yields to
-  strong geometric evidence (its gradient is bounded);
+- eq. (8) ``E_nfc``: Huber residuals anchoring the calibrated prior to a target ``g`` given per
+  row by the caller (the pipeline uses the globally aligned prior, one robust affine fit of the
+  whole prior to all sparse features, times a smooth field of the geometric evidence: a locally
+  aligned prior), ``e = (a x + b) / g - 1``; it regularises objects with weak geometry and, its
+  gradient being bounded (``lambda_nfc * huber_nfc``), moves objects with strong geometric
+  evidence by at most about ``lambda_nfc huber_nfc / lambda_geo`` (3.5% with the defaults);
 - eqs. (9)-(10) ``E_sm``: edge-aware smoothness across object borders, over 4-neighbour pixel pairs
   ``(p in k, q in l)``: ``w_pq ((a_k x_p + b_k) - (a_l x_q + b_l))^2 / g_pq^2`` with
   ``w_pq = exp(-|I_p - I_q|^2 / (2 sigma_c^2))`` (eq. 10).
@@ -54,7 +56,7 @@ class CdrParams:
     lambda_nfc: float = 0.7  # eq. (11) weight of the prior-anchoring term (eq. 8)
     lambda_sm: float = 0.1  # eq. (11) weight of the edge-aware smoothness (eq. 9)
     huber_geo: float = 0.05  # Huber width of eq. (7), relative depth error
-    huber_nfc: float = 0.01  # Huber width of eq. (8), relative depth error
+    huber_nfc: float = 0.05  # Huber width of eq. (8), relative depth error (as eq. 7)
     sigma_color: float = 12.0  # eq. (10): colour difference scale (0-255 units)
     irls_iters: int = 3  # IRLS iterations (at most)
     ridge: float = 1e-4  # relative Tikhonov weight towards the global affine (well-posedness)
