@@ -61,7 +61,7 @@ def parked_stream(seconds: float, rate_hz: float = 10.0, imu_hz: float = 200.0, 
     rng = np.random.default_rng(seed)
     R = seq.T_world_imu[0, :3, :3]
     t_img = (1_000_000_000 + np.arange(int(seconds * rate_hz)) * 1e9 / rate_hz).astype(np.int64)
-    t_imu = (t_img[0] - 1_100_000_000 + np.arange(int((seconds + 1.2) * imu_hz)) * 1e9 / imu_hz)
+    t_imu = t_img[0] - 1_100_000_000 + np.arange(int((seconds + 1.2) * imu_hz)) * 1e9 / imu_hz
     t_imu = t_imu.astype(np.int64)
     gyro = np.array([1e-3, -2e-3, 5e-4]) + rng.normal(0, 2.4e-3, (len(t_imu), 3))
     acc = R.T @ -GRAVITY_WORLD_M_S2 + rng.normal(0, 0.03, (len(t_imu), 3))
@@ -117,9 +117,9 @@ def test_frame_waits_for_its_imu():
     seq, img, t_img, t_imu, gyro, acc = parked_stream(1.0)
     fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
     k = int(np.searchsorted(t_imu, t_img[0]))
-    fe.add_imu_batch(t_imu[:k - 3], gyro[:k - 3], acc[:k - 3])
+    fe.add_imu_batch(t_imu[: k - 3], gyro[: k - 3], acc[: k - 3])
     assert fe.add_image(int(t_img[0]), img) == []  # IMU not there yet
-    outs = fe.add_imu_batch(t_imu[k - 3:k + 1], gyro[k - 3:k + 1], acc[k - 3:k + 1])
+    outs = fe.add_imu_batch(t_imu[k - 3 : k + 1], gyro[k - 3 : k + 1], acc[k - 3 : k + 1])
     assert len(outs) == 1 and outs[0].stamp_ns == t_img[0]
 
 
@@ -188,3 +188,33 @@ def test_sim_evaluation_starts_parked_by_default():
         load_dataset("oxts", static_start_s=2.0)
     with pytest.raises(DatasetError, match="parked"):
         load_dataset("sim", seconds=1.0)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="open (issue 6): the metric scale is not observable on the "
+    "decelerating OXTS drive without a standstill (docs/frontend.md, round 3)",
+)
+def test_oxts_drive_meets_the_issue_bounds():
+    """Issue 6 goal on the drive along the real KITTI OXTS trajectory (dynamic initialisation):
+    ATE after SE(3) alignment under 1 % of the distance and metric scale error under 2 %.
+    Measured in round 3: 6.2 % and 26 % (the shape is right: Sim(3) ATE 0.45 %)."""
+    from mogs_node.frontend.runs import run_dataset
+
+    f = run_dataset("oxts")
+    assert f["resets"] == 0
+    assert f["ate_se3_percent_of_path"] < 1.0
+    assert f["scale_error"] < 0.02
+
+
+def test_image_of_another_size_is_rejected_and_counted():
+    seq, img, t_img, t_imu, gyro, acc = parked_stream(1.0)
+    fe = Frontend(FrontendParams(), CameraModel(seq.camera), seq.T_imu_cam)
+    feed(fe, t_img, img, t_imu, gyro, acc)
+    n_frames = fe.counters["frames"]
+    t_next = int(t_img[-1]) + 100_000_000
+    assert fe.add_image(t_next, img[::2, ::2]) == []
+    assert fe.add_image(t_next + 1, img[:, :, 0].ravel()) == []
+    assert fe.counters["image_wrong_size"] == 2 and fe.counters["frames"] == n_frames
+    assert fe.pending_stamps_ns == []  # nothing queued for the KLT

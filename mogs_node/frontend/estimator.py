@@ -12,7 +12,10 @@ Schur complement on the linearised factors touching it (GTSAM partial eliminatio
 stays in the graph as ``LinearContainerFactor``s. Its visual observations are dropped (default) or,
 with ``marginalize_landmarks``, every landmark it observes is marginalised with it: the landmark
 keeps its track id and its later observations start a new landmark, so no measurement is used
-twice. Each update is a windowed Levenberg-Marquardt solve.
+twice; or, with ``keep_visual_prior``, its observations of mature landmarks enter the
+marginalisation with those landmarks kept as variables of the prior (exact, OKVIS-style; a landmark
+leaving the window is then Schur-complemented out of the prior). Each update is a windowed
+Levenberg-Marquardt solve; each frame's projection factors are built once and reused.
 """
 
 from __future__ import annotations
@@ -29,7 +32,13 @@ from mogs_node.frontend.keyframes import landmark_covariance, triangulate_midpoi
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params, preintegrate
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse
 
-__all__ = ["EstimatorDivergedError", "EstimatorParams", "EstimatorState", "LandmarkView", "VioEstimator"]
+__all__ = [
+    "EstimatorDivergedError",
+    "EstimatorParams",
+    "EstimatorState",
+    "LandmarkView",
+    "VioEstimator",
+]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +59,21 @@ def L(i: int) -> int:
     return gtsam.symbol("l", i)
 
 
+def _sorted_map(d: dict[int, int]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    k = np.fromiter(d.keys(), np.int64, len(d))
+    v = np.fromiter(d.values(), np.int64, len(d))
+    o = np.argsort(k)
+    return k[o], v[o]
+
+
+def _lookup(keys: NDArray, vals: NDArray, q: NDArray, default: int) -> NDArray[np.int64]:
+    """``vals`` at ``q`` in the sorted ``keys`` (``default`` where absent), vectorised."""
+    if len(keys) == 0:
+        return np.full(len(q), default, np.int64)
+    i = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+    return np.where(keys[i] == q, vals[i], default)
+
+
 class EstimatorDivergedError(MogsError, RuntimeError):
     """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise."""
 
@@ -59,7 +83,8 @@ class EstimatorParams:
     """Parameters of :class:`VioEstimator`."""
 
     window_size: int = 8  # keyframes kept in the window (the newest frame comes on top)
-    lm_iterations: int = 3  # Levenberg-Marquardt iterations per update (warm-started)
+    lm_iterations: int = 2  # Levenberg-Marquardt iterations per update (warm-started; 3 costs
+    # ~20 % more estimation time for the same accuracy, docs/frontend.md)
     pixel_sigma_px: float = 4.0  # reprojection noise (undistorted px); KLT on rendered or real
     # images has heavy-tailed errors: 1 px lets vision override the IMU (jittery attitude)
     huber_k: float = 1.345  # Huber threshold in sigmas
@@ -68,7 +93,13 @@ class EstimatorParams:
     max_depth_m: float = 150.0
     outlier_reproj_px: float = 5.0  # a landmark with a larger reprojection error is removed
     marginalize_landmarks: bool = False  # Schur-complement the oldest keyframe's landmarks too
-    # (True: exact but restarts every landmark it saw; False: its observations are dropped)
+    # (True: restarts every landmark it saw; False: they stay variables, see keep_visual_prior)
+    keep_visual_prior: bool = False  # the oldest keyframe's observations go into the
+    # marginalisation prior with their landmarks kept as variables (exact Schur complement; a
+    # landmark is marginalised out of the prior when it leaves the window). False: they are dropped
+    # and the window's scale drifts (docs/frontend.md, "Investigation")
+    visual_prior_min_obs: int = 4  # only landmarks seen by at least this many window frames go
+    # into the prior (a fresh two-view landmark is linearised far from its converged position)
     zero_motion_sigma_m: float = 2e-3  # translation sigma of a zero-motion factor
     zero_motion_sigma_rad: float = 2e-3  # rotation sigma of a zero-motion factor
     init_rot_sigma_rad: float = 0.01  # prior on the first state (roll/pitch from gravity)
@@ -124,18 +155,22 @@ class LandmarkView:
 class VioEstimator:
     """Windowed VI estimator. Call :meth:`initialize` once, then :meth:`add_frame` per frame."""
 
-    def __init__(self, params: EstimatorParams, camera: PinholeCamera, T_imu_cam: NDArray,
-                 noise: ImuNoise) -> None:
+    def __init__(
+        self, params: EstimatorParams, camera: PinholeCamera, T_imu_cam: NDArray, noise: ImuNoise
+    ) -> None:
         self.params = params
         self.camera = camera
-        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(float)
+        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(
+            float
+        )
         self.noise = noise
         self._pim_params = make_params(noise)
         self._cal = gtsam.Cal3_S2(camera.fx_px, camera.fy_px, 0.0, camera.cx_px, camera.cy_px)
         self._body_P_cam = gtsam.Pose3(self.T_imu_cam)
         self._proj_noise = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k),
-            gtsam.noiseModel.Isotropic.Sigma(2, params.pixel_sigma_px))
+            gtsam.noiseModel.Isotropic.Sigma(2, params.pixel_sigma_px),
+        )
         zs = np.r_[[params.zero_motion_sigma_rad] * 3, [params.zero_motion_sigma_m] * 3]
         self._zero_noise = gtsam.noiseModel.Diagonal.Sigmas(zs)
         self._zero_vel_noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
@@ -153,6 +188,8 @@ class VioEstimator:
         self._min_seq_of_track: dict[int, int] = {}
         self._next_lid = 0
         self._obs_cache: dict[int, tuple] = {}
+        self._lut: tuple | None = None
+        self._factor_cache: dict[int, tuple] = {}
         self._seq = 0
         self.initialized = False
         self.last_error = 0.0  # graph error after the last solve
@@ -163,18 +200,28 @@ class VioEstimator:
     def newest_seq(self) -> int:
         return self.frames[-1].seq
 
-    def initialize(self, t_ns: int, T_world_imu: NDArray, velocity_world_m_s: NDArray,
-                   gyro_bias_rad_s: NDArray, accel_bias_m_s2: NDArray, ids: NDArray,
-                   uv_px: NDArray, track_len: NDArray | None = None,
-                   vel_sigma_m_s: float | None = None, tilt_sigma_rad: float | None = None) -> None:
+    def initialize(
+        self,
+        t_ns: int,
+        T_world_imu: NDArray,
+        velocity_world_m_s: NDArray,
+        gyro_bias_rad_s: NDArray,
+        accel_bias_m_s2: NDArray,
+        ids: NDArray,
+        uv_px: NDArray,
+        track_len: NDArray | None = None,
+        vel_sigma_m_s: float | None = None,
+        tilt_sigma_rad: float | None = None,
+    ) -> None:
         """Start the window at one frame with a prior from an initialiser (static or dynamic);
         ``vel_sigma_m_s`` / ``tilt_sigma_rad`` override the velocity / roll-pitch prior sigmas."""
         self.reset()
         p = self.params
         T = check_array("T_world_imu", T_world_imu, shape=(4, 4), finite=True)
         v = check_array("velocity_world_m_s", velocity_world_m_s, shape=(3,), finite=True)
-        bias = gtsam.imuBias.ConstantBias(np.asarray(accel_bias_m_s2, float),
-                                          np.asarray(gyro_bias_rad_s, float))
+        bias = gtsam.imuBias.ConstantBias(
+            np.asarray(accel_bias_m_s2, float), np.asarray(gyro_bias_rad_s, float)
+        )
         f = self._new_frame(t_ns, ids, uv_px, track_len, True, False)
         k = f.seq
         self.values.insert(X(k), gtsam.Pose3(T))
@@ -183,20 +230,37 @@ class VioEstimator:
         sig = np.r_[[tilt_sigma_rad or p.init_rot_sigma_rad] * 2, 1e-3, [p.init_pos_sigma_m] * 3]
         self._priors = [
             gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(sig)),
-            gtsam.PriorFactorVector(V(k), np.asarray(v, float),
-                                    gtsam.noiseModel.Isotropic.Sigma(
-                                        3, vel_sigma_m_s or p.init_vel_sigma_m_s)),
-            gtsam.PriorFactorConstantBias(B(k), bias, gtsam.noiseModel.Diagonal.Sigmas(
-                np.r_[[p.init_accel_bias_sigma_m_s2] * 3, [p.init_gyro_bias_sigma_rad_s] * 3])),
+            gtsam.PriorFactorVector(
+                V(k),
+                np.asarray(v, float),
+                gtsam.noiseModel.Isotropic.Sigma(3, vel_sigma_m_s or p.init_vel_sigma_m_s),
+            ),
+            gtsam.PriorFactorConstantBias(
+                B(k),
+                bias,
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[[p.init_accel_bias_sigma_m_s2] * 3, [p.init_gyro_bias_sigma_rad_s] * 3]
+                ),
+            ),
         ]
         self.initialized = True
 
-    def _new_frame(self, t_ns: int, ids: NDArray, uv_px: NDArray, track_len: NDArray | None,
-                   is_keyframe: bool, stationary: bool) -> _Frame:
+    def _new_frame(
+        self,
+        t_ns: int,
+        ids: NDArray,
+        uv_px: NDArray,
+        track_len: NDArray | None,
+        is_keyframe: bool,
+        stationary: bool,
+    ) -> _Frame:
         ids = check_array("ids", ids, shape=(None,), dtype=np.integer).astype(np.int64)
         uv = check_array("uv_px", uv_px, shape=(len(ids), 2), finite=True).astype(np.float64)
-        tl = (np.ones(len(ids), np.int32) if track_len is None
-              else check_array("track_len", track_len, shape=(len(ids),)).astype(np.int32))
+        tl = (
+            np.ones(len(ids), np.int32)
+            if track_len is None
+            else check_array("track_len", track_len, shape=(len(ids),)).astype(np.int32)
+        )
         f = _Frame(self._seq, int(t_ns), ids, uv, tl, is_keyframe, stationary)
         self._seq += 1
         self.frames.append(f)
@@ -220,9 +284,17 @@ class VioEstimator:
 
     # ------------------------------------------------------------------------------------ update
 
-    def add_frame(self, t_ns: int, ids: NDArray, uv_px: NDArray, imu: ImuSamples, *,
-                  is_keyframe: bool, stationary: bool = False,
-                  track_len: NDArray | None = None) -> EstimatorState:
+    def add_frame(
+        self,
+        t_ns: int,
+        ids: NDArray,
+        uv_px: NDArray,
+        imu: ImuSamples,
+        *,
+        is_keyframe: bool,
+        stationary: bool = False,
+        track_len: NDArray | None = None,
+    ) -> EstimatorState:
         """Add the newest frame (undistorted pixels ``uv_px`` [N, 2] of tracks ``ids`` [N]), with the
         IMU samples covering the span since the previous frame, and solve the window."""
         if not self.initialized:
@@ -237,8 +309,9 @@ class VioEstimator:
         pim = preintegrate(imu, prev.t_ns, t_ns, self._pim_params, self._bias(prev.seq))
         f = self._new_frame(t_ns, ids, uv_px, track_len, is_keyframe, stationary)
         k, j = f.seq, prev.seq
-        nav = pim.predict(gtsam.NavState(self.values.atPose3(X(j)), self.values.atVector(V(j))),
-                          self._bias(j))
+        nav = pim.predict(
+            gtsam.NavState(self.values.atPose3(X(j)), self.values.atVector(V(j))), self._bias(j)
+        )
         self.values.insert(X(k), nav.pose())
         self.values.insert(V(k), nav.velocity())
         self.values.insert(B(k), self._bias(j))
@@ -255,6 +328,7 @@ class VioEstimator:
 
     def _drop_newest(self) -> None:
         f = self.frames.pop()
+        self._factor_cache.pop(f.seq, None)
         for key in (X(f.seq), V(f.seq), B(f.seq)):
             self.values.erase(key)
         self._imu.pop(f.seq, None)
@@ -269,10 +343,11 @@ class VioEstimator:
         if not self._lid_of_track:
             out = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         else:
-            get_l, get_m = self._lid_of_track.get, self._min_seq_of_track.get
-            tl = f.ids.tolist()
-            lid = np.array([get_l(t, -1) for t in tl], np.int64)
-            mins = np.array([get_m(t, 0) for t in tl], np.int64)
+            if self._lut is None:
+                self._lut = (_sorted_map(self._lid_of_track), _sorted_map(self._min_seq_of_track))
+            (kl, vl), (km, vm) = self._lut
+            lid = _lookup(kl, vl, f.ids, -1)
+            mins = _lookup(km, vm, f.ids, 0)
             ok = (lid >= 0) & (f.seq >= mins)
             out = (f.ids[ok], lid[ok], f.uv_px[ok])
         self._obs_cache[f.seq] = out
@@ -280,6 +355,7 @@ class VioEstimator:
 
     def _touch(self) -> None:
         self._obs_cache: dict[int, tuple] = {}
+        self._lut: tuple | None = None  # sorted (track -> landmark, track -> min seq) arrays
 
     def _cam_poses(self) -> NDArray[np.float64]:
         return np.stack([self.pose(f.seq) @ self.T_imu_cam for f in self.frames])
@@ -317,8 +393,11 @@ class VioEstimator:
         ok = np.all(np.isfinite(pts), axis=1) & (np.degrees(ang) >= p.min_parallax_deg)
         for T in (Tb[None], Ta):
             Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-            z = np.einsum("nij,nj->ni", np.broadcast_to(Rt, (len(pts), 3, 3)),
-                          np.nan_to_num(pts) - np.broadcast_to(T[..., :3, 3], pts.shape))[:, 2]
+            z = np.einsum(
+                "nij,nj->ni",
+                np.broadcast_to(Rt, (len(pts), 3, 3)),
+                np.nan_to_num(pts) - np.broadcast_to(T[..., :3, 3], pts.shape),
+            )[:, 2]
             ok &= (z > p.min_depth_m) & (z < p.max_depth_m)
         self._touch()
         for t, x in zip(cand[ok].tolist(), pts[ok], strict=True):
@@ -337,10 +416,28 @@ class VioEstimator:
             for fac in facs:
                 g.add(fac)
         for f in self.frames:
-            _, lids, uv = self._obs(f)
-            for lid, m in zip(lids.tolist(), uv, strict=True):
-                g.add(gtsam.GenericProjectionFactorCal3_S2(
-                    m, self._proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam))
+            g.push_back(self._frame_factors(f))
+        return g
+
+    def _frame_factors(self, f: _Frame) -> gtsam.NonlinearFactorGraph:
+        """Projection factors of frame ``f``, built once and reused while its valid landmark
+        observations stay the same (factor construction dominated the per-frame Python time)."""
+        _, lids, uv = self._obs(f)
+        hit = self._factor_cache.get(f.seq)
+        if hit is not None and len(hit[0]) == len(lids) and np.array_equal(hit[0], lids):
+            return hit[1]
+        if hit is not None and np.all(np.isin(hit[0], lids)):  # only new landmarks: append
+            g, new = hit[1], ~np.isin(lids, hit[0])
+        else:
+            g, new = gtsam.NonlinearFactorGraph(), np.ones(len(lids), bool)
+        x = X(f.seq)
+        for lid, m in zip(lids[new].tolist(), uv[new], strict=True):
+            g.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    m, self._proj_noise, x, L(lid), self._cal, self._body_P_cam
+                )
+            )
+        self._factor_cache[f.seq] = (lids, g)
         return g
 
     def _solve(self) -> None:
@@ -349,8 +446,9 @@ class VioEstimator:
         lm.setRelativeErrorTol(1e-4)
         try:
             graph = self._graph()
-            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, lm).optimize()
-            self.last_error = float(graph.error(self.values))
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, self.values, lm)
+            self.values = opt.optimize()
+            self.last_error = float(opt.error())
             self.last_n_factors = int(graph.size())
             self.last_imu_error = float(sum(f.error(self.values) for f in self._imu.values()))
         except RuntimeError as err:
@@ -359,45 +457,83 @@ class VioEstimator:
         k = self.newest_seq
         b = self._bias(k)
         speed = float(np.linalg.norm(self.values.atVector(V(k))))
-        if (not np.all(np.isfinite(self.pose(k))) or not np.isfinite(speed)
-                or speed > p.max_speed_m_s
-                or np.linalg.norm(b.gyroscope()) > p.max_gyro_bias_rad_s
-                or np.linalg.norm(b.accelerometer()) > p.max_accel_bias_m_s2):
-            raise EstimatorDivergedError(f"state out of bounds: speed {speed:.1f} m/s, bias "
-                                    f"gyro {b.gyroscope()}, accel {b.accelerometer()}")
+        if (
+            not np.all(np.isfinite(self.pose(k)))
+            or not np.isfinite(speed)
+            or speed > p.max_speed_m_s
+            or np.linalg.norm(b.gyroscope()) > p.max_gyro_bias_rad_s
+            or np.linalg.norm(b.accelerometer()) > p.max_accel_bias_m_s2
+        ):
+            raise EstimatorDivergedError(
+                f"state out of bounds: speed {speed:.1f} m/s, bias "
+                f"gyro {b.gyroscope()}, accel {b.accelerometer()}"
+            )
 
     def _reproj(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """All valid observations: (frame index, landmark id, track id, error px)."""
-        fi_l, lid_l, tid_l, err_l = [], [], [], []
-        for fi, f in enumerate(self.frames):
-            tids, lids, uv = self._obs(f)
-            if len(lids) == 0:
-                continue
-            P = np.array([self.values.atPoint3(L(i)) for i in lids.tolist()])
-            T_cam_world = se3_inverse(self.pose(f.seq) @ self.T_imu_cam)
-            Pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-            pix, front = self.camera.project(Pc)
-            err = np.where(front, np.linalg.norm(pix - uv, axis=1), np.inf)
-            fi_l.append(np.full(len(lids), fi))
-            lid_l.append(lids)
-            tid_l.append(tids)
-            err_l.append(err)
-        if not fi_l:
+        obs = [self._obs(f) for f in self.frames]
+        n = [len(o[1]) for o in obs]
+        if sum(n) == 0:
             z = np.zeros(0, np.int64)
             return z, z, z, np.zeros(0)
-        return (np.concatenate(fi_l), np.concatenate(lid_l), np.concatenate(tid_l),
-                np.concatenate(err_l))
+        fi = np.repeat(np.arange(len(obs)), n)
+        lid = np.concatenate([o[1] for o in obs])
+        tid = np.concatenate([o[0] for o in obs])
+        uv = np.concatenate([o[2] for o in obs])
+        uniq, inv = np.unique(lid, return_inverse=True)
+        P = np.array([self.values.atPoint3(L(i)) for i in uniq.tolist()])[inv]
+        T_cw = np.stack([se3_inverse(T) for T in self._cam_poses()])[fi]
+        Pc = np.einsum("nij,nj->ni", T_cw[:, :3, :3], P) + T_cw[:, :3, 3]
+        pix, front = self.camera.project(Pc)
+        err = np.where(front, np.linalg.norm(pix - uv, axis=1), np.inf)
+        return fi, lid, tid, err
 
     def _reject_outliers(self) -> int:
         _, lids, tids, err = self._reproj()
         bad = np.unique(tids[err > self.params.outlier_reproj_px])
         if len(bad):
             self._touch()
+        gone = []
         for t in bad.tolist():
-            lid = self._lid_of_track.pop(t)
-            self.values.erase(L(lid))
+            gone.append(self._lid_of_track.pop(t))
             self._min_seq_of_track[t] = self._seq  # never reuse this track's past observations
+        self._forget_landmarks(gone)
         return len(bad)
+
+    def _forget_landmarks(self, lids: list[int]) -> None:
+        """Remove landmarks from the window. Those the marginalisation prior involves are
+        Schur-complemented out of it (their information on the poses stays), the rest erased."""
+        if not lids:
+            return
+        keys = {L(i) for i in lids}
+        touched = [f for f in self._priors if set(f.keys()) & keys]
+        if touched:
+            lin = gtsam.GaussianFactorGraph()
+            for fac in touched:
+                lin.push_back(fac.linearize(self.values))
+            elim = sorted(keys & set().union(*(set(f.keys()) for f in touched)))
+            for key in elim:  # keeps elimination determinate for a point seen by one frame only
+                lin.add(
+                    gtsam.JacobianFactor(
+                        key, np.eye(3) * 1e-2, np.zeros(3), gtsam.noiseModel.Unit.Create(3)
+                    )
+                )
+            order = gtsam.Ordering()
+            for key in elim:
+                order.push_back(key)
+            keep = [f for f in self._priors if not set(f.keys()) & keys]
+            try:
+                _, remaining = lin.eliminatePartialMultifrontal(order)
+                self._priors = keep + [
+                    gtsam.LinearContainerFactor(remaining.at(i), self.values)
+                    for i in range(remaining.size())
+                    if remaining.at(i) is not None
+                ]
+            except RuntimeError as err:
+                log.warning("landmark marginalisation failed (%s); dropping its prior", err)
+                self._priors = keep
+        for key in keys:
+            self.values.erase(key)
 
     def _marginalize_oldest(self) -> None:
         """Schur-complement the oldest keyframe and its landmarks into a linear prior."""
@@ -416,29 +552,54 @@ class VioEstimator:
         g.add(self._imu.pop(f1.seq))
         for fac in self._zero.pop(f1.seq, []):
             g.add(fac)
+        keep_visual = self.params.keep_visual_prior and not lid_set
+        if keep_visual:
+            n_obs = np.bincount(
+                np.concatenate([self._obs(f)[1] for f in self.frames]), minlength=self._next_lid + 1
+            )
+            mature = set(lids0[n_obs[lids0] >= self.params.visual_prior_min_obs].tolist())
         for f in self.frames:
+            if keep_visual and f is not f0:
+                break
             _, lids, uv = self._obs(f)
             for lid, m in zip(lids.tolist(), uv, strict=True):
-                if lid in lid_set:
-                    g.add(gtsam.GenericProjectionFactorCal3_S2(
-                        m, self._proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam))
+                if lid in lid_set or (keep_visual and lid in mature):
+                    g.add(
+                        gtsam.GenericProjectionFactorCal3_S2(
+                            m, self._proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam
+                        )
+                    )
         lin = g.linearize(self.values)
         for lid in lid_set:  # keeps elimination determinate for poorly constrained points
-            lin.add(gtsam.JacobianFactor(L(lid), np.eye(3) * 1e-2, np.zeros(3),
-                                         gtsam.noiseModel.Unit.Create(3)))
+            lin.add(
+                gtsam.JacobianFactor(
+                    L(lid), np.eye(3) * 1e-2, np.zeros(3), gtsam.noiseModel.Unit.Create(3)
+                )
+            )
         order = gtsam.Ordering()
         for key in sorted(elim):
             order.push_back(key)
         try:
             _, remaining = lin.eliminatePartialMultifrontal(order)
-            new_priors = [gtsam.LinearContainerFactor(remaining.at(i), self.values)
-                          for i in range(remaining.size()) if remaining.at(i) is not None]
+            new_priors = [
+                gtsam.LinearContainerFactor(remaining.at(i), self.values)
+                for i in range(remaining.size())
+                if remaining.at(i) is not None
+            ]
         except RuntimeError as err:
-            log.warning("marginalisation failed (%s); dropping the oldest keyframe's information", err)
-            new_priors = [gtsam.PriorFactorPose3(X(f1.seq), self.values.atPose3(X(f1.seq)),
-                                                 gtsam.noiseModel.Isotropic.Sigma(6, 0.01))]
+            log.warning(
+                "marginalisation failed (%s); dropping the oldest keyframe's information", err
+            )
+            new_priors = [
+                gtsam.PriorFactorPose3(
+                    X(f1.seq),
+                    self.values.atPose3(X(f1.seq)),
+                    gtsam.noiseModel.Isotropic.Sigma(6, 0.01),
+                )
+            ]
         self._priors = keep_priors + new_priors
         self.frames.pop(0)
+        self._factor_cache.pop(f0.seq, None)
         self._touch()
         for key in elim:
             self.values.erase(key)
@@ -446,12 +607,19 @@ class VioEstimator:
         seen = set()
         for f in self.frames:
             seen.update(self._obs(f)[1].tolist())
+        gone = []
         for t, lid in list(self._lid_of_track.items()):
             if lid in lid_set or lid not in seen:
                 del self._lid_of_track[t]
                 self._min_seq_of_track[t] = self._seq
                 if lid not in lid_set:
-                    self.values.erase(L(lid))
+                    gone.append(lid)
+        self._forget_landmarks(gone)
+        # A track in no window frame never comes back (the tracker only continues the newest
+        # frame's tracks or starts new ids): its entry would only grow the lookup.
+        k, v = _sorted_map(self._min_seq_of_track)
+        keep = np.isin(k, np.concatenate([f.ids for f in self.frames]))
+        self._min_seq_of_track = dict(zip(k[keep].tolist(), v[keep].tolist(), strict=True))
         self._touch()
         # Tracks whose landmark was never triangulated keep all their observations.
 
@@ -461,13 +629,18 @@ class VioEstimator:
         k = self.newest_seq
         b = self._bias(k)
         return EstimatorState(
-            t_ns=self.frames[-1].t_ns, T_world_imu=self.pose(k),
+            t_ns=self.frames[-1].t_ns,
+            T_world_imu=self.pose(k),
             velocity_world_m_s=np.asarray(self.values.atVector(V(k)), float),
             gyro_bias_rad_s=np.asarray(b.gyroscope(), float),
             accel_bias_m_s2=np.asarray(b.accelerometer(), float),
             n_landmarks=len(self._lid_of_track),
-            stats={"outliers_removed": float(n_removed), "window_frames": float(len(self.frames)),
-                   "priors": float(len(self._priors))})
+            stats={
+                "outliers_removed": float(n_removed),
+                "window_frames": float(len(self.frames)),
+                "priors": float(len(self._priors)),
+            },
+        )
 
     def newest_landmarks(self) -> LandmarkView:
         """Triangulated landmarks seen in the newest frame, in its camera frame."""
@@ -477,7 +650,7 @@ class VioEstimator:
         mx = np.zeros(self._next_lid + 1)
         np.maximum.at(mx, all_lids, np.where(np.isfinite(err), err, 1e3))
         worst = mx[lids]
-        P = (np.array([self.values.atPoint3(L(i)) for i in lids.tolist()]).reshape(-1, 3))
+        P = np.array([self.values.atPoint3(L(i)) for i in lids.tolist()]).reshape(-1, 3)
         Tc = self._cam_poses()
         obs = np.zeros((len(lids), len(self.frames)), bool)
         lid_index = {lid: n for n, lid in enumerate(lids.tolist())}
@@ -492,7 +665,11 @@ class VioEstimator:
         cov_c = Rcw[None] @ cov_w @ Rcw.T[None]
         tl_of = dict(zip(f.ids.tolist(), f.track_len.tolist(), strict=True))
         tl = np.array([tl_of[t] for t in tids.tolist()], np.int32)
-        return LandmarkView(track_ids=tids.astype(np.int64), uv_px=uv.astype(np.float32),
-                            xyz_cam_m=xyz.astype(np.float32), cov_cam_m2=cov_c.astype(np.float32),
-                            reproj_err_px=worst.astype(np.float32),
-                            track_len=np.asarray(tl, np.int32))
+        return LandmarkView(
+            track_ids=tids.astype(np.int64),
+            uv_px=uv.astype(np.float32),
+            xyz_cam_m=xyz.astype(np.float32),
+            cov_cam_m2=cov_c.astype(np.float32),
+            reproj_err_px=worst.astype(np.float32),
+            track_len=np.asarray(tl, np.int32),
+        )

@@ -171,6 +171,7 @@ class Frontend:
             "frames": 0, "keyframes": 0, "imu_samples": 0, "imu_time_backwards": 0,
             "image_time_backwards": 0, "imu_gap_resets": 0, "divergence_resets": 0,
             "frames_dropped_waiting_imu": 0, "bad_input": 0, "static_inits": 0, "dynamic_inits": 0,
+            "image_wrong_size": 0,
         }
 
     @property
@@ -212,6 +213,14 @@ class Frontend:
         """One camera frame (camera clock). Frames not after the previous one are rejected."""
         if self._last_image_ns is not None and stamp_ns <= self._last_image_ns:
             self.counters["image_time_backwards"] += 1
+            return []
+        pin = self.camera.pinhole
+        if image.ndim not in (2, 3) or image.shape[:2] != (pin.height, pin.width):
+            # a frame of another size would corrupt the KLT state: reject it, count it
+            n = self.counters["image_wrong_size"] = self.counters["image_wrong_size"] + 1
+            if n & (n - 1) == 0:  # 1st, 2nd, 4th, ...: a stream of bad frames is not a log flood
+                log.warning("image %s rejected (%d so far): expected %dx%d (calibration)",
+                            image.shape, n, pin.width, pin.height)
             return []
         self._last_image_ns = int(stamp_ns)
         self._pending.append((int(stamp_ns), image))

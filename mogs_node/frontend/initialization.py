@@ -9,7 +9,7 @@ IMU pose of the window has zero yaw and sits at the origin). No ground truth is 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import gtsam
@@ -60,10 +60,12 @@ class InitParams:
     dyn_tilt_sigma_rad: float = 0.05  # roll/pitch prior sigma of a hypothesis (its gravity is
     # solved at a fixed scale and absorbs part of the acceleration: it must stay free to move)
     max_speed_m_s: float = 40.0
+    dyn_lm_iterations: int = 3  # LM iterations per frame of the hypothesis windows (their scores
+    # need converged solves; the kept estimator then runs with EstimatorParams.lm_iterations)
 
     def __post_init__(self) -> None:
-        if self.dyn_frames < 4 or self.still_window_s <= 0:
-            raise ConfigError("init: dyn_frames >= 4, still_window_s > 0")
+        if self.dyn_frames < 4 or self.still_window_s <= 0 or self.dyn_lm_iterations < 1:
+            raise ConfigError("init: dyn_frames >= 4, still_window_s > 0, dyn_lm_iterations >= 1")
 
 
 @dataclass
@@ -89,9 +91,11 @@ def is_still(params: InitParams, imu: ImuSamples, t_ns: int, median_flow_px: flo
     g, a = _window(imu, t_ns, params.still_window_s)
     if len(g) < 10:
         return False
-    return bool(np.max(np.std(g, axis=0)) < params.still_gyro_std_rad_s
-                and np.max(np.std(a, axis=0)) < params.still_accel_std_m_s2
-                and median_flow_px < params.still_flow_px)
+    return bool(
+        np.max(np.std(g, axis=0)) < params.still_gyro_std_rad_s
+        and np.max(np.std(a, axis=0)) < params.still_accel_std_m_s2
+        and median_flow_px < params.still_flow_px
+    )
 
 
 def gravity_aligned_rotation(up_in_body: NDArray, yaw_ref: NDArray | None = None) -> NDArray:
@@ -115,23 +119,31 @@ def static_init(params: InitParams, imu: ImuSamples, t_ns: int) -> InitResult:
         raise ConfigError("imu: fewer than 10 samples in the stillness window")
     f = a.mean(axis=0)
     R = gravity_aligned_rotation(f)
-    return InitResult(T_world_imu=make_T(R, np.zeros(3))[None], velocity_world_m_s=np.zeros((1, 3)),
-                      gyro_bias_rad_s=g.mean(axis=0), accel_bias_m_s2=np.zeros(3),
-                      gravity_imu0=-params.gravity_m_s2 * f / np.linalg.norm(f), kind="static")
+    return InitResult(
+        T_world_imu=make_T(R, np.zeros(3))[None],
+        velocity_world_m_s=np.zeros((1, 3)),
+        gyro_bias_rad_s=g.mean(axis=0),
+        accel_bias_m_s2=np.zeros(3),
+        gravity_imu0=-params.gravity_m_s2 * f / np.linalg.norm(f),
+        kind="static",
+    )
 
 
 # ------------------------------------------------------------------------------------- dynamic
 
 
-def _common(frames: list[tuple[NDArray, NDArray]], i: int, j: int) -> tuple[NDArray, NDArray, NDArray]:
+def _common(
+    frames: list[tuple[NDArray, NDArray]], i: int, j: int
+) -> tuple[NDArray, NDArray, NDArray]:
     ids_i, uv_i = frames[i]
     ids_j, uv_j = frames[j]
     common, a, b = np.intersect1d(ids_i, ids_j, assume_unique=True, return_indices=True)
     return common, uv_i[a], uv_j[b]
 
 
-def _triangulate(K: NDArray, T_c0_a: NDArray, T_c0_b: NDArray, ua: NDArray, ub: NDArray,
-                 min_angle_deg: float) -> tuple[NDArray, NDArray]:
+def _triangulate(
+    K: NDArray, T_c0_a: NDArray, T_c0_b: NDArray, ua: NDArray, ub: NDArray, min_angle_deg: float
+) -> tuple[NDArray, NDArray]:
     """Points [N, 3] (c0 frame) from two posed views and a validity mask [N]."""
     Pa = K @ se3_inverse(T_c0_a)[:3]
     Pb = K @ se3_inverse(T_c0_b)[:3]
@@ -144,13 +156,18 @@ def _triangulate(K: NDArray, T_c0_a: NDArray, T_c0_b: NDArray, ua: NDArray, ub: 
     za = ra @ T_c0_a[:3, 2]
     zb = rb @ T_c0_b[:3, 2]
     cos = np.einsum("ij,ij->i", ra, rb) / np.maximum(
-        np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1), 1e-12)
+        np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1), 1e-12
+    )
     ok &= (za > 0) & (zb > 0) & (np.degrees(np.arccos(np.clip(cos, -1, 1))) >= min_angle_deg)
     return pts, ok
 
 
-def visual_sfm(frames: list[tuple[NDArray, NDArray]], camera: PinholeCamera, min_features: int = 30,
-               min_parallax_px: float = 15.0) -> NDArray[np.float64] | None:
+def visual_sfm(
+    frames: list[tuple[NDArray, NDArray]],
+    camera: PinholeCamera,
+    min_features: int = 30,
+    min_parallax_px: float = 15.0,
+) -> NDArray[np.float64] | None:
     """Up-to-scale camera poses ``T_c0_ci`` [F, 4, 4] of a short window of frames (VINS-Mono's
     initial SfM, incremental because tracks are short in forward driving).
 
@@ -192,13 +209,20 @@ def visual_sfm(frames: list[tuple[NDArray, NDArray]], camera: PinholeCamera, min
         if len(a) < 10:
             return None
         ok_p, rvec, tvec, inl_p = cv2.solvePnPRansac(
-            map_pts[a], uv_k[b].astype(float), K, None, reprojectionError=2.0,
-            iterationsCount=100, flags=cv2.SOLVEPNP_EPNP)
+            map_pts[a],
+            uv_k[b].astype(float),
+            K,
+            None,
+            reprojectionError=2.0,
+            iterationsCount=100,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
         if not ok_p or inl_p is None or len(inl_p) < 8:
             return None
         inl_p = inl_p.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(map_pts[a][inl_p], uv_k[b][inl_p].astype(float), K, None,
-                                          rvec, tvec)
+        rvec, tvec = cv2.solvePnPRefineLM(
+            map_pts[a][inl_p], uv_k[b][inl_p].astype(float), K, None, rvec, tvec
+        )
         Rc, _ = cv2.Rodrigues(rvec)
         T[k] = se3_inverse(make_T(Rc, tvec.ravel()))
         if k > j:  # grow the map with tracks new since the scale-fixing pair
@@ -213,14 +237,22 @@ def visual_sfm(frames: list[tuple[NDArray, NDArray]], camera: PinholeCamera, min
     return _bundle_adjust(frames, K, T, map_ids, map_pts, j)
 
 
-def _bundle_adjust(frames: list[tuple[NDArray, NDArray]], K: NDArray, T: NDArray,
-                   map_ids: NDArray, map_pts: NDArray, j: int, iterations: int = 20) -> NDArray:
+def _bundle_adjust(
+    frames: list[tuple[NDArray, NDArray]],
+    K: NDArray,
+    T: NDArray,
+    map_ids: NDArray,
+    map_pts: NDArray,
+    j: int,
+    iterations: int = 20,
+) -> NDArray:
     """Refine the SfM poses [F, 4, 4] and points by bundle adjustment (Huber loss, GTSAM). The
     gauge is fixed by the first pose and a soft prior on the position of frame ``j`` (unit
     baseline; a hard one would freeze the essential matrix's translation error)."""
     cal = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(1.345), gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
+    )
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for k, Tk in enumerate(T):
@@ -230,12 +262,23 @@ def _bundle_adjust(frames: list[tuple[NDArray, NDArray]], K: NDArray, T: NDArray
     for k, (ids_k, uv_k) in enumerate(frames):
         _, a, b = np.intersect1d(map_ids, ids_k, assume_unique=True, return_indices=True)
         for n, m in zip(a.tolist(), uv_k[b], strict=True):
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(
-                m, noise, gtsam.symbol("x", k), gtsam.symbol("l", n), cal))
-    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(T[0]),
-                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", j), gtsam.Pose3(T[j]),
-                                     gtsam.noiseModel.Diagonal.Sigmas(np.r_[[10.0] * 3, [0.05] * 3])))
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    m, noise, gtsam.symbol("x", k), gtsam.symbol("l", n), cal
+                )
+            )
+    graph.add(
+        gtsam.PriorFactorPose3(
+            gtsam.symbol("x", 0), gtsam.Pose3(T[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+        )
+    )
+    graph.add(
+        gtsam.PriorFactorPose3(
+            gtsam.symbol("x", j),
+            gtsam.Pose3(T[j]),
+            gtsam.noiseModel.Diagonal.Sigmas(np.r_[[10.0] * 3, [0.05] * 3]),
+        )
+    )
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(iterations)
     try:
@@ -254,8 +297,10 @@ def _solve_gyro_bias(R_c: NDArray, pims: list, R_imu_cam: NDArray) -> NDArray:
 
     def res(bg: NDArray) -> NDArray:
         bias = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
-        out = [so3_log(pim.predict(nav0, bias).pose().rotation().matrix().T @ r)
-               for pim, r in zip(pims, rel, strict=True)]
+        out = [
+            so3_log(pim.predict(nav0, bias).pose().rotation().matrix().T @ r)
+            for pim, r in zip(pims, rel, strict=True)
+        ]
         return np.concatenate(out)
 
     return least_squares(res, np.zeros(3), method="lm").x
@@ -269,10 +314,19 @@ def _tangent_basis(g: NDArray) -> NDArray:
     return np.stack([b1, np.cross(a, b1)], 1)  # [3, 2]
 
 
-def _align(pc: NDArray, R_c: NDArray, t_cb: NDArray, R_cb: NDArray, pims: list, dts: NDArray,
-           G: float, g_fixed: NDArray | None, sigma_pos_m: float = 0.05,
-           sigma_vel_m_s: float = 0.005, s_fixed: float | None = None
-           ) -> tuple[NDArray, NDArray, float]:
+def _align(
+    pc: NDArray,
+    R_c: NDArray,
+    t_cb: NDArray,
+    R_cb: NDArray,
+    pims: list,
+    dts: NDArray,
+    G: float,
+    g_fixed: NDArray | None,
+    sigma_pos_m: float = 0.05,
+    sigma_vel_m_s: float = 0.005,
+    s_fixed: float | None = None,
+) -> tuple[NDArray, NDArray, float]:
     """Linear VI alignment: velocities (c0 frame), gravity (c0) and scale. With ``g_fixed`` the
     gravity is ``|G| * g_fixed/|g_fixed| + B w`` with 2 tangent unknowns (gravity refinement)."""
     F = len(pc)
@@ -289,19 +343,19 @@ def _align(pc: NDArray, R_c: NDArray, t_cb: NDArray, R_cb: NDArray, pims: list, 
         A = np.zeros((6, n))
         b = np.zeros(6)
         # s (pc_j - pc_i) - v_i dt - 0.5 g dt^2 = R_i dp - (Rc_j - Rc_i) t_cb
-        A[0:3, 3 * i:3 * i + 3] = -dt * np.eye(3)
+        A[0:3, 3 * i : 3 * i + 3] = -dt * np.eye(3)
         A[0:3, -1] = pc[j] - pc[i]
         b[0:3] = Ri @ dp - (R_c[j] - R_c[i]) @ t_cb
         # v_j - v_i - g dt = R_i dv
-        A[3:6, 3 * i:3 * i + 3] = -np.eye(3)
-        A[3:6, 3 * j:3 * j + 3] = np.eye(3)
+        A[3:6, 3 * i : 3 * i + 3] = -np.eye(3)
+        A[3:6, 3 * j : 3 * j + 3] = np.eye(3)
         b[3:6] = Ri @ dv
         if g_fixed is None:
-            A[0:3, 3 * F:3 * F + 3] = -0.5 * dt**2 * np.eye(3)
-            A[3:6, 3 * F:3 * F + 3] = -dt * np.eye(3)
+            A[0:3, 3 * F : 3 * F + 3] = -0.5 * dt**2 * np.eye(3)
+            A[3:6, 3 * F : 3 * F + 3] = -dt * np.eye(3)
         else:
-            A[0:3, 3 * F:3 * F + 2] = -0.5 * dt**2 * Bt
-            A[3:6, 3 * F:3 * F + 2] = -dt * Bt
+            A[0:3, 3 * F : 3 * F + 2] = -0.5 * dt**2 * Bt
+            A[3:6, 3 * F : 3 * F + 2] = -dt * Bt
             b[0:3] += 0.5 * dt**2 * g0
             b[3:6] += dt * g0
         # Rows weighted by their expected noise: velocity rows carry only IMU noise, position rows
@@ -316,8 +370,8 @@ def _align(pc: NDArray, R_c: NDArray, t_cb: NDArray, R_cb: NDArray, pims: list, 
     x = np.linalg.lstsq(A, b, rcond=None)[0]
     if s_fixed is not None:
         x = np.r_[x, s_fixed]
-    v = x[:3 * F].reshape(F, 3)
-    g = x[3 * F:3 * F + 3] if g_fixed is None else g0 + Bt @ x[3 * F:3 * F + 2]
+    v = x[: 3 * F].reshape(F, 3)
+    g = x[3 * F : 3 * F + 3] if g_fixed is None else g0 + Bt @ x[3 * F : 3 * F + 2]
     return v, g, float(x[-1])
 
 
@@ -352,27 +406,37 @@ def dynamic_init(
     R_c, pc = Tc[:, :3, :3], Tc[:, :3, 3]
     T_cb = se3_inverse(T_imu_cam)
     R_cb, t_cb = T_cb[:3, :3], T_cb[:3, 3]
-    pims = [preintegrate(imu, int(stamps_ns[i]), int(stamps_ns[i + 1]), pim_params)
-            for i in range(len(frames) - 1)]
+    pims = [
+        preintegrate(imu, int(stamps_ns[i]), int(stamps_ns[i + 1]), pim_params)
+        for i in range(len(frames) - 1)
+    ]
     bg = _solve_gyro_bias(R_c, pims, T_imu_cam[:3, :3])
     bias = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
-    pims = [preintegrate(imu, int(stamps_ns[i]), int(stamps_ns[i + 1]), pim_params, bias)
-            for i in range(len(frames) - 1)]
+    pims = [
+        preintegrate(imu, int(stamps_ns[i]), int(stamps_ns[i + 1]), pim_params, bias)
+        for i in range(len(frames) - 1)
+    ]
     dts = np.diff(stamps_ns) * 1e-9
     G = params.gravity_m_s2
     # Gravity starts from the mean specific force (minus the mean acceleration, which is small for
     # a vehicle) and keeps its magnitude throughout: the unconstrained solve of VINS-Mono has a
     # near-degenerate mirror solution (scale ~ 0, velocities flipped) under constant acceleration.
-    g0 = -np.mean([(R_c[i] @ R_cb) @ np.asarray(pim.deltaVij()) / dt
-                   for i, (pim, dt) in enumerate(zip(pims, dts, strict=True))], axis=0)
+    g0 = -np.mean(
+        [
+            (R_c[i] @ R_cb) @ np.asarray(pim.deltaVij()) / dt
+            for i, (pim, dt) in enumerate(zip(pims, dts, strict=True))
+        ],
+        axis=0,
+    )
     g = g0
     for _ in range(6):
         v, g, s = _align(pc, R_c, t_cb, R_cb, pims, dts, G, g)
     sfm_speed = max(np.linalg.norm(pc[-1] - pc[0]) / (dts.sum()), 1e-9)
     scales = [s] if s > params.min_scale and speeds_m_s is None else []
     if hypotheses:
-        scales += list(np.geomspace(params.min_speed_m_s, params.max_speed_m_s, hypotheses)
-                       / sfm_speed)
+        scales += list(
+            np.geomspace(params.min_speed_m_s, params.max_speed_m_s, hypotheses) / sfm_speed
+        )
     if speeds_m_s:
         scales += [v / sfm_speed for v in speeds_m_s]
     out = []
@@ -386,9 +450,17 @@ def dynamic_init(
         R_w_c0 = gravity_aligned_rotation(-g, yaw_ref=R_c0_b[0][:, 0])
         R_wb = R_w_c0 @ R_c0_b
         p_wb = (p_c0_b - p_c0_b[0]) @ R_w_c0.T
-        out.append(InitResult(T_world_imu=make_T(R_wb, p_wb), velocity_world_m_s=v @ R_w_c0.T,
-                              gyro_bias_rad_s=bg, accel_bias_m_s2=np.zeros(3), scale=float(s_h),
-                              gravity_imu0=R_c0_b[0].T @ g, kind="dynamic"))
+        out.append(
+            InitResult(
+                T_world_imu=make_T(R_wb, p_wb),
+                velocity_world_m_s=v @ R_w_c0.T,
+                gyro_bias_rad_s=bg,
+                accel_bias_m_s2=np.zeros(3),
+                scale=float(s_h),
+                gravity_imu0=R_c0_b[0].T @ g,
+                kind="dynamic",
+            )
+        )
     return out
 
 
@@ -403,8 +475,14 @@ class DynamicInitializer:
     only observable through changes of acceleration, which this longer look-ahead collects.
     """
 
-    def __init__(self, params: InitParams, estimator_params: EstimatorParams,
-                 camera: PinholeCamera, T_imu_cam: NDArray, noise: ImuNoise) -> None:
+    def __init__(
+        self,
+        params: InitParams,
+        estimator_params: EstimatorParams,
+        camera: PinholeCamera,
+        T_imu_cam: NDArray,
+        noise: ImuNoise,
+    ) -> None:
         self.params = params
         self.estimator_params = estimator_params
         self.camera = camera
@@ -418,21 +496,30 @@ class DynamicInitializer:
         self._history: list[tuple[int, NDArray, NDArray, NDArray]] = []  # since the window start
         self._cands: list[list] = []  # [estimator, accumulated IMU error, frames fed, speed]
 
-    def add_frame(self, t_ns: int, ids: NDArray, uv_px: NDArray, track_len: NDArray,
-                  imu: ImuSamples) -> VioEstimator | None:
+    def add_frame(
+        self, t_ns: int, ids: NDArray, uv_px: NDArray, track_len: NDArray, imu: ImuSamples
+    ) -> VioEstimator | None:
         """Add one frame (IMU time, tracks, undistorted pixels); the chosen estimator or None."""
         p = self.params
         if self._cands:
             self._history.append((t_ns, ids, uv_px, track_len))
             return self._advance((t_ns, ids, uv_px, track_len), imu)
         self._frames.append((t_ns, ids, uv_px, track_len))
-        self._frames = self._frames[-p.dyn_frames:]
+        self._frames = self._frames[-p.dyn_frames :]
         if len(self._frames) < p.dyn_frames:
             return None
         frames = self._frames
         stamps = np.array([f[0] for f in frames], np.int64)
-        for res in dynamic_init(p, [(f[1], f[2]) for f in frames], stamps, imu, self.camera,
-                                self.T_imu_cam, self._pim_params, hypotheses=p.dyn_hypotheses):
+        for res in dynamic_init(
+            p,
+            [(f[1], f[2]) for f in frames],
+            stamps,
+            imu,
+            self.camera,
+            self.T_imu_cam,
+            self._pim_params,
+            hypotheses=p.dyn_hypotheses,
+        ):
             est = self._replay(frames, imu, res)
             if est is not None:
                 speed = float(np.mean(np.linalg.norm(res.velocity_world_m_s, axis=1)))
@@ -446,13 +533,22 @@ class DynamicInitializer:
         return None
 
     def _replay(self, frames: list, imu: ImuSamples, res: InitResult) -> VioEstimator | None:
-        est = VioEstimator(self.estimator_params, self.camera, self.T_imu_cam, self.noise)
+        params = replace(self.estimator_params, lm_iterations=self.params.dyn_lm_iterations)
+        est = VioEstimator(params, self.camera, self.T_imu_cam, self.noise)
         t0, ids, uv, tl = frames[0]
         speed = float(np.linalg.norm(res.velocity_world_m_s[0]))
-        est.initialize(t0, res.T_world_imu[0], res.velocity_world_m_s[0], res.gyro_bias_rad_s,
-                       res.accel_bias_m_s2, ids, uv, tl,
-                       vel_sigma_m_s=self.params.dyn_vel_sigma_rel * max(speed, 1.0),
-                       tilt_sigma_rad=self.params.dyn_tilt_sigma_rad)
+        est.initialize(
+            t0,
+            res.T_world_imu[0],
+            res.velocity_world_m_s[0],
+            res.gyro_bias_rad_s,
+            res.accel_bias_m_s2,
+            ids,
+            uv,
+            tl,
+            vel_sigma_m_s=self.params.dyn_vel_sigma_rel * max(speed, 1.0),
+            tilt_sigma_rad=self.params.dyn_tilt_sigma_rad,
+        )
         try:
             for t, ids_k, uv_k, tl_k in frames[1:]:
                 est.add_frame(t, ids_k, uv_k, imu, is_keyframe=True, track_len=tl_k)
@@ -480,16 +576,20 @@ class DynamicInitializer:
             if alive[0][2] < self.params.dyn_select_frames and len(alive) > 1:
                 return None
         for c in self._cands:
-            log.debug("init hypothesis: speed %.2f m/s, accumulated IMU error %.3f",
-                      float(np.linalg.norm(c[0].state().velocity_world_m_s)), c[1])
+            log.debug(
+                "init hypothesis: speed %.2f m/s, accumulated IMU error %.3f",
+                float(np.linalg.norm(c[0].state().velocity_world_m_s)),
+                c[1],
+            )
         cands = sorted(self._cands, key=lambda c: c[3])
         b = min(range(len(cands)), key=lambda i: cands[i][1])
         best = cands[b][0]
         if 0 < b < len(cands) - 1:
-            refined = self._refine(cands[b - 1:b + 2], imu)
+            refined = self._refine(cands[b - 1 : b + 2], imu)
             if refined is not None:
                 best = refined
         self.reset()
+        best.params = self.estimator_params
         return best
 
     def _refine(self, three: list[list], imu: ImuSamples) -> VioEstimator | None:
@@ -506,9 +606,16 @@ class DynamicInitializer:
         hist = self._history
         n = self.params.dyn_frames
         stamps = np.array([f[0] for f in hist[:n]], np.int64)
-        res = dynamic_init(self.params, [(f[1], f[2]) for f in hist[:n]], stamps, imu,
-                           self.camera, self.T_imu_cam, self._pim_params,
-                           speeds_m_s=[float(np.exp(x_star))])
+        res = dynamic_init(
+            self.params,
+            [(f[1], f[2]) for f in hist[:n]],
+            stamps,
+            imu,
+            self.camera,
+            self.T_imu_cam,
+            self._pim_params,
+            speeds_m_s=[float(np.exp(x_star))],
+        )
         if not res:
             return None
         est = self._replay(hist, imu, res[0])

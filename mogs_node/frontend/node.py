@@ -102,6 +102,9 @@ class FrontendNode(Node):
         self._last_velocity = np.zeros(3)
         self.subscribe(p.imu_topic, self.on_imu, reliable=True, msg_type=msgs.Imu)
         self.subscribe(p.image_topic, self.on_image, reliable=False, msg_type=msgs.Image)
+        # after a restart: replay every journaled image + IMU sample (deterministic: the same
+        # keyframe ids); only odometry and keyframes the journal lacks are published
+        self.catch_up((p.imu_topic, p.image_topic), (p.odometry_topic, p.keyframe_topic))
 
     def on_imu(self, msg: msgs.Imu) -> None:
         for out in self.frontend.add_imu(msg.stamp_ns, msg.gyro_rad_s, msg.accel_m_s2):
@@ -113,9 +116,9 @@ class FrontendNode(Node):
             img = np.ascontiguousarray(img[..., ::-1])
         fe = self.frontend
         pending = fe.pending_stamps_ns
-        rejected = fe.counters["image_time_backwards"]
+        rejected = fe.counters["image_time_backwards"] + fe.counters["image_wrong_size"]
         outs = fe.add_image(msg.stamp_ns, img)
-        if fe.counters["image_time_backwards"] > rejected:
+        if fe.counters["image_time_backwards"] + fe.counters["image_wrong_size"] > rejected:
             self._acknowledge(msg.stamp_ns, "rejected")
         waiting = set(fe.pending_stamps_ns) | {o.stamp_ns for o in outs}
         for t in pending:  # frames dropped while waiting for their IMU

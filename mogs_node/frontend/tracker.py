@@ -77,8 +77,11 @@ class FeatureTracker:
         self._len = np.zeros(0, np.int32)
         self._next_id = 0
         w = params.win_size_px
-        self._lk = dict(winSize=(w, w), maxLevel=params.pyr_levels,
-                        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+        self._lk = dict(
+            winSize=(w, w),
+            maxLevel=params.pyr_levels,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+        )
 
     def reset(self) -> None:
         """Forget every track (the next frame starts fresh ids)."""
@@ -94,8 +97,10 @@ class FeatureTracker:
         elif img.ndim != 2:
             raise ShapeError(f"image: expected [H,W] or [H,W,3] uint8, got {list(img.shape)}")
         if img.shape != (self.camera.pinhole.height, self.camera.pinhole.width):
-            raise ShapeError(f"image: size {img.shape[::-1]} != camera "
-                             f"{(self.camera.pinhole.width, self.camera.pinhole.height)}")
+            raise ShapeError(
+                f"image: size {img.shape[::-1]} != camera "
+                f"{(self.camera.pinhole.width, self.camera.pinhole.height)}"
+            )
         return self._clahe.apply(img) if self.params.clahe else np.ascontiguousarray(img)
 
     def predict_px(self, uv_raw_px: NDArray, R_cur_prev_cam: NDArray | None) -> NDArray[np.float32]:
@@ -109,7 +114,9 @@ class FeatureTracker:
         ok = rays[:, 2] > 1e-3
         z = np.where(ok, rays[:, 2], 1.0)
         K = self.camera.K
-        pred = np.stack([K[0, 0] * rays[:, 0] / z + K[0, 2], K[1, 1] * rays[:, 1] / z + K[1, 2]], -1)
+        pred = np.stack(
+            [K[0, 0] * rays[:, 0] / z + K[0, 2], K[1, 1] * rays[:, 1] / z + K[1, 2]], -1
+        )
         pred = np.where(ok[:, None], pred, und)
         return self.camera.distort_px(pred).astype(np.float32)
 
@@ -124,10 +131,17 @@ class FeatureTracker:
         if self._prev_img is not None and n_prev > 0:
             p0 = self._uv.reshape(-1, 1, 2)
             guess = self.predict_px(self._uv, R_cur_prev_cam).reshape(-1, 1, 2)
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, guess.copy(),
-                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk)
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1, p0.copy(),
-                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk)
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+                self._prev_img,
+                img,
+                p0,
+                guess.copy(),
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                **self._lk,
+            )
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+                img, self._prev_img, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            )
             p1 = p1.reshape(-1, 2)
             fb = np.linalg.norm(p0b.reshape(-1, 2) - self._uv, axis=1)
             b = p.border_px
@@ -152,11 +166,19 @@ class FeatureTracker:
         n_tracked = len(ids)
         ids, uv, tl = self._top_up(img, ids, uv, tl)
         self._prev_img, self._ids, self._uv, self._len = img, ids, uv, tl
-        return TrackResult(ids=ids.copy(), uv_raw_px=uv.copy(), uv_px=self.camera.undistort_px(uv),
-                           track_len=tl.copy(), n_prev=n_prev, n_tracked=n_tracked, stats=stats)
+        return TrackResult(
+            ids=ids.copy(),
+            uv_raw_px=uv.copy(),
+            uv_px=self.camera.undistort_px(uv),
+            track_len=tl.copy(),
+            n_prev=n_prev,
+            n_tracked=n_tracked,
+            stats=stats,
+        )
 
-    def _top_up(self, img: NDArray[np.uint8], ids: NDArray, uv: NDArray, tl: NDArray
-                ) -> tuple[NDArray, NDArray, NDArray]:
+    def _top_up(
+        self, img: NDArray[np.uint8], ids: NDArray, uv: NDArray, tl: NDArray
+    ) -> tuple[NDArray, NDArray, NDArray]:
         p = self.params
         H, W = img.shape
         d = p.min_distance_px
@@ -173,20 +195,27 @@ class FeatureTracker:
         if need <= 0:
             return ids, uv, tl
         mask = np.full((H, W), 255, np.uint8)
-        if len(uv):
-            occ = np.zeros((H, W), np.uint8)
-            r = np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1])
-            occ[r[:, 1], r[:, 0]] = 255
-            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1))
-            mask = cv2.bitwise_not(cv2.dilate(occ, kernel))
+        # Discs of radius d around the kept features (a few hundred small fills: much cheaper
+        # than dilating a full-size occupancy image with a (2d+1)^2 kernel).
+        for x, y in np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1]).tolist():
+            cv2.circle(mask, (x, y), d, 0, -1)
         b = max(p.border_px, 1)
         mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = 0, 0, 0, 0
-        pts = cv2.goodFeaturesToTrack(img, maxCorners=need, qualityLevel=p.quality_level,
-                                      minDistance=d, mask=mask, blockSize=3)
+        pts = cv2.goodFeaturesToTrack(
+            img,
+            maxCorners=need,
+            qualityLevel=p.quality_level,
+            minDistance=d,
+            mask=mask,
+            blockSize=3,
+        )
         if pts is None:
             return ids, uv, tl
         pts = pts.reshape(-1, 2).astype(np.float32)
         new_ids = np.arange(self._next_id, self._next_id + len(pts), dtype=np.int64)
         self._next_id += len(pts)
-        return (np.concatenate([ids, new_ids]), np.concatenate([uv, pts]),
-                np.concatenate([tl, np.ones(len(pts), np.int32)]))
+        return (
+            np.concatenate([ids, new_ids]),
+            np.concatenate([uv, pts]),
+            np.concatenate([tl, np.ones(len(pts), np.int32)]),
+        )
