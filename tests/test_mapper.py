@@ -111,6 +111,25 @@ def test_insertion_mask_explained_unexplained_and_disagreeing() -> None:
     )
 
 
+def test_insertion_mask_colour_disagreement_is_opt_in() -> None:
+    d = np.full((3, 3), 10.0, np.float32)
+    c = np.ones_like(d)
+    alpha, rdepth = np.ones_like(d), d.copy()  # covered, depth agrees
+    img = np.full((3, 3, 3), 0.5, np.float32)
+    rendered = img.copy()
+    rendered[1, 2] = [0.5, 0.5, 0.9]  # mean |diff| over channels 0.4 / 3 = 0.133
+    rendered[0, 0] = [0.55, 0.5, 0.5]  # 0.017: within tolerance
+    assert insertion_mask(d, c, alpha, rdepth, InsertionParams(), rendered, img).sum() == 0
+    m = insertion_mask(d, c, alpha, rdepth, InsertionParams(color_tol=0.1), rendered, img)
+    assert m.sum() == 1 and m[1, 2]
+    assert (
+        insertion_mask(d, c, alpha, rdepth, InsertionParams(color_tol=0.15), rendered, img).sum()
+        == 0
+    )
+    with pytest.raises(ShapeError, match="rendered_rgb"):
+        insertion_mask(d, c, alpha, rdepth, InsertionParams(color_tol=0.1), rendered[:2], img)
+
+
 def test_sample_gaussians_backprojects_to_their_pixels_with_footprint_scale() -> None:
     img, depth = plane_view(8.0)
     depth[:, W // 2 :] = 60.0  # far half: coarser stride
@@ -317,3 +336,16 @@ def test_map_eval_ratios_bound_when_random_never_reaches_target() -> None:
         and not r["iters_ratio_is_upper_bound"]
     )
     assert r["gaussians_ratio_mogs_vs_random"] == pytest.approx(0.5)
+
+
+def test_map_eval_overrides_parse_into_one_policy_for_every_init() -> None:
+    from mogs_node.eval.map import _parse_override, overrides_from
+
+    pairs = [_parse_override(s) for s in ("densify=true", "insertion.color_tol=0.1")]
+    o = overrides_from(pairs + [_parse_override("densify_grad_px=6e-6")])
+    assert o["densify"] is True and o["densify_grad_px"] == pytest.approx(6e-6)
+    assert o["insertion"] == InsertionParams(color_tol=0.1)
+    with pytest.raises(ConfigError, match="no_such"):
+        overrides_from([("no_such", 1)])
+    with pytest.raises(ConfigError, match="raster"):
+        overrides_from([("raster", 1)])

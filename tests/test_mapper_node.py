@@ -111,3 +111,17 @@ def test_mapper_node_params_are_validated(inproc_bus) -> None:
         MapperNode("mapper", {"iters_per_keyframe": -1}, bus, context=ctx, diagnostics_period_s=0)
     with pytest.raises(ConfigError):
         MapperNode("mapper", {"no_such_param": 1}, bus, context=ctx, diagnostics_period_s=0)
+
+
+def test_keyframe_with_another_camera_is_rejected_and_counted(inproc_bus) -> None:
+    bus, ctx = inproc_bus
+    node = MapperNode(
+        "mapper", {"iters_per_keyframe": 1, "threads": 1}, bus, context=ctx, diagnostics_period_s=0
+    )
+    node.process(*messages(0, 0.0))
+    kf1, d1 = messages(1, 0.5)
+    kf1.K[0, 0] = 45.0  # another focal length: not the map's camera
+    node.process(kf1, d1)
+    assert node.counters["keyframes_rejected"] == 1 and node.counters["keyframes_mapped"] == 1
+    assert node.mapper is not None and len(node.mapper.keyframes) == 1
+    node.close()

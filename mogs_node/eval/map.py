@@ -37,7 +37,7 @@ import logging
 import multiprocessing as mp
 import resource
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -418,3 +418,73 @@ def _write_markdown(
         f"Machine: {machine_line()}",
     ]
     update_markdown_section("mapper-init-table2", "\n".join(lines))
+
+
+def _parse_override(text: str) -> tuple[str, Any]:
+    """``name=value`` for a :class:`MapperParams` field, ``insertion.name=value`` for an
+    :class:`InsertionParams` one; the value is parsed as JSON (``true``, ``6e-6``, ...)."""
+    import json
+
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"--set {text!r}: expected NAME=VALUE")
+    name, value = text.split("=", 1)
+    try:
+        return name.strip(), json.loads(value)
+    except json.JSONDecodeError as err:
+        raise argparse.ArgumentTypeError(f"--set {name}: value {value!r} is not JSON") from err
+
+
+def overrides_from(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``MapperParams`` overrides from ``--set`` pairs (``insertion.*`` go into InsertionParams);
+    unknown names raise ConfigError."""
+    from mogs_node.errors import ConfigError
+    from mogs_node.mapper.insertion import InsertionParams
+    from mogs_node.mapper.mapper import MapperParams
+
+    top = {f.name for f in fields(MapperParams)}
+    ins = {f.name for f in fields(InsertionParams)}
+    out: dict[str, Any] = {}
+    ins_kw: dict[str, Any] = {}
+    for name, value in pairs:
+        if name.startswith("insertion.") and name[len("insertion.") :] in ins:
+            ins_kw[name[len("insertion.") :]] = value
+        elif name in top and name not in ("insertion", "raster"):
+            out[name] = value
+        else:
+            raise ConfigError(f"--set {name}: not a MapperParams / insertion.* field")
+    if ins_kw:
+        out["insertion"] = InsertionParams(**ins_kw)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Ablation runs of the same evaluation with changed mapper settings (every initialisation
+    gets the same overrides); prints the figures, writes no docs. Example:
+    ``python -m mogs_node.eval.map --inits random,mogs --set densify=true``."""
+    import json
+
+    ap = argparse.ArgumentParser(prog="python -m mogs_node.eval.map", description=main.__doc__)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--iters", type=int, default=MapEvalConfig.budget, help="iteration budget")
+    ap.add_argument(
+        "--inits", default=",".join(INITS), help="comma-separated subset of " + str(INITS)
+    )
+    ap.add_argument("--set", dest="sets", action="append", type=_parse_override, default=[])
+    ap.add_argument("--json", default="", help="also write the figures here")
+    a = ap.parse_args(argv)
+    inits = tuple(a.inits.split(","))
+    if not set(inits) <= set(INITS):
+        ap.error(f"--inits: choose from {INITS}")
+    cfg = MapEvalConfig(seed=a.seed, budget=a.iters, mapper_overrides=overrides_from(a.sets))
+    res = run_all(cfg, inits)
+    for v in res["inits"].values():
+        v["curve"] = {k: c[:: max(1, len(c) // 20)] for k, c in v["curve"].items()}
+    text = json.dumps(res, indent=1, default=str)
+    print(text)
+    if a.json:
+        Path(a.json).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -15,9 +15,12 @@ that colour, depth and accumulated alpha come out of one pass).
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -32,6 +35,30 @@ log = logging.getLogger(__name__)
 _EXT: ModuleType | None = None
 _EXT_FAILED = False
 _EXT_LOCK = threading.Lock()
+
+
+_NAME = "mogs_composite_cpu"
+
+
+@contextlib.contextmanager
+def _build_lock(build_dir: Path) -> Iterator[None]:
+    """Hold an flock on the build directory while torch builds or loads the extension.
+
+    torch's own build lock is a plain file: a builder killed mid-compile (a hung-node kill, a
+    SIGKILL in a test) leaves it behind and every later process waits on it forever. An flock
+    dies with its process, so whoever holds ours knows no other process of ours is building and
+    may remove a leftover torch lock.
+    """
+    with open(build_dir / "mogs.flock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            stale = build_dir / "lock"
+            if stale.exists():
+                log.warning("removing a stale build lock left by a killed build: %s", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def load_cpp_extension() -> ModuleType | None:
@@ -49,16 +76,20 @@ def load_cpp_extension() -> ModuleType | None:
             _EXT_FAILED = True
             return None
         try:
-            from torch.utils.cpp_extension import load
+            from torch.utils.cpp_extension import get_default_build_root, load
 
             src = Path(__file__).with_name("csrc") / "composite_cpu.cpp"
-            _EXT = load(
-                name="mogs_composite_cpu",
-                sources=[str(src)],
-                extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
-                extra_ldflags=["-fopenmp"],
-                verbose=False,
-            )
+            build_dir = Path(get_default_build_root()) / f"mogs_torch{torch.__version__}" / _NAME
+            build_dir.mkdir(parents=True, exist_ok=True)
+            with _build_lock(build_dir):
+                _EXT = load(
+                    name=_NAME,
+                    sources=[str(src)],
+                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
+                    extra_ldflags=["-fopenmp"],
+                    build_directory=str(build_dir),
+                    verbose=False,
+                )
         except Exception as err:  # noqa: BLE001 - any build failure means: use the fallback
             log.warning("C++ compositing extension unavailable, using pure PyTorch: %s", err)
             _EXT_FAILED = True

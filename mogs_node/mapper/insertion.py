@@ -40,6 +40,7 @@ class InsertionParams:
     alpha_explained: float = 0.9  # pixels with rendered alpha above this may be explained ...
     depth_rel_tol: float = 0.2  # ... unless (rendered - new) / new depth > depth_rel_tol / conf
     check_depth: bool = True  # use the depth disagreement test at all (ablation switch)
+    color_tol: float = 0.0  # also unexplained where mean |rendered - image| colour > this (0: off)
     scale_factor: float = 1.0  # initial sigma = scale_factor * stride * depth / f (MonoGS: NN dist)
     opacity_init: float = 0.5  # initial opacity (MonoGS: 0.5)
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
@@ -63,6 +64,8 @@ def insertion_mask(
     rendered_alpha: np.ndarray | None,
     rendered_depth_m: np.ndarray | None,
     params: InsertionParams,
+    rendered_rgb: np.ndarray | None = None,
+    image_rgb: np.ndarray | None = None,
 ) -> np.ndarray:
     """Pixels ``[H, W]`` bool where the map does not explain the view and depth is usable.
 
@@ -70,7 +73,10 @@ def insertion_mask(
     and ``rendered_depth_m`` [H, W] (expected depth, alpha-normalised) of the current map, or
     ``None`` for an empty map. A pixel is unexplained when ``alpha < alpha_explained`` or when
     ``rendered - depth > depth_rel_tol * depth / confidence`` (relative tolerance, widening as the
-    confidence falls; confidence 0 never disagrees).
+    confidence falls; confidence 0 never disagrees). With ``params.color_tol > 0`` and
+    ``rendered_rgb``/``image_rgb`` [H, W, 3] in [0, 1] given, a pixel whose rendered colour differs
+    from the image by more than ``color_tol`` (mean over channels) is unexplained as well: the map
+    covers it but draws the wrong thing there (3DGS/MonoGS add Gaussians there by densification).
     """
     d = check_array("depth_m", depth_m, shape=(None, None), dtype=np.floating)
     c = check_array("confidence", confidence, shape=d.shape, dtype=np.floating)
@@ -80,6 +86,10 @@ def insertion_mask(
     a = check_array("rendered_alpha", rendered_alpha, shape=d.shape, dtype=np.floating)
     rd = check_array("rendered_depth_m", rendered_depth_m, shape=d.shape, dtype=np.floating)
     unexplained = a < params.alpha_explained
+    if params.color_tol > 0 and rendered_rgb is not None and image_rgb is not None:
+        rc = check_array("rendered_rgb", rendered_rgb, shape=(*d.shape, 3), dtype=np.floating)
+        ic = check_array("image_rgb", image_rgb, shape=(*d.shape, 3), dtype=np.floating)
+        unexplained = unexplained | (np.abs(rc - ic).mean(-1) > params.color_tol)
     if not params.check_depth:
         return usable & unexplained
     # only a surface *in front of* what the map renders is missing: Gaussians inserted behind the

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -199,9 +200,12 @@ class GaussianMapper:
             r = self.render_view(T)
             alpha = r.alpha.numpy()
             rdepth = (r.depth / r.alpha.clamp_min(1e-6)).numpy()
+            rrgb = r.color.numpy()
         else:
-            alpha = rdepth = None
-        mask = insertion_mask(d, c, alpha, rdepth, self.params.insertion)
+            alpha = rdepth = rrgb = None
+        mask = insertion_mask(
+            d, c, alpha, rdepth, self.params.insertion, rrgb, img.astype(np.float32) / 255.0
+        )
         index = len(self.keyframes)
         new = sample_gaussians(
             img, d, c, mask, self.K_matrix, T, self.params.insertion, offset=index
@@ -256,8 +260,15 @@ class GaussianMapper:
         return seen, obs
 
     # ------------------------------------------------------------------------------ optimisation
-    def optimize(self, n_iters: int) -> dict[str, float]:
-        """Run ``n_iters`` window iterations, then prune (and densify); returns statistics."""
+    def optimize(
+        self, n_iters: int, should_stop: Callable[[], bool] | None = None
+    ) -> dict[str, float]:
+        """Run ``n_iters`` window iterations, then prune (and densify); returns statistics.
+
+        ``should_stop`` is polled before each iteration: a node asked to shut down (SIGINT) ends
+        the window early instead of holding the launcher past its stop timeout; the map stays
+        consistent (every finished iteration is kept, pruning still runs).
+        """
         if not self.keyframes or n_iters <= 0:
             return self.stats()
         p = self.params
@@ -276,6 +287,8 @@ class GaussianMapper:
         past = [k.index for k in self.keyframes if k.index not in self.window]
         fixed_pose = max(self.window) if len(self.window) == 1 else min(self.window)
         for _ in range(n_iters):
+            if should_stop is not None and should_stop():
+                break
             views = list(self.window)
             if past and p.n_random_past:
                 pick = self._rng.choice(

@@ -12,8 +12,10 @@ keyframes) the map is written to ``ply_path`` as a standard 3DGS PLY.
 
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -22,9 +24,18 @@ import torch
 
 from mogs_node import msgs
 from mogs_node.errors import ConfigError, ShapeError
+from mogs_node.mapper.checkpoint import (
+    CHECKPOINT_NAME,
+    CheckpointError,
+    integrated_keyframe_ids,
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
+from mogs_node.mapper.composite import load_cpp_extension
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
 from mogs_node.mapper.rasterizer import RasterParams
-from mogs_node.node import Node
+from mogs_node.node import CATCH_UP_ENV, Node
 
 __all__ = ["KeyframeDepthPairs", "MapperNode", "MapperNodeParams"]
 
@@ -46,6 +57,9 @@ class MapperNodeParams:
     publish_render: bool = True  # publish /mapper/render after each keyframe
     ply_path: str = ""  # write the map here on shutdown ("" = never)
     ply_every_kf: int = 0  # also write it every n keyframes (0 = only on shutdown)
+    checkpoint_dir: str = ""  # save the mapper state here (checkpoint.py; "" = never)
+    checkpoint_every_keyframes: int = 5  # ... every n mapped keyframes and on shutdown
+    resume: bool = False  # on start, load checkpoint_dir's checkpoint (if any) first
     keyframe_topic: str = "/frontend/keyframe"  # input keyframes
     depth_topic: str = "/metrizer/depth"  # input metric depth
     stats_topic: str = "/mapper/stats"  # output statistics
@@ -55,6 +69,10 @@ class MapperNodeParams:
     def __post_init__(self) -> None:
         if self.iters_per_keyframe < 0 or self.max_pending < 1 or self.threads < 0:
             raise ConfigError("mapper: iters_per_keyframe >= 0, max_pending >= 1, threads >= 0")
+        if self.checkpoint_every_keyframes < 1:
+            raise ConfigError("mapper.checkpoint_every_keyframes: must be >= 1")
+        if self.resume and not self.checkpoint_dir:
+            raise ConfigError("mapper.resume: needs checkpoint_dir")
 
     def mapper_params(self) -> MapperParams:
         return MapperParams(
@@ -126,16 +144,60 @@ class MapperNode(Node):
             torch.set_num_threads(p.threads)
         self.pairs = KeyframeDepthPairs(p.max_pending)
         self.mapper: GaussianMapper | None = None
+        self.integrated_keyframe_ids: set[int] = set()  # keyframes in the map (restart catch-up)
+        restarted = os.environ.get(CATCH_UP_ENV) == "1"  # respawned after a crash, or --resume
+        ck = (
+            latest_checkpoint(p.checkpoint_dir)
+            if (p.resume or restarted) and p.checkpoint_dir
+            else None
+        )
+        if ck is not None:
+            try:
+                self.mapper = load_checkpoint(ck, p.mapper_params())
+            except CheckpointError as err:
+                # not a crash loop under respawn: keep the file for inspection and rebuild the
+                # map from the journal (catch-up replays every keyframe when none is integrated)
+                bad = ck.with_name(ck.name + ".corrupt")
+                os.replace(ck, bad)
+                self.counters["checkpoint_errors"] = 1
+                self.log.error("unusable checkpoint moved to %s, map rebuilt: %s", bad, err)
+            else:
+                self.integrated_keyframe_ids = integrated_keyframe_ids(self.mapper)
+                self.log.info(
+                    "resumed from %s: %d keyframes", ck, len(self.integrated_keyframe_ids)
+                )
+        if p.backend in ("auto", "cpp"):
+            # compile (first run on a machine: ~40 s, minutes under load) before the first
+            # keyframe, not inside its handler where heartbeats stop
+            load_cpp_extension()
         self.counters.update({"keyframes_mapped": 0, "keyframes_rejected": 0})
-        self.subscribe(p.keyframe_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe)
-        self.subscribe(p.depth_topic, self.on_depth, reliable=True, msg_type=msgs.DepthMap)
+        self.subscribe(
+            p.keyframe_topic,
+            self.on_keyframe,
+            reliable=True,
+            msg_type=msgs.Keyframe,
+            idempotent=True,
+        )
+        self.subscribe(
+            p.depth_topic, self.on_depth, reliable=True, msg_type=msgs.DepthMap, idempotent=True
+        )
+        # after a restart: every journaled keyframe not in the map (all of them without a
+        # checkpoint: the map is rebuilt in the same order); /mapper/stats not sent twice
+        self.catch_up((p.keyframe_topic, p.depth_topic), (p.stats_topic,))
+
+    def _integrated(self, keyframe_id: int) -> bool:
+        return keyframe_id in getattr(self, "integrated_keyframe_ids", ())
 
     def on_keyframe(self, msg: msgs.Keyframe) -> None:
+        if self._integrated(msg.keyframe_id):
+            return
         pair = self.pairs.add("keyframe", msg.keyframe_id, msg)
         if pair is not None:
             self.process(*pair)
 
     def on_depth(self, msg: msgs.DepthMap) -> None:
+        if self._integrated(msg.keyframe_id):
+            return
         pair = self.pairs.add("depth", msg.keyframe_id, msg)
         if pair is not None:
             self.process(*pair)
@@ -153,7 +215,8 @@ class MapperNode(Node):
             return
         d, c = depth_for_keyframe(depth, W, H)
         n_new = m.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
-        st = m.optimize(p.iters_per_keyframe)
+        self.integrated_keyframe_ids.add(int(kf.keyframe_id))
+        st = m.optimize(p.iters_per_keyframe, should_stop=lambda: self.stopping)
         self.counters["keyframes_mapped"] += 1
         self.publish(
             p.stats_topic,
@@ -204,9 +267,26 @@ class MapperNode(Node):
             and self.counters["keyframes_mapped"] % p.ply_every_kf == 0
         ):
             export_ply(m, p.ply_path)
+        if (
+            p.checkpoint_dir
+            and self.counters["keyframes_mapped"] % p.checkpoint_every_keyframes == 0
+        ):
+            self.save_checkpoint()
+
+    def save_checkpoint(self) -> None:
+        """Write the mapper state to ``checkpoint_dir`` (atomically; nothing before a keyframe)."""
+        p: MapperNodeParams = self.params
+        if p.checkpoint_dir and self.mapper is not None:
+            try:
+                save_checkpoint(self.mapper, Path(p.checkpoint_dir) / CHECKPOINT_NAME)
+                self.counters["checkpoints_saved"] = self.counters.get("checkpoints_saved", 0) + 1
+            except OSError:  # a full or read-only disk must not stop the mapping
+                self.counters["checkpoint_errors"] = self.counters.get("checkpoint_errors", 0) + 1
+                self.log.exception("checkpoint to %s failed", p.checkpoint_dir)
 
     def teardown(self) -> None:
         p: MapperNodeParams = self.params
+        self.save_checkpoint()
         if p.ply_path and self.mapper is not None:
             export_ply(self.mapper, p.ply_path)
             self.log.info("map written to %s (%d Gaussians)", p.ply_path, len(self.mapper.map))
