@@ -21,6 +21,12 @@ A launch file (YAML)::
 The launcher prefixes each child's log lines with its name, respawns crashed nodes by policy, and
 on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
 Children get PR_SET_PDEATHSIG so that they never outlive a killed launcher.
+
+Catch-up: a respawned node, and every node of a resumed run (``resume=True``, ``mogs launch
+--resume RUN``), is started with ``MOGS_CATCH_UP=1``; nodes that call
+:meth:`~mogs_node.node.Node.catch_up` then replay what they missed from the journal node
+(:mod:`mogs_node.journal`). :func:`run_dir_overrides` points the journal, the report, the mapper's
+PLY and checkpoints of a launch file at one run folder.
 """
 
 from __future__ import annotations
@@ -44,8 +50,9 @@ import zmq
 
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.errors import ConfigError
+from mogs_node.node import CATCH_UP_ENV
 
-__all__ = ["LaunchFile", "Launcher", "NodeSpec", "load_launch_file"]
+__all__ = ["LaunchFile", "Launcher", "NodeSpec", "load_launch_file", "run_dir_overrides"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +72,9 @@ class NodeSpec:
     heartbeat_timeout_s: float = (
         30.0  # kill + respawn a node silent on /diagnostics this long (0: off)
     )
+    # a node not yet heard from at all (imports, model loading, a first-use compile) gets this
+    # long before heartbeat supervision applies (a startup probe, as in Kubernetes)
+    startup_timeout_s: float = 300.0
     host: str = "localhost"
     env: dict[str, str] = field(default_factory=dict)
 
@@ -124,6 +134,7 @@ def parse_launch(
             "max_respawns",
             "respawn_delay_s",
             "heartbeat_timeout_s",
+            "startup_timeout_s",
             "host",
             "env",
         }
@@ -151,6 +162,7 @@ def parse_launch(
                 max_respawns=int(nd.get("max_respawns", 5)),
                 respawn_delay_s=float(nd.get("respawn_delay_s", 0.5)),
                 heartbeat_timeout_s=float(nd.get("heartbeat_timeout_s", 30.0)),
+                startup_timeout_s=float(nd.get("startup_timeout_s", 300.0)),
                 host=str(nd.get("host", "localhost")),
                 env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
             )
@@ -181,6 +193,43 @@ def load_launch_file(path: str | Path, overrides: dict[str, Any] | None = None) 
     return parse_launch(data, path=p, overrides=overrides)
 
 
+def _params_fields(cls: str) -> set[str]:
+    """Parameter names of the node class ``module:Class`` (imports the module)."""
+    import dataclasses
+    import importlib
+
+    module, _, name = cls.partition(":")
+    try:
+        node_cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as err:
+        raise ConfigError(f"cannot import node class {cls}: {err}") from err
+    return {f.name for f in dataclasses.fields(node_cls.Params)}
+
+
+def run_dir_overrides(launch: LaunchFile, run_dir: str | Path, *, resume: bool) -> dict[str, dict]:
+    """Parameter overrides that put a run's state in ``run_dir``: the journal (``journal/``),
+    the report, the mapper's PLY and checkpoints (``checkpoints/``); with ``resume`` the mapper
+    loads its latest checkpoint. Nodes are recognised by their parameters, not their names."""
+    d = Path(run_dir).resolve()
+    out: dict[str, dict] = {}
+    for spec in launch.nodes:
+        fields = _params_fields(spec.cls)
+        o: dict[str, Any] = {}
+        if spec.cls.endswith(":JournalNode"):
+            o["dir"] = str(d / "journal")
+        if spec.cls.endswith(":RunReportNode"):
+            o["out_dir"] = str(d)
+        if "ply_path" in fields:
+            o["ply_path"] = str(d / "map.ply")
+        if "checkpoint_dir" in fields:
+            o["checkpoint_dir"] = str(d / "checkpoints")
+            if resume and "resume" in fields:
+                o["resume"] = True
+        if o:
+            out[spec.name] = o
+    return out
+
+
 def _set_pdeathsig() -> None:  # runs in the child between fork and exec
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
@@ -206,8 +255,11 @@ class _Child:
 class Launcher:
     """Starts, supervises and stops the processes of a :class:`LaunchFile`."""
 
-    def __init__(self, launch: LaunchFile, *, out=None, grace_s: float = 3.0) -> None:
+    def __init__(
+        self, launch: LaunchFile, *, out=None, grace_s: float = 3.0, resume: bool = False
+    ) -> None:
         self.launch = launch
+        self.resume = resume
         self.out = out or sys.stdout
         self.grace_s = grace_s
         self._stop = threading.Event()
@@ -217,12 +269,29 @@ class Launcher:
         self._hb_lock = threading.Lock()
         bus_json = json.dumps(launch.bus.to_dict())
         py = sys.executable
+        self._common_env: dict[str, str] = {}
+        # catch-up needs a journal to catch up from
+        self._has_journal = any(s.cls.endswith(":JournalNode") for s in launch.nodes)
+        for spec in launch.nodes:  # an explicit journal endpoint: every node must know it
+            if spec.cls.endswith(":JournalNode") and spec.params.get("endpoint"):
+                self._common_env["MOGS_JOURNAL_ENDPOINT"] = str(spec.params["endpoint"])
         if launch.start_broker:
             argv = [py, "-m", "mogs_node.cli", "broker", "--bus-json", bus_json]
             if launch.allow_remote:
                 argv.append("--allow-remote")
             self.children.append(_Child("broker", argv, {}, None))
+        report_dir = next(
+            (
+                s.params.get("out_dir", "runs/latest")
+                for s in launch.nodes
+                if s.cls.endswith(":RunReportNode")
+            ),
+            None,
+        )
         for spec in launch.nodes:
+            params = dict(spec.params)
+            if spec.cls.endswith(":JournalNode") and "dir" not in params and report_dir:
+                params["dir"] = str(Path(report_dir) / "journal")  # the run's state in one folder
             if spec.host not in ("localhost", "127.0.0.1", os.uname().nodename):
                 log.info("node %s runs on host %s: not started here", spec.name, spec.host)
                 continue
@@ -235,7 +304,7 @@ class Launcher:
                 "--name",
                 spec.name,
                 "--params-json",
-                json.dumps(spec.params),
+                json.dumps(params),
                 "--bus-json",
                 bus_json,
             ]
@@ -254,8 +323,12 @@ class Launcher:
 
     def _start(self, child: _Child) -> None:
         env = dict(os.environ)
+        env.update(self._common_env)
         env.update(child.env)
         env["PYTHONUNBUFFERED"] = "1"
+        # a respawned node, or any node of a resumed run, catches up from the journal
+        restart = child.respawns > 0 or self.resume
+        env[CATCH_UP_ENV] = "1" if restart and self._has_journal else "0"
         child.proc = subprocess.Popen(
             child.argv,
             stdout=subprocess.PIPE,
@@ -334,7 +407,8 @@ class Launcher:
         if seen is not None and seen[1] == child.proc.pid:
             silent = now - seen[0]
         else:  # not heard from this process yet: allow for start-up (imports, model loading)
-            silent = now - child.started_at - 15.0
+            silent = now - child.started_at
+            timeout = max(timeout, child.spec.startup_timeout_s)
         if silent > timeout:
             self._print(f"[launch] {child.name} sent no heartbeat for {silent:.1f} s: killing it")
             child.proc.kill()

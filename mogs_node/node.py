@@ -9,7 +9,10 @@ subscriptions, and handlers publish results. The shell owns everything else:
 - handler exceptions are caught, logged and counted: a node never dies of bad input;
 - ``/diagnostics`` heartbeat with counters (received, published, dropped, lost, malformed,
   handler_errors, queue_depth, loop_latency_ms) every ``diagnostics_period_s``;
-- clean shutdown on SIGINT/SIGTERM: stop reading, call ``teardown``, flush outgoing messages.
+- clean shutdown on SIGINT/SIGTERM: stop reading, call ``teardown``, flush outgoing messages;
+- catch-up after a restart (:meth:`Node.catch_up`): a respawned node replays its inputs from the
+  journal (:mod:`mogs_node.journal`) before reading live messages, does not re-publish outputs the
+  journal already holds, and drops the live messages it has already seen in the replay.
 """
 
 from __future__ import annotations
@@ -33,11 +36,19 @@ from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber
 from mogs_node.errors import ConfigError, MogsError
 
-__all__ = ["EmptyParams", "Node", "parse_params"]
+__all__ = ["CATCH_UP_ENV", "EmptyParams", "Node", "parse_params"]
 
 log = logging.getLogger(__name__)
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
+#: set to "1" by the launcher for a respawned node and on ``mogs launch --resume``
+CATCH_UP_ENV = "MOGS_CATCH_UP"
+
+
+def message_key(msg: msgs.Message) -> int:
+    """Identity of a message within its topic: ``keyframe_id`` if it has one, else ``stamp_ns``."""
+    kid = getattr(msg, "keyframe_id", None)
+    return int(kid) if kid is not None else int(msg.stamp_ns)
 
 
 @dataclass(frozen=True)
@@ -132,6 +143,20 @@ class _Subscription:
     msg_type: type[msgs.Message] | None
     queue_size: int
     pending: int = 0
+    # best effort: boxes ([envelope]) of this topic still in the node queue, oldest first; a box
+    # superseded beyond queue_size is emptied at once (memory freed, drop counted)
+    waiting: deque[list[Any]] = dataclasses.field(default_factory=deque)
+    idempotent: bool = False  # handle each key (keyframe id / stamp) once; repeats are dropped
+    handled: set[int] = dataclasses.field(default_factory=set)
+
+
+@dataclass
+class _CatchUp:
+    client: Any  # mogs_node.journal.protocol.JournalClient
+    topics: tuple[str, ...]
+    start: int = 0
+    replayed: int = 0
+    t0: float = 0.0
 
 
 class Node:
@@ -165,12 +190,16 @@ class Node:
         self._pub = Publisher(bus, context=self._ctx)
         self._sub: Subscriber | None = None
         self._subs: dict[str, _Subscription] = {}
-        self._queue: deque[tuple[_Subscription, msgs.Envelope]] = deque()
+        # (subscription, [envelope]) in arrival order; a best-effort box may be emptied (None)
+        self._queue: deque[tuple[_Subscription, list[Any]]] = deque()
         self._timers: list[list[Any]] = []  # [period_s, next_due, callback]
         self._extra: dict[
             Any, Callable[[], None]
         ] = {}  # external socket / fd -> on-readable callback
         self._stop = threading.Event()
+        self._catch_up: _CatchUp | None = None
+        self._replayed: dict[str, set[int]] = {}  # topic -> keys replayed from the journal
+        self._published_keys: dict[str, set[int]] = {}  # topic -> keys the journal already has
         self._t0 = time.monotonic()
         self.counters: dict[str, float] = {
             "received": 0,
@@ -205,8 +234,12 @@ class Node:
         reliable: bool = True,
         msg_type: type[msgs.Message] | None = None,
         queue_size: int | None = None,
+        idempotent: bool = False,
     ) -> None:
         """Call ``handler(msg)`` for each message of ``topic``.
+
+        ``idempotent``: a message whose key (keyframe id, else stamp) was handled before is
+        dropped and counted (``duplicates``): per-keyframe workers process each keyframe once.
 
         Reliable topics are handled in order with a bounded queue (``queue_size``, default the
         bus's reliable HWM); when it is full the node stops reading, ZeroMQ's own queue fills, and
@@ -219,11 +252,20 @@ class Node:
         elif reliable:
             self._sub.socket.rcvhwm = self.bus.reliable_hwm
         qs = queue_size if queue_size is not None else (self.bus.reliable_hwm if reliable else 1)
-        self._subs[topic] = _Subscription(topic, handler, reliable, msg_type, max(1, qs))
+        self._subs[topic] = _Subscription(
+            topic, handler, reliable, msg_type, max(1, qs), idempotent=idempotent
+        )
         self._sub.subscribe(topic, reliable=reliable)
 
     def publish(self, topic: str, msg: msgs.Message) -> None:
-        """Publish ``msg``; an invalid message is a bug in this node and raises MessageError."""
+        """Publish ``msg``; an invalid message is a bug in this node and raises MessageError.
+
+        After :meth:`catch_up`, an output the journal already held is not sent again.
+        """
+        done = self._published_keys.get(topic)
+        if done is not None and message_key(msg) in done:
+            self.counters["catch_up_suppressed"] += 1
+            return
         self._pub.publish(topic, msg)
         self.counters["published"] += 1
 
@@ -239,6 +281,136 @@ class Node:
 
     def has_subscriber(self, topic: str) -> bool:
         return self._pub.has_subscriber(topic)
+
+    # ------------------------------------------------------------------ catch-up
+
+    def catch_up(
+        self,
+        inputs: tuple[str, ...] | list[str],
+        outputs: tuple[str, ...] | list[str] = (),
+        *,
+        force: bool = False,
+        endpoint: str | None = None,
+        timeout_s: float = 30.0,
+        settle_s: float = 0.3,
+    ) -> bool:
+        """After a restart, replay the journaled ``inputs`` through their handlers (call from
+        ``setup`` after subscribing); returns whether a catch-up was started.
+
+        Only when the launcher flagged this process as a restart (``MOGS_CATCH_UP=1``: respawn
+        or ``--resume``) or ``force``. The journal's keys of ``outputs`` are fetched first: those
+        outputs are not published again (:meth:`already_published` lets a handler skip the work).
+        The run loop then handles journal batches before any live message (heartbeats go on);
+        live messages seen in the replay are dropped. ``settle_s`` lets this node's
+        subscriptions reach the broker, so that nothing falls between the journal and the live
+        stream.
+        """
+        if not (force or os.environ.get(CATCH_UP_ENV) == "1"):
+            return False
+        from mogs_node.journal.protocol import JournalClient
+
+        missing = [t for t in inputs if t not in self._subs]
+        if missing:
+            raise ConfigError(f"{self.name}: catch_up inputs {missing} are not subscribed")
+        client = JournalClient(self.bus, endpoint=endpoint, context=self._ctx, timeout_s=timeout_s)
+        if settle_s > 0:
+            time.sleep(settle_s)
+        try:
+            keys = client.keys(list(outputs)) if outputs else {}
+        except MogsError as err:  # no journal: run on without the missed messages, loudly
+            client.close()
+            self.log.error("no catch-up, journal unavailable: %s", err)
+            return False
+        self._published_keys = {t: set(keys.get(t, ())) for t in outputs}
+        self._catch_up = _CatchUp(client, tuple(inputs), t0=time.monotonic())
+        for k in ("catch_up_replayed", "catch_up_suppressed", "catch_up_duplicates"):
+            self.counters.setdefault(k, 0)
+        self.counters["catching_up"] = 1
+        self.log.info(
+            "catching up from %s: inputs %s; already published %s",
+            client.endpoint,
+            list(inputs),
+            {t: len(v) for t, v in self._published_keys.items()},
+        )
+        return True
+
+    def already_published(self, topic: str, key: int) -> bool:
+        """Whether the journal held an output of ``topic`` with ``key`` when this node restarted."""
+        return key in self._published_keys.get(topic, ())
+
+    @property
+    def catching_up(self) -> bool:
+        return self._catch_up is not None
+
+    def _catch_up_step(self, max_records: int = 32) -> None:
+        """Handle one journal batch; switch to live input when the journal has nothing newer."""
+        cu = self._catch_up
+        assert cu is not None
+        try:
+            records, nxt = cu.client.read(cu.topics, cu.start, max_records=max_records)
+        except MogsError as err:
+            self.log.error("catch-up stopped, journal unavailable: %s", err)
+            records, nxt = [], cu.start
+        if not records:
+            cu.client.close()
+            self._catch_up = None
+            self.counters["catching_up"] = 0
+            self.log.info(
+                "caught up: %d messages replayed in %.1f s; %d outputs not re-published",
+                cu.replayed,
+                time.monotonic() - cu.t0,
+                self.counters["catch_up_suppressed"],
+            )
+            return
+        cu.start = nxt
+        for frames in records:
+            try:
+                env = msgs.decode(frames, max_bytes=self.bus.max_message_bytes)
+            except MogsError as err:
+                self.log.warning("journal record rejected: %s", err)
+                continue
+            sub = self._subs.get(env.topic)
+            if sub is None or (sub.msg_type is not None and not isinstance(env.msg, sub.msg_type)):
+                continue
+            cu.replayed += 1
+            self.counters["catch_up_replayed"] += 1
+            self._replayed.setdefault(env.topic, set()).add(message_key(env.msg))
+            self._dispatch(sub, env)
+            self._run_timers()  # heartbeats go on during a long replay (e.g. a map rebuild)
+            if self._stop.is_set():
+                return
+
+    def _dispatch(self, sub: _Subscription, env: msgs.Envelope) -> None:
+        """Call the handler of ``sub`` (errors counted, never raised), once per key if idempotent."""
+        if sub.idempotent:
+            key = message_key(env.msg)
+            if key in sub.handled:
+                self.counters["duplicates"] = self.counters.get("duplicates", 0) + 1
+                return
+            sub.handled.add(key)
+        t0 = time.perf_counter()
+        try:
+            sub.handler(env.msg)
+        except MogsError as err:
+            self.counters["handler_errors"] += 1
+            self.log.warning("%s: rejected message seq %d: %s", env.topic, env.seq, err)
+        except Exception:  # a node never dies of one message; the traceback is logged
+            self.counters["handler_errors"] += 1
+            self.log.exception("%s: handler failed on seq %d", env.topic, env.seq)
+        dt_ms = (time.perf_counter() - t0) * 1000
+        self._latency_ewma_ms = 0.9 * self._latency_ewma_ms + 0.1 * dt_ms
+        self.counters["handler_ms_max"] = max(self.counters["handler_ms_max"], dt_ms)
+
+    def _seen_in_replay(self, env: msgs.Envelope) -> bool:
+        """A live message already handled from the journal (the overlap after a catch-up)."""
+        seen = self._replayed.get(env.topic)
+        if seen is None:
+            return False
+        if message_key(env.msg) in seen:
+            self.counters["catch_up_duplicates"] += 1
+            return True
+        del self._replayed[env.topic]  # past the overlap: live order is publication order
+        return False
 
     def request_stop(self) -> None:
         """Ask the run loop to finish (thread- and signal-safe)."""
@@ -292,15 +464,13 @@ class Node:
     def _read_available(self, max_batch: int = 1000) -> None:
         """Move queued socket messages into the node queue without blocking."""
         assert self._sub is not None
-        sock = self._sub.socket
         reliable_room = min(
             (s.queue_size for s in self._subs.values() if s.reliable), default=max_batch
         )
         n = 0
         while n < max_batch and len(self._queue) < reliable_room:
-            try:
-                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
+            frames = self._sub.recv_frames()  # zero-copy arrays, cheaper than recv_multipart
+            if frames is None:
                 return
             n += 1
             env = self._sub.decode_frames(frames)
@@ -310,34 +480,43 @@ class Node:
             if sub is None:
                 continue
             if sub.msg_type is not None and not isinstance(env.msg, sub.msg_type):
-                self._sub.stats[env.topic].malformed += 1
-                self.log.warning(
-                    "%s: expected %s, got %s", env.topic, sub.msg_type.TYPE, env.msg.TYPE
-                )
+                st = self._sub.stats[env.topic]
+                st.malformed += 1
+                if (
+                    st.malformed & (st.malformed - 1) == 0
+                ):  # 1st, 2nd, 4th, ...: a flood is not a log flood
+                    self.log.warning(
+                        "%s: expected %s, got %s (%d such messages so far)",
+                        env.topic,
+                        sub.msg_type.TYPE,
+                        env.msg.TYPE,
+                        st.malformed,
+                    )
                 continue
             sub.pending += 1
-            self._queue.append((sub, env))
+            box: list[Any] = [env]
+            if not sub.reliable:
+                # latest wins, decided on arrival: a superseded image does not wait in the
+                # queue behind a reliable backlog (memory bounded under a burst, issue 9)
+                if len(sub.waiting) >= sub.queue_size:
+                    sub.waiting.popleft()[0] = None
+                    self._sub.stats[env.topic].dropped += 1
+                sub.waiting.append(box)
+            self._queue.append((sub, box))
 
     def _handle_queue(self) -> None:
         assert self._sub is not None
         while self._queue and not self._stop.is_set():
-            sub, env = self._queue.popleft()
+            sub, box = self._queue.popleft()
             sub.pending -= 1
-            if not sub.reliable and sub.pending >= sub.queue_size:
-                self._sub.stats[env.topic].dropped += 1  # superseded: latest wins
+            env = box[0]
+            if not sub.reliable and env is not None:
+                sub.waiting.popleft()  # this box: boxes leave the queue in arrival order
+            if env is None:  # superseded on arrival (dropped and counted then)
                 continue
-            t0 = time.perf_counter()
-            try:
-                sub.handler(env.msg)
-            except MogsError as err:
-                self.counters["handler_errors"] += 1
-                self.log.warning("%s: rejected message seq %d: %s", env.topic, env.seq, err)
-            except Exception:  # a node never dies of one message; the traceback is logged
-                self.counters["handler_errors"] += 1
-                self.log.exception("%s: handler failed on seq %d", env.topic, env.seq)
-            dt_ms = (time.perf_counter() - t0) * 1000
-            self._latency_ewma_ms = 0.9 * self._latency_ewma_ms + 0.1 * dt_ms
-            self.counters["handler_ms_max"] = max(self.counters["handler_ms_max"], dt_ms)
+            if self._replayed and self._seen_in_replay(env):
+                continue
+            self._dispatch(sub, env)
             if self._sub.socket.poll(0, zmq.POLLIN):
                 self._read_available()
             self._run_timers()
@@ -355,6 +534,10 @@ class Node:
 
     def spin_once(self, timeout_ms: int = 100) -> None:
         """Wait up to ``timeout_ms`` for input, then handle everything queued and due timers."""
+        if self._catch_up is not None:  # journal first; live input waits in the socket
+            self._catch_up_step()
+            self._run_timers()
+            return
         now = time.monotonic()
         if self._timers:
             next_due = min(t[1] for t in self._timers)

@@ -65,4 +65,4 @@ def inproc_bus():
     yield bus, ctx
     stop.set()
     t.join(5)
-    ctx.term()
+    ctx.destroy(linger=0)  # a failed test may leave sockets open: term() would wait for them

@@ -139,3 +139,38 @@ def test_missing_key_file_is_a_clear_error(tmp_path: Path) -> None:
     )
     with pytest.raises(BusError, match="nope.key_secret"):
         Publisher(cfg)
+
+
+@pytest.mark.parametrize("intruder", ["rogue", "plain"])
+def test_unauthenticated_traffic_count_is_zero_both_ways(curve_bus, intruder: str) -> None:
+    """The figure in docs/reliability.md ("CURVE"): 1,000 messages each way, none gets through.
+
+    The intruder publishes 1,000 IMU samples on /imu while an authorised publisher sends 1,000
+    too: the authorised subscriber receives exactly the authorised 1,000 (none of the intruder's),
+    the intruder's subscriber receives 0 of them and its publisher never sees a subscription.
+    """
+    n = 1000
+    ctx = zmq.Context()
+    good_sub = Subscriber(curve_bus["good"], context=ctx)
+    good_sub.subscribe("/imu")
+    good_pub = Publisher(curve_bus["good"], context=ctx)
+    assert good_pub.wait_for_subscriber("/imu", 5)
+    bad_sub = Subscriber(curve_bus[intruder], context=ctx)
+    bad_sub.subscribe("/imu")
+    bad_pub = Publisher(curve_bus[intruder], context=ctx)
+    assert not bad_pub.wait_for_subscriber("/imu", 1.0)
+    for k in range(n):
+        bad_pub.publish("/imu", _imu(10_000 + k))
+        good_pub.publish("/imu", _imu(k))
+    got_good = _receive_all(good_sub, 2.0)
+    got_bad = _receive_all(bad_sub, 0.5)
+    stamps = [e.msg.stamp_ns for e in got_good]
+    assert stamps == list(range(n))  # all authorised traffic, in order, and nothing else
+    assert sum(s >= 10_000 for s in stamps) == 0
+    assert len(got_bad) == 0
+    assert good_sub.stats["/imu"].malformed == 0 and good_sub.malformed == 0
+    for s in (good_pub, bad_pub):
+        s.close(0)
+    for s in (good_sub, bad_sub):
+        s.close()
+    ctx.term()

@@ -16,7 +16,7 @@ import yaml
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Subscriber
 from mogs_node.errors import ConfigError
-from mogs_node.launch import load_launch_file, parse_launch
+from mogs_node.launch import load_launch_file, parse_launch, run_dir_overrides
 
 
 def _diag_until(sub: Subscriber, pred, timeout_s: float) -> msgs.Diagnostics:
@@ -53,6 +53,11 @@ def test_killed_node_is_respawned_and_sigint_stops_everything(
                 "respawn": "on_failure",
                 "respawn_delay_s": 0.2,
             },
+            {  # with a journal, a respawned node is told to catch up from it
+                "name": "journal",
+                "class": "mogs_node.journal.node:JournalNode",
+                "params": {"dir": str(tmp_path / "journal"), "topics": ["/frontend/keyframe"]},
+            },
         ],
     }
     path = tmp_path / "lt.yaml"
@@ -74,8 +79,16 @@ def test_killed_node_is_respawned_and_sigint_stops_everything(
             30,
         )
         assert second.pid != first.pid  # a new process, receiving again
+        # the first start is not a restart; the respawned one catches up from the journal
+        assert psutil.Process(second.pid).environ().get("MOGS_CATCH_UP") == "1"
+        source_pid = next(
+            c.pid
+            for c in psutil.Process(proc.pid).children()
+            if any("SyntheticSource" in a for a in c.cmdline())
+        )
+        assert psutil.Process(source_pid).environ().get("MOGS_CATCH_UP") == "0"
         family = psutil.Process(proc.pid).children(recursive=True)
-        assert len(family) == 3  # broker, source, respawned sink
+        assert len(family) == 4  # broker, source, respawned sink, journal
         t0 = time.monotonic()
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=10)
@@ -166,3 +179,12 @@ def test_hung_node_is_killed_and_respawned(tmp_path: Path, ipc_endpoints) -> Non
     text = out.decode()
     assert "sent no heartbeat" in text and "respawning sink" in text
     assert proc.returncode == 0
+
+
+def test_run_dir_overrides_point_the_run_state_at_one_folder(tmp_path: Path) -> None:
+    demo = load_launch_file(Path(__file__).resolve().parents[1] / "launch" / "demo.yaml")
+    o = run_dir_overrides(demo, tmp_path, resume=True)
+    assert o["journal"] == {"dir": str(tmp_path / "journal")}
+    assert o["report"] == {"out_dir": str(tmp_path)}
+    assert o["mapper"]["ply_path"] == str(tmp_path / "map.ply")
+    assert set(o) == {"journal", "report", "mapper"}

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from mogs_node.eval.report import REPO_ROOT
-from mogs_node.launch import Launcher, load_launch_file
+from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,9 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def command(args: argparse.Namespace) -> int:
     out = Path(args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    overrides = {"report": {"out_dir": str(out)}, "mapper": {"ply_path": str(out / "map.ply")}}
+    base = load_launch_file(args.launch)
+    # report, map, journal and mapper checkpoints in OUT: `mogs launch FILE --resume OUT` goes on
+    overrides = run_dir_overrides(base, out, resume=False)
     if args.frames is not None:
-        base = load_launch_file(args.launch)
         sim = dict(next(n for n in base.nodes if n.name == "player").params.get("sim", {}))
         sim["n_frames"] = args.frames
         overrides["player"] = {"sim": sim}

@@ -1,13 +1,20 @@
-"""``mogs launch FILE``: start the broker and every node of a launch file; Ctrl-C stops all."""
+"""``mogs launch FILE``: start the broker and every node of a launch file; Ctrl-C stops all.
+
+``--run-dir DIR`` puts the run's journal, report, map and checkpoints in ``DIR``;
+``--resume DIR`` continues the run stored there: the journal and the mapper's checkpoint are
+reopened, every node catches up from the journal and the player goes on after the last frame
+the journal holds (docs/reliability.md, "Resume").
+"""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import yaml
 
 from mogs_node.errors import ConfigError
-from mogs_node.launch import Launcher, load_launch_file
+from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--grace", type=float, default=3.0, help="seconds between SIGINT and SIGKILL on shutdown"
     )
+    parser.add_argument(
+        "--run-dir", default=None, metavar="DIR", help="keep journal, report, map, checkpoints here"
+    )
+    parser.add_argument(
+        "--resume", default=None, metavar="RUN_DIR", help="continue the run stored in RUN_DIR"
+    )
 
 
 def parse_overrides(items: list[str]) -> dict[str, dict]:
@@ -39,5 +52,19 @@ def parse_overrides(items: list[str]) -> dict[str, dict]:
 
 
 def command(args: argparse.Namespace) -> int:
-    launch = load_launch_file(args.file, overrides=parse_overrides(args.set))
-    return Launcher(launch, grace_s=args.grace).run(timeout_s=args.timeout)
+    overrides = parse_overrides(args.set)
+    run_dir = args.resume or args.run_dir
+    if args.resume and args.run_dir:
+        raise ConfigError("--resume RUN_DIR already names the run folder; drop --run-dir")
+    if args.resume and not (Path(args.resume) / "journal" / "journal.log").exists():
+        raise ConfigError(f"--resume {args.resume}: no journal/journal.log there to resume from")
+    if run_dir:
+        base = load_launch_file(args.file)
+        merged = run_dir_overrides(base, run_dir, resume=bool(args.resume))
+        for node, params in overrides.items():  # --set wins
+            merged.setdefault(node, {}).update(params)
+        overrides = merged
+    launch = load_launch_file(args.file, overrides=overrides)
+    return Launcher(launch, grace_s=args.grace, resume=bool(args.resume)).run(
+        timeout_s=args.timeout
+    )

@@ -14,6 +14,8 @@ from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.broker import bus_from_args
 
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -67,6 +69,10 @@ def command(args: argparse.Namespace) -> int:
     sub = Subscriber(bus_from_args(args))
     topic = getattr(args, "topic", "/")
     sub.subscribe(topic)
+    # hz also reads the nodes' heartbeats: their drops, losses, malformed counts and latency
+    diags: dict[str, msgs.Diagnostics] = {}
+    if args.action == "hz" and topic != DIAGNOSTICS_TOPIC:
+        sub.subscribe(DIAGNOSTICS_TOPIC)
     t0 = time.monotonic()
     end = None if args.duration is None else t0 + args.duration
     types: dict[str, str] = {}
@@ -76,6 +82,10 @@ def command(args: argparse.Namespace) -> int:
         while not stop.is_set() and (end is None or time.monotonic() < end):
             env = sub.receive(timeout_ms=100)
             now = time.monotonic()
+            if env is not None and env.topic == DIAGNOSTICS_TOPIC and topic != DIAGNOSTICS_TOPIC:
+                if isinstance(env.msg, msgs.Diagnostics):
+                    diags[env.msg.node] = env.msg
+                env = None
             if env is not None:
                 n += 1
                 types[env.topic] = env.msg.TYPE
@@ -84,7 +94,7 @@ def command(args: argparse.Namespace) -> int:
                     if args.count is not None and n >= args.count:
                         break
             if args.action == "hz" and now - last_report >= 1.0:
-                _print_hz(sub, topic, now - t0)
+                _print_hz(sub, topic, now - t0, diags)
                 last_report = now
     finally:
         sub.close()
@@ -101,17 +111,49 @@ def command(args: argparse.Namespace) -> int:
                 "no messages seen (is the broker running, and on which endpoints?)", file=sys.stderr
             )
     if args.action == "hz":
-        _print_hz(sub, topic, time.monotonic() - t0)
+        _print_hz(sub, topic, time.monotonic() - t0, diags)
     return 0
 
 
-def _print_hz(sub: Subscriber, topic: str, dt: float) -> None:
+def node_topic_lines(topic: str, diags: dict[str, msgs.Diagnostics]) -> list[str]:
+    """One line per node that publishes or subscribes ``topic``, from its latest ``/diagnostics``:
+    what it published or received, dropped (best effort, latest wins), lost (sequence gaps) and
+    rejected as malformed on that topic, and its handler latency."""
+    lines = []
+    for name in sorted(diags):
+        d = diags[name]
+        st = d.topics.get(topic)
+        if not isinstance(st, dict):
+            continue
+        parts = []
+        if "published" in st:
+            parts.append(f"published {st['published']}")
+        if "received" in st:
+            parts.append(
+                f"received {st.get('received', 0)}  dropped {st.get('dropped', 0)}  "
+                f"lost {st.get('lost', 0)}  malformed {st.get('malformed', 0)}"
+            )
+        lat = d.counters.get("loop_latency_ms")
+        if lat is not None and "received" in st:
+            parts.append(
+                f"latency {lat:.1f} ms (max {d.counters.get('handler_ms_max', 0.0):.1f})  "
+                f"queue {int(d.counters.get('queue_depth', 0))}"
+            )
+        lines.append(f"  {name:<14} [{d.status}] " + "  ".join(parts))
+    return lines
+
+
+def _print_hz(
+    sub: Subscriber, topic: str, dt: float, diags: dict[str, msgs.Diagnostics] | None = None
+) -> None:
     st = sub.stats.get(topic)
     if st is None or dt <= 0:
         print(f"{topic}: no messages yet", flush=True)
-        return
-    print(
-        f"{topic}: {st.received / dt:.2f} msg/s  {st.received_bytes / dt / 1e6:.2f} MB/s  "
-        f"received {st.received}  lost {st.lost} in {st.gaps} gaps  malformed {st.malformed}",
-        flush=True,
-    )
+    else:
+        print(
+            f"{topic}: {st.received / dt:.2f} msg/s  {st.received_bytes / dt / 1e6:.2f} MB/s  "
+            f"received {st.received}  lost {st.lost} in {st.gaps} gaps  malformed {st.malformed}",
+            flush=True,
+        )
+    for line in node_topic_lines(topic, diags or {}):
+        print(line, flush=True)

@@ -72,9 +72,16 @@ class DepthPriorNode(Node):
                 parse_params(DepthAnythingParams, p.onnx, where=f"{self.name}.onnx"))
         self.history: deque[_Past] = deque(maxlen=self.flow_params.history)
         self._K: np.ndarray | None = None
-        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe)
+        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe,
+                       idempotent=True)
+        self.catch_up((p.in_topic,), (p.out_topic,))  # after a restart: the keyframes missed
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
+        if self.already_published(self.params.out_topic, kf.keyframe_id):
+            if self.net is None:  # done before a restart: only a reference for the flow prior
+                grey = self._grey(kf)
+                self.history.append(_Past(kf.keyframe_id, grey, np.array(kf.T_world_cam)))
+            return
         if self.net is not None:
             rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
             out = self.net.infer(np.ascontiguousarray(rgb))
@@ -88,12 +95,17 @@ class DepthPriorNode(Node):
             object_labels=None, object_model=None))
         self.log.debug("keyframe %d: prior %s", kf.keyframe_id, extra)
 
-    def _flow(self, kf: msgs.Keyframe):
+    def _grey(self, kf: msgs.Keyframe) -> np.ndarray:
+        """The keyframe in grey; the history is reset when the camera changed."""
         grey = kf.image if kf.image.ndim == 2 else cv2.cvtColor(kf.image, cv2.COLOR_RGB2GRAY)
         if self._K is None or not np.array_equal(self._K, kf.K) or (
                 self.history and self.history[-1].grey.shape != grey.shape):
             self.history.clear()  # another camera or resolution: old keyframes are unusable
             self._K = np.array(kf.K)
+        return np.ascontiguousarray(grey)
+
+    def _flow(self, kf: msgs.Keyframe):
+        grey = self._grey(kf)
         past = list(self.history)
         refs = choose_references(kf.T_world_cam, np.array([q.T_world_cam for q in past])
                                  if past else np.zeros((0, 4, 4)), self.flow_params)

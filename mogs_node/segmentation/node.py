@@ -51,9 +51,13 @@ class SegmentationNode(Node):
         self.sam: SamOnnx | None = None
         if p.backend == "sam":
             self.sam = SamOnnx(parse_params(SamParams, p.sam, where=f"{self.name}.sam"))
-        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe)
+        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe,
+                       idempotent=True)
+        self.catch_up((p.in_topic,), (p.out_topic,))  # after a restart: the keyframes missed
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
+        if self.already_published(self.params.out_topic, kf.keyframe_id):
+            return  # segmented before this process restarted
         rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
         if self.sam is not None:
             labels = self.sam.generate(np.ascontiguousarray(rgb)).labels
