@@ -105,6 +105,8 @@ def collect(
 @dataclass(frozen=True)
 class SlowFrontendParams:
     delay_ms: float = 50.0  # work per image
+    after_ack_ms: float = 0.0  # work per image after its acknowledgement (the real frontend
+    # publishes the odometry, then the keyframe)
     keyframe_every: int = 3  # every n-th image becomes a keyframe
     summary_path: str = ""  # JSON summary on shutdown
 
@@ -138,6 +140,7 @@ class SlowFrontend(Node):
             kf = make_keyframe(n - 1, 32, 24, 4)
             kf.stamp_ns = msg.stamp_ns
             self.publish("/frontend/keyframe", kf)
+        time.sleep(self.params.after_ack_ms / 1000)
 
     def teardown(self) -> None:
         if self.params.summary_path:
@@ -304,13 +307,22 @@ def test_kitti_excerpt_streams_all_78_frames_at_10_hz(ipc_endpoints, tmp_path: P
 
 
 def _flow_run(
-    bus: BusConfig, tmp_path: Path, play_args: list[str], frontend_delay_ms: float = 40.0
+    bus: BusConfig,
+    tmp_path: Path,
+    play_args: list[str],
+    frontend_delay_ms: float = 40.0,
+    after_ack_ms: float = 0.0,
 ) -> tuple[dict, dict, str]:
     fe_sum, mz_sum = tmp_path / "fe.json", tmp_path / "mz.json"
     fe = start_node(
         "tests.test_bridges_player:SlowFrontend",
         "slow_frontend",
-        {"delay_ms": frontend_delay_ms, "keyframe_every": 3, "summary_path": str(fe_sum)},
+        {
+            "delay_ms": frontend_delay_ms,
+            "after_ack_ms": after_ack_ms,
+            "keyframe_every": 3,
+            "summary_path": str(fe_sum),
+        },
         bus,
     )
     mz = start_node(
@@ -339,8 +351,10 @@ def test_fast_mode_loses_no_frame_and_bounds_the_keyframe_backlog(
     bus = BusConfig(*ipc_endpoints)
     broker = start_broker(bus)
     try:
+        # the default window (1 image in flight) with a frontend that keeps working after its
+        # acknowledgement: the next image waits in its latest-wins queue and is not superseded
         fe, mz, out = _flow_run(
-            bus, tmp_path, ["--fast", "--max-in-flight", "1", "--max-keyframes-in-flight", "1"]
+            bus, tmp_path, ["--fast", "--max-keyframes-in-flight", "1"], 20.0, after_ack_ms=20.0
         )
     finally:
         stop(broker)
@@ -350,6 +364,25 @@ def test_fast_mode_loses_no_frame_and_bounds_the_keyframe_backlog(
     assert mz["ids"] == list(range(0, 18, 3))  # every keyframe metrized, in order
     assert mz["max_backlog"] == 0  # never more than one keyframe waiting
     assert "18/18 frames (100.0%)" in out
+
+
+@pytest.mark.slow
+def test_two_images_in_flight_lose_frames_to_a_latest_wins_frontend(
+    ipc_endpoints, tmp_path: Path
+) -> None:
+    """Why the default window is 1: with 2, the image sent on an acknowledgement arrives while
+    the previous one still waits in the frontend's one-deep queue and supersedes it."""
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    try:
+        fe, _, out = _flow_run(
+            bus, tmp_path, ["--fast", "--max-in-flight", "2"], 20.0, after_ack_ms=60.0
+        )
+    finally:
+        stop(broker)
+    st = fe["topics"]["/camera/image"]
+    assert "18/18 frames (100.0%)" in out  # all published (dropped ones acknowledged by later)
+    assert st["dropped"] > 0 and len(fe["stamps"]) == 18 - st["dropped"]
 
 
 @pytest.mark.slow

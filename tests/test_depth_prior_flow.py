@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -124,6 +125,14 @@ def test_choose_references_by_distance() -> None:
     # the second is the one closest to 1.0 m among those >= 0.6 m: index 2 (0.95 m).
     assert choose_references(Tk, hist, FlowPriorParams()) == [4, 2]
     assert choose_references(Tk, hist, FlowPriorParams(far_baseline_m=0)) == [4]
+    # a second reference further back than max_far_baseline_m is not taken
+    near = FlowPriorParams(far_baseline_m=0.9, max_far_baseline_m=0.9)  # 0.95 m is too far
+    assert choose_references(Tk, hist, near) == [4, 3]
+    assert choose_references(
+        Tk, hist, replace(near, far_baseline_m=0.5, max_far_baseline_m=0.65)
+    ) == [4]
+    with pytest.raises(ConfigError, match="max_far_baseline_m"):
+        FlowPriorParams(far_baseline_m=1.0, max_far_baseline_m=0.5)
     assert choose_references(Tk, hist[-2:], FlowPriorParams()) == []  # standing still
     assert choose_references(Tk, np.zeros((0, 4, 4))) == []
 
@@ -206,8 +215,9 @@ def test_triangulate_matches_exact_and_matches_reference(seed, baseline, yaw) ->
     T_r_k = se3_inverse(T_k_r)
     X_r = CAM.backproject(uv_k, depth) @ T_r_k[:3, :3].T + T_r_k[:3, 3]
     uv_r, front = CAM.project(X_r)
-    d, z_r, par, epi = triangulate_matches(uv_k[:, 0], uv_k[:, 1], uv_r[:, 0], uv_r[:, 1],
-                                           CAM.K, T_r_k)
+    d, z_r, par, epi = triangulate_matches(
+        uv_k[:, 0], uv_k[:, 1], uv_r[:, 0], uv_r[:, 1], CAM.K, T_r_k
+    )
     assert d.dtype == np.float32 and par.dtype == np.float32
     ok = front & (par > 0.5)  # enough parallax for float32 to resolve the depth
     if ok.sum() < 10:
@@ -222,8 +232,9 @@ def test_triangulate_matches_exact_and_matches_reference(seed, baseline, yaw) ->
     line_dir = uv_r[ok][0] - CAM.project(X_far)[0][0]  # along the epipolar line
     normal = np.array([-line_dir[1], line_dir[0]]) / np.linalg.norm(line_dir)
     moved = uv_r[ok][0] + 3.0 * normal
-    *_, e = triangulate_matches(uv_k[ok][:1, 0], uv_k[ok][:1, 1], moved[None, 0], moved[None, 1],
-                                CAM.K, T_r_k)
+    *_, e = triangulate_matches(
+        uv_k[ok][:1, 0], uv_k[ok][:1, 1], moved[None, 0], moved[None, 1], CAM.K, T_r_k
+    )
     assert e[0] == pytest.approx(3.0, abs=0.05)
 
 

@@ -46,7 +46,7 @@ def _play_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds in")
     g.add_argument("--ack-topic", default="/frontend/odometry", help="fast: acknowledgements")
     g.add_argument(
-        "--max-in-flight", type=int, default=2, help="fast: unacknowledged images at most"
+        "--max-in-flight", type=int, default=1, help="fast: unacknowledged images at most"
     )
     g.add_argument(
         "--max-keyframes-in-flight",

@@ -69,6 +69,7 @@ class FlowPriorParams:
     dis_preset: str = "medium"  # OpenCV DIS preset: ultrafast | fast | medium (best coverage)
     min_baseline_m: float = 0.3  # first reference: nearest earlier keyframe at least this far
     far_baseline_m: float = 1.0  # second reference near this distance back (0 disables it)
+    max_far_baseline_m: float = 2.0  # ... and never further back than this (see choose_references)
     min_parallax_deg: float = 0.5  # valid only where the two rays meet at a larger angle
     max_fb_error_px: float = 1.0  # valid only where forward-backward flow error is below this
     max_epipolar_px: float = 2.0  # valid only where the match lies this close to its epipolar line
@@ -91,6 +92,8 @@ class FlowPriorParams:
             raise ConfigError(f"FlowPriorParams.dis_preset: expected one of {sorted(_DIS_PRESETS)}")
         if self.min_baseline_m <= 0 or self.far_baseline_m < 0:
             raise ConfigError("FlowPriorParams: need min_baseline_m > 0 and far_baseline_m >= 0")
+        if self.max_far_baseline_m < self.far_baseline_m:
+            raise ConfigError("FlowPriorParams: need max_far_baseline_m >= far_baseline_m")
         if min(self.min_parallax_deg, self.max_fb_error_px, self.max_epipolar_px) <= 0:
             raise ConfigError("FlowPriorParams: parallax, fb and epipolar thresholds must be > 0")
         if self.max_depth_m <= 0 or self.ground_margin < 1 or self.rel_err_ref <= 0:
@@ -303,11 +306,11 @@ def two_view_depth(
     u, v, _ = _pixel_rays(K, H, W)
     u_r = u + flow_f[..., 0]
     v_r = v + flow_f[..., 1]
-    back = cv2.remap(flow_b, u_r, v_r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                     borderValue=(1e4, 1e4))
+    back = cv2.remap(
+        flow_b, u_r, v_r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(1e4, 1e4)
+    )
     fb = np.sqrt((flow_f[..., 0] + back[..., 0]) ** 2 + (flow_f[..., 1] + back[..., 1]) ** 2)
-    cand = (fb < params.max_fb_error_px) & (u_r >= 0) & (u_r <= W - 1) & (v_r >= 0) & (
-        v_r <= H - 1)
+    cand = (fb < params.max_fb_error_px) & (u_r >= 0) & (u_r <= W - 1) & (v_r >= 0) & (v_r <= H - 1)
     if params.max_flow_gradient > 0:
         # DIS smooths across occlusion boundaries: near a jump of the flow both sides are unsure.
         grad = np.zeros((H, W), np.float32)
@@ -324,8 +327,14 @@ def two_view_depth(
 
     baseline = float(np.linalg.norm(T[:3, 3]))
     depth, z_r, parallax, epi = triangulate_matches(uk, vk, ur, vr, K, T)
-    ok = (np.isfinite(depth) & (depth > 0) & (z_r > 0) & (depth <= bound.ravel()[idx])
-          & (parallax > params.min_parallax_deg) & (epi < params.max_epipolar_px))
+    ok = (
+        np.isfinite(depth)
+        & (depth > 0)
+        & (z_r > 0)
+        & (depth <= bound.ravel()[idx])
+        & (parallax > params.min_parallax_deg)
+        & (epi < params.max_epipolar_px)
+    )
     parallax_px = np.radians(parallax) * np.float32(0.5 * (K[0, 0] + K[1, 1]))
     sigma = np.maximum(fb.ravel()[idx], np.float32(params.flow_noise_px))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -386,8 +395,9 @@ def triangulate_matches(
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = (A1 * B1 + A2 * B2) / (A1 * A1 + A2 * A2)
     z_r = depth * az + t[2]
-    cos_p = (ax * xr + ay * yr + az) / np.sqrt((ax * ax + ay * ay + az * az)
-                                               * (xr * xr + yr * yr + 1.0))
+    cos_p = (ax * xr + ay * yr + az) / np.sqrt(
+        (ax * ax + ay * ay + az * az) * (xr * xr + yr * yr + 1.0)
+    )
     parallax = np.degrees(np.arccos(np.clip(cos_p, -1.0, 1.0)))
     # Epipolar line in r pixels: l = F [u, v, 1], F = K^-T [t]x R K^-1.
     tx = np.array([[0, -T[2, 3], T[1, 3]], [T[2, 3], 0, -T[0, 3]], [-T[1, 3], T[0, 3], 0]])
@@ -411,7 +421,14 @@ def choose_references(
 
     First: among earlier keyframes at least ``min_baseline_m`` away, the nearest one. Second
     (if ``far_baseline_m > 0``): the one whose distance is closest to ``far_baseline_m``, if that
-    distance exceeds 1.5x the first's. Returns ``[]`` when none is far enough (standing still).
+    distance exceeds 1.5x the first's and is at most ``max_far_baseline_m``. Returns ``[]`` when
+    none is far enough (standing still).
+
+    The upper bound matters when keyframes are sparse (the demo's are 1-3 m apart): without it the
+    "far" reference was the next keyframe back, 4-5 m away, where DIS fails on the large
+    displacement; its wrong depths then either filled pixels or, disagreeing with the good near
+    pair, erased them (prior AbsRel 0.138 -> 0.094 without such pairs,
+    docs/benchmarks.md "pipeline-depth-stages").
     """
     Tk = check_array("T_world_cam_k", T_world_cam_k, shape=(4, 4), finite=True)
     Th = np.asarray(T_world_cam_history, np.float64)
@@ -425,7 +442,7 @@ def choose_references(
     first = int(far[np.argmin(dist[far])])
     refs = [first]
     if params.far_baseline_m > 0:
-        cand = far[dist[far] >= 1.5 * dist[first]]
+        cand = far[(dist[far] >= 1.5 * dist[first]) & (dist[far] <= params.max_far_baseline_m)]
         if cand.size:
             second = int(cand[np.argmin(np.abs(dist[cand] - params.far_baseline_m))])
             refs.append(second)
@@ -464,8 +481,14 @@ def compute_flow_prior(
     rejected = np.zeros((H, W), bool)
     for i, (image_r, T_world_cam_r) in enumerate(references):
         Tr = check_array(f"references[{i}].T_world_cam", T_world_cam_r, shape=(4, 4), finite=True)
-        pair = two_view_depth(grey, _grey(image_r, f"references[{i}].image"), K,
-                              se3_inverse(Tr) @ Tk, params, depth_bound_m=bound)
+        pair = two_view_depth(
+            grey,
+            _grey(image_r, f"references[{i}].image"),
+            K,
+            se3_inverse(Tr) @ Tk,
+            params,
+            depth_bound_m=bound,
+        )
         pc = pair.confidence
         both = (conf > 0) & (pc > 0)
         with np.errstate(divide="ignore", invalid="ignore"):

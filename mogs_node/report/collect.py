@@ -47,6 +47,8 @@ class RunCollector:
     pending_depth: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     mapped: set[int] = field(default_factory=set)  # keyframe ids the mapper reported
     unestimated_frames: int = 0  # odometry acknowledgements without a pose (initialising, ...)
+    acknowledged: set[int] = field(default_factory=set)  # stamps with any odometry message
+    node_counters: dict[str, dict[str, float]] = field(default_factory=dict)  # last per node
     last_stats: dict[str, Any] = field(default_factory=dict)
 
     def add_depth(self, keyframe_id: int, depth_m: np.ndarray, confidence: np.ndarray) -> None:
@@ -116,6 +118,7 @@ def summarise(c: RunCollector) -> dict[str, Any]:
         "keyframes_mapped": len(set(c.keyframes) & c.mapped),
         "frames_with_odometry": len(c.odometry),
         "frames_without_estimate": c.unestimated_frames,
+        "frames_acknowledged": len(c.acknowledged),
     }
     n = sum(s.count for s in c.depth_scores)
     if n:
@@ -138,6 +141,8 @@ def summarise(c: RunCollector) -> dict[str, Any]:
             out["trajectory"] = {"error": str(err)}
     if c.last_stats:
         out["mapper"] = dict(c.last_stats)
+    if c.node_counters:  # what each node dropped (best effort) or lost (reliable gaps)
+        out["nodes"] = {n: dict(v) for n, v in sorted(c.node_counters.items())}
     return out
 
 

@@ -4,8 +4,9 @@ Outputs in ``out_dir``: ``trajectory_frames.tum`` / ``.kitti`` (odometry of ever
 ``trajectory_keyframes.tum`` / ``.kitti``, ``groundtruth.tum`` when ground truth was streamed,
 ``depth/kf_NNNNNN.npz`` (metric depth + confidence per keyframe), ``renders/kf_NNNNNN.png``,
 ``report.md`` and ``summary.json``. The node stops by itself once the source node has stopped and
-every keyframe has its metrized depth and reached the mapper (or after ``idle_timeout_s`` without
-input), so a launch file can end the run with ``exit_when: [report]``.
+every keyframe has its metrized depth and reached the mapper (or ``settle_s`` after its last input
+when no keyframe was made at all, or after ``idle_timeout_s`` without input), so a launch file
+can end the run with ``exit_when: [report]``.
 """
 
 from __future__ import annotations
@@ -27,6 +28,18 @@ __all__ = ["NOT_ESTIMATED", "RunReportNode", "RunReportParams"]
 
 #: odometry statuses that acknowledge a frame without estimating its pose (frontend node)
 NOT_ESTIMATED = frozenset({"initializing", "reset", "rejected", "dropped"})
+#: node counters kept in summary.json: what each node received, dropped (best effort superseded)
+#: and lost (reliable gaps); the player's frame counts
+NODE_COUNTERS = (
+    "received",
+    "dropped",
+    "lost",
+    "handler_errors",
+    "frames_published",
+    "frames_total",
+    "ack_timeouts",
+    "frontend_image_time_backwards",
+)
 
 
 @dataclass(frozen=True)
@@ -59,6 +72,17 @@ class RunReportNode(Node):
         self.subscribe("/groundtruth/pose", self.on_gt_pose, msg_type=msgs.PoseStamped)
         self.subscribe("/groundtruth/depth", self.on_gt_depth, msg_type=msgs.DepthMap)
         self.subscribe("/diagnostics", self.on_diagnostics, msg_type=msgs.Diagnostics)
+        # after a restart / on --resume: everything the run produced so far, from the journal
+        self.catch_up(
+            (
+                "/frontend/odometry",
+                "/frontend/keyframe",
+                "/metrizer/depth",
+                "/mapper/stats",
+                "/groundtruth/pose",
+                "/groundtruth/depth",
+            )
+        )
         self.every(0.5, self.check_done)
 
     def _touch(self) -> None:
@@ -66,6 +90,7 @@ class RunReportNode(Node):
 
     def on_odometry(self, m: msgs.Odometry) -> None:
         self._touch()
+        self.c.acknowledged.add(m.stamp_ns)
         if m.status in NOT_ESTIMATED:  # an acknowledgement without an estimate: not scored
             self.c.unestimated_frames += 1
             return
@@ -117,6 +142,9 @@ class RunReportNode(Node):
         self.c.add_gt_depth(m.stamp_ns, np.array(m.depth))
 
     def on_diagnostics(self, m: msgs.Diagnostics) -> None:
+        self.c.node_counters[m.node] = {
+            k: float(m.counters.get(k, 0.0)) for k in NODE_COUNTERS if k in m.counters
+        }
         if (
             m.node == self.params.source_node
             and m.status == "stopped"
@@ -130,6 +158,11 @@ class RunReportNode(Node):
             return
         idle = time.monotonic() - self.last_input
         if self.c.complete and idle >= self.params.settle_s:
+            self.request_stop()
+        elif not self.c.keyframes and idle >= self.params.settle_s:
+            # the input is over and the frontend made no keyframe at all (e.g. a stream without
+            # IMU): nothing will reach the workers, so do not wait for idle_timeout_s
+            self.log.warning("the source finished and no keyframe was made: reporting what came")
             self.request_stop()
         elif idle >= self.params.idle_timeout_s:
             self.log.warning("no input for %.0f s: writing an incomplete report", idle)

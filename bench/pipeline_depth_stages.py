@@ -1,0 +1,126 @@
+"""Per-stage breakdown of the demo's depth error (issue 8): one input swapped at a time.
+
+Runs the demo's frontend in-process on the demo sequence and metrizes each keyframe with every
+combination of sparse points (frontend | ground truth at the same pixels), prior (flow on the
+frontend poses | flow on ground-truth poses | simulated LFM) and masks (graph | oracle); see
+:mod:`mogs_node.eval.pipeline_stages`. Writes the ``pipeline-depth-stages`` section of
+docs/benchmarks.md.
+
+    python bench/pipeline_depth_stages.py [--seed S] [--launch launch/demo.yaml] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mogs_node.eval.pipeline_stages import (  # noqa: E402
+    demo_params,
+    evaluate_stages,
+    prepare_keyframes,
+    stage_inputs,
+)
+from mogs_node.eval.report import machine_line, update_markdown_section  # noqa: E402
+
+SPARSE_NAME = {
+    "frontend": "frontend points",
+    "gt": "GT depth at the same pixels",
+    "gt_corners": "GT depth at 500 corners",
+}
+PRIOR_NAME = {
+    "flow": "flow prior, frontend poses",
+    "flow_gtpose": "flow prior, GT poses",
+    "lfm": "simulated LFM",
+}
+MASK_NAME = {"graph": "graph masks", "oracle": "oracle masks"}
+
+
+def markdown(fig: dict, info: dict, command: str) -> str:
+    c = fig["combos"]
+    base = c["frontend|flow|graph"]
+    lines = [
+        "## Pipeline depth error by stage (issue 8)",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {machine_line()}. The demo's sequence and node parameters (`launch/demo.yaml`); "
+        f"the frontend run in-process on all {info['frames']} frames: {info['keyframes']} "
+        f"keyframes, {info['estimated_frames']} frames with a pose. AbsRel pooled over pixels, "
+        "coverage = share of ground-truth pixels with a metrized depth (mean over keyframes), "
+        "scored as the run report scores (`mogs_node/report/collect.py`).",
+        "",
+        "| sparse points | prior | masks | AbsRel | delta1 | coverage | vs demo inputs |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for key, v in c.items():
+        sp, pr, mk = key.split("|")
+        lines.append(
+            f"| {SPARSE_NAME[sp]} | {PRIOR_NAME[pr]} | {MASK_NAME[mk]} | {v['absrel']:.3f} | "
+            f"{v['delta1']:.3f} | {v['coverage']:.3f} | {v['absrel'] - base['absrel']:+.3f} |"
+        )
+    lines += [
+        "",
+        "The priors on their own (pixels where their confidence > 0):",
+        "",
+        "| prior | AbsRel | delta1 | coverage |",
+        "| --- | ---: | ---: | ---: |",
+    ]
+    for pr, v in fig["prior_alone"].items():
+        lines.append(
+            f"| {PRIOR_NAME[pr]} | {v['absrel']:.3f} | {v['delta1']:.3f} | {v['coverage']:.3f} |"
+        )
+    sp = [s for s in fig["sparse"] if s["n"]]
+    if sp:
+        med = sorted(s["median_relerr"] for s in sp)[len(sp) // 2]
+        scales = [s["scale"] for s in sp]
+        counts = [s["n"] + s["on_depth_edge"] for s in fig["sparse"]]
+        lines += [
+            "",
+            f"Frontend sparse points against the truth at their pixels (off depth edges): median "
+            f"over keyframes of the per-keyframe median relative error {med:.3f}; scale (median "
+            f"z / z_gt) {min(scales):.3f}-{max(scales):.3f}. Points per keyframe: "
+            f"{', '.join(map(str, counts))} ({sum(s['on_depth_edge'] for s in fig['sparse'])} "
+            "on a depth edge in all).",
+        ]
+    lines += [
+        "",
+        'What each stage costs and what is inherent: docs/bridges.md, "Pipeline end to end".',
+    ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
+    ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
+    ap.add_argument("--json", default=None, help="also write the figures here")
+    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    t0 = time.perf_counter()
+    params = demo_params(args.launch)
+    kfs, info = prepare_keyframes(params, seed=args.seed)
+    inputs = stage_inputs(kfs, params)
+    fig = evaluate_stages(kfs, inputs, params)
+    info.pop("K_sim", None)
+    fig["info"] = info
+    fig["wall_s"] = time.perf_counter() - t0
+    command = "python bench/pipeline_depth_stages.py" + "".join(
+        f" {a}" for a in sys.argv[1:] if a != "--no-docs"
+    )
+    md = markdown(fig, info, command)
+    print(md)
+    if args.json:
+        Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
+    if not args.no_docs:
+        update_markdown_section("pipeline-depth-stages", md)
+
+
+if __name__ == "__main__":
+    main()
