@@ -32,6 +32,23 @@ def private_bus(**kwargs: Any) -> BusConfig:
     return BusConfig(f"ipc://{d}/pub.ipc", f"ipc://{d}/sub.ipc", **kwargs)
 
 
+def node_argv(cls: str, name: str, params: dict[str, Any], bus: BusConfig) -> list[str]:
+    """The command line of one node process (``mogs node``) on ``bus``."""
+    return [
+        sys.executable,
+        "-m",
+        "mogs_node.cli",
+        "node",
+        cls,
+        "--name",
+        name,
+        "--params-json",
+        json.dumps(params),
+        "--bus-json",
+        json.dumps(bus.to_dict()),
+    ]
+
+
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env.setdefault("OMP_NUM_THREADS", "1")  # 2 shared cores: no thread pools per process
@@ -70,19 +87,7 @@ class Procs:
         log = log_dir / f"{name}.log"
         self.logs[name] = log
         self.nodes[name] = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mogs_node.cli",
-                "node",
-                cls,
-                "--name",
-                name,
-                "--params-json",
-                json.dumps(params),
-                "--bus-json",
-                json.dumps(self.bus.to_dict()),
-            ],
+            node_argv(cls, name, params, self.bus),
             cwd=REPO,
             env=_env(),
             stdout=log.open("wb"),

@@ -42,20 +42,11 @@ def start_broker(bus: BusConfig) -> subprocess.Popen:
 
 
 def start_node(cls: str, name: str, params: dict, bus: BusConfig) -> subprocess.Popen:
-    return subprocess.Popen(
-        [
-            *PY,
-            "node",
-            cls,
-            "--name",
-            name,
-            "--params-json",
-            json.dumps(params),
-            "--bus-json",
-            json.dumps(bus.to_dict()),
-        ],
-        cwd=REPO,
-    )
+    # imported here: node processes import this module (its test node classes) without tests/
+    # on their path
+    from _reliability_harness import node_argv
+
+    return subprocess.Popen(node_argv(cls, name, params, bus), cwd=REPO)
 
 
 def play(bus: BusConfig, *args: str) -> subprocess.Popen:

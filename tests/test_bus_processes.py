@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _reliability_harness import node_argv
 
 from mogs_node.bus import BusConfig
 
@@ -41,19 +42,7 @@ def start_broker(bus: BusConfig) -> subprocess.Popen:
 
 
 def run_node(cls: str, name: str, params: dict, bus: BusConfig) -> subprocess.Popen:
-    return subprocess.Popen(
-        [
-            *PY,
-            "node",
-            cls,
-            "--name",
-            name,
-            "--params-json",
-            json.dumps(params),
-            "--bus-json",
-            json.dumps(bus.to_dict()),
-        ]
-    )
+    return subprocess.Popen(node_argv(cls, name, params, bus))
 
 
 def stop(proc: subprocess.Popen) -> None:
