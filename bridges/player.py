@@ -240,7 +240,7 @@ class PlayerNode(Node):
             self.total_messages,
             f"fast (flow control on {p.ack_topic})" if p.fast else f"rate {p.rate}x",
         )
-        self.every(p.tick_s, self.tick)
+        self._tick_timer = self.every(p.tick_s, self.tick)
 
     def _skip_journaled(self) -> int:
         """After a restart or on ``--resume``: drop the images and IMU samples the journal already
@@ -291,12 +291,14 @@ class PlayerNode(Node):
 
     def _on_ack(self, msg: msgs.Message) -> None:
         self.frames.ack(msg.stamp_ns)
+        self.reschedule(self._tick_timer, 0.0)  # a blocked player may go on now
 
     def _on_keyframe(self, msg: msgs.Message) -> None:
         self.keyframes.sent(msg.stamp_ns)
 
     def _on_keyframe_done(self, msg: msgs.Message) -> None:
         self.keyframes.ack(msg.stamp_ns)
+        self.reschedule(self._tick_timer, 0.0)
 
     def _may_send_image(self, now: float) -> bool:
         if self.frames.can_send() and self.keyframes.can_send():
@@ -479,6 +481,12 @@ class PlayerNode(Node):
                     self.state = "waiting for " + (
                         p.ack_topic if not self.frames.can_send() else p.keyframe_done_topic
                     )
+                    # nothing to do until an acknowledgement arrives (its handler wakes the
+                    # tick) or the ack timeout runs out: sleep in the poll instead of ticking
+                    snooze = 0.25
+                    if p.ack_timeout_s > 0 and self._blocked_since is not None:
+                        snooze = min(snooze, self._blocked_since + p.ack_timeout_s - now)
+                    self.reschedule(self._tick_timer, snooze)
                     break
                 self.state = "playing"
             elif not self.clock.is_due(stamp, now):

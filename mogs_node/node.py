@@ -269,11 +269,20 @@ class Node:
         self._pub.publish(topic, msg)
         self.counters["published"] += 1
 
-    def every(self, period_s: float, callback: Callable[[], None]) -> None:
-        """Call ``callback`` every ``period_s`` seconds from the run loop."""
+    def every(self, period_s: float, callback: Callable[[], None]) -> int:
+        """Call ``callback`` every ``period_s`` seconds from the run loop; returns the timer's id."""
         if period_s <= 0:
             raise ConfigError(f"{self.name}: timer period must be > 0, got {period_s}")
         self._timers.append([period_s, time.monotonic() + period_s, callback])
+        return len(self._timers) - 1
+
+    def reschedule(self, timer_id: int, delay_s: float) -> None:
+        """Next call of timer ``timer_id`` in ``delay_s`` seconds (0: at the next loop turn).
+
+        A timer that has nothing to do until some input arrives snoozes, and the input's handler
+        wakes it: the loop then sleeps in its poll instead of ticking (a fast-mode player waiting
+        for acknowledgements used half a core at a 2 ms tick)."""
+        self._timers[timer_id][1] = time.monotonic() + max(0.0, delay_s)
 
     def wait_for_subscriber(self, topic: str, timeout_s: float = 5.0) -> bool:
         """Block until someone subscribes to ``topic`` (sources use this before streaming)."""

@@ -151,3 +151,20 @@ def test_external_python_socket_reader(inproc_bus) -> None:
     assert got == [b"datagram"]
     rx.close()
     node.close()
+
+
+def test_a_snoozed_timer_sleeps_until_rescheduled(inproc_bus) -> None:
+    bus, ctx = inproc_bus
+    node = Collect("timers", {}, bus, context=ctx, diagnostics_period_s=0)
+    calls: list[int] = []
+    tid = node.every(0.001, lambda: calls.append(1))
+    node.reschedule(tid, 3600.0)  # snoozed for an hour
+    for _ in range(5):
+        node.spin_once(0)
+    assert calls == []
+    node.reschedule(tid, 0.0)  # woken: runs at the next loop turn, then ticks on
+    node.spin_once(0)
+    assert calls == [1]
+    with pytest.raises(IndexError):
+        node.reschedule(tid + 1, 0.0)
+    node.close()
