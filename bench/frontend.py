@@ -46,8 +46,9 @@ def prerender(seconds: float, size: tuple[int, int], seed: int) -> dict:
 
 
 def with_knob(params: FrontendParams, group: str, name: str, value) -> FrontendParams:
-    return dataclasses.replace(params, **{group: dataclasses.replace(getattr(params, group),
-                                                                     **{name: value})})
+    return dataclasses.replace(
+        params, **{group: dataclasses.replace(getattr(params, group), **{name: value})}
+    )
 
 
 def seeded_run(seq, images, params: FrontendParams):
@@ -61,16 +62,32 @@ def seeded_run(seq, images, params: FrontendParams):
     k = int(np.searchsorted(seq.imu_stamps_ns, seq.stamps_ns[0], side="right"))
     fe.add_imu_batch(seq.imu_stamps_ns[:k], seq.imu_gyro_rad_s[:k], seq.imu_accel_m_s2[:k])
     res = fe.tracker.track(images[0])
-    fe.estimator.initialize(int(seq.stamps_ns[0]), seq.T_world_imu[0], seq.velocity_world_m_s[0],
-                            np.zeros(3), np.zeros(3), res.ids, res.uv_px, res.track_len)
+    fe.estimator.initialize(
+        int(seq.stamps_ns[0]),
+        seq.T_world_imu[0],
+        seq.velocity_world_m_s[0],
+        np.zeros(3),
+        np.zeros(3),
+        res.ids,
+        res.uv_px,
+        res.track_len,
+    )
     fe._last_kf = (int(seq.stamps_ns[0]), res.ids, res.uv_px)
     fe._last_frame_ns = int(seq.stamps_ns[0])
     fe._last_image_ns = int(seq.stamps_ns[0])
     t0 = time.perf_counter()
-    outs = run_frontend(fe, seq.stamps_ns[1:], images[1:], seq.imu_stamps_ns[k:],
-                        seq.imu_gyro_rad_s[k:], seq.imu_accel_m_s2[k:])
+    outs = run_frontend(
+        fe,
+        seq.stamps_ns[1:],
+        images[1:],
+        seq.imu_stamps_ns[k:],
+        seq.imu_gyro_rad_s[k:],
+        seq.imu_accel_m_s2[k:],
+    )
     wall = time.perf_counter() - t0
-    timings = {n: float(np.mean([o.timings_ms[n] for o in outs])) for n in ("tracking", "estimation")}
+    timings = {
+        n: float(np.mean([o.timings_ms[n] for o in outs])) for n in ("tracking", "estimation")
+    }
     return RunResult(outs, seq.T_world_cam[1:], seq.stamps_ns[1:], dict(fe.counters), wall, timings)
 
 
@@ -88,7 +105,9 @@ def timing_figures(run) -> dict:
         "total_ms_per_frame_p50": float(np.median(tot)),
         "total_ms_per_frame_p95": float(np.percentile(tot, 95)),
         "frames_per_s": float(1000.0 / np.mean(tot)),
-        "init_ms_per_frame": float(np.mean([sum(o.timings_ms.values()) for o in init])) if init else 0.0,
+        "init_ms_per_frame": float(np.mean([sum(o.timings_ms.values()) for o in init]))
+        if init
+        else 0.0,
         "tracking_frames": len(tracking),
     }
 
@@ -97,18 +116,28 @@ def traj_lines(paths: list[str]) -> list[str]:
     """Accuracy table from ``mogs eval traj --json`` files (goals of issue 6)."""
     if not paths:
         return []
-    out = ["", "Accuracy (`mogs eval traj --dataset D --json PATH`; keyframes; goals: ATE SE(3) < 1 % "
-           "of the path and scale error < 2 % on sim and oxts, end drift < 2 cm on euroc):", "",
-           "| dataset | path m | ATE SE(3) m | % of path | ATE Sim(3) m | scale error | end drift m "
-           "| resets |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    out = [
+        "",
+        "Accuracy (`mogs eval traj --dataset D --json PATH`; keyframes; goals: ATE SE(3) < 1 % "
+        "of the path and scale error < 2 % on sim and oxts, end drift < 2 cm on euroc):",
+        "",
+        "| dataset | path m | ATE SE(3) m | % of path | ATE Sim(3) m | scale error | end drift m "
+        "| resets |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for path in paths:
         f = json.loads(Path(path).read_text())
-        out.append(f"| {f['dataset']} | {f['path_length_m']:.1f} | {f['ate_se3_rmse_m']:.3f} | "
-                   f"{f['ate_se3_percent_of_path']:.2f} | {f['ate_sim3_rmse_m']:.3f} | "
-                   f"{100 * f['scale_error']:.1f} % | {f['end_drift_m']:.4f} | {f['resets']} |")
-    out += ["", "The sim drive starts parked for 2 s (static initialisation); the OXTS drive starts "
-            "moving (dynamic initialisation); the EuRoC excerpt is near stationary (7 mm path): its "
-            "% of path and scale error mean nothing, its goal is the end drift."]
+        out.append(
+            f"| {f['dataset']} | {f['path_length_m']:.1f} | {f['ate_se3_rmse_m']:.3f} | "
+            f"{f['ate_se3_percent_of_path']:.2f} | {f['ate_sim3_rmse_m']:.3f} | "
+            f"{100 * f['scale_error']:.1f} % | {f['end_drift_m']:.4f} | {f['resets']} |"
+        )
+    out += [
+        "",
+        "The sim drive starts parked for 2 s (static initialisation); the OXTS drive starts "
+        "moving (dynamic initialisation); the EuRoC excerpt is near stationary (7 mm path): its "
+        "% of path and scale error mean nothing, its goal is the end drift.",
+    ]
     return out
 
 
@@ -119,8 +148,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, metavar="PATH")
     ap.add_argument("--no-markdown", action="store_true", help="do not update docs/benchmarks.md")
     ap.add_argument("--no-sweep", action="store_true", help="skip the knob sweep")
-    ap.add_argument("--traj-json", nargs="*", default=[], metavar="PATH",
-                    help="figures of `mogs eval traj --json` runs to list in the section")
+    ap.add_argument(
+        "--traj-json",
+        nargs="*",
+        default=[],
+        metavar="PATH",
+        help="figures of `mogs eval traj --json` runs to list in the section",
+    )
     args = ap.parse_args(argv)
     pin_one_core()
     seconds = (args.frames - 1) / 10.0
@@ -135,9 +169,11 @@ def main(argv: list[str] | None = None) -> int:
         for k, v in t.items():
             figures[f"{k}_{tag}"] = v
         rows.append((tag, t))
-        print(f"{tag}: tracking {t['tracking_ms_per_frame']:.1f} ms + estimation "
-              f"{t['estimation_ms_per_frame']:.1f} ms -> {t['frames_per_s']:.1f} frames/s",
-              flush=True)
+        print(
+            f"{tag}: tracking {t['tracking_ms_per_frame']:.1f} ms + estimation "
+            f"{t['estimation_ms_per_frame']:.1f} ms -> {t['frames_per_s']:.1f} frames/s",
+            flush=True,
+        )
     sweep = []
     if not args.no_sweep:
         from mogs_node.sim import SimConfig, make_sequence
@@ -160,8 +196,11 @@ def main(argv: list[str] | None = None) -> int:
             sweep.append((name, value, t["total_ms_per_frame_p50"], t["frames_per_s"], ate, pct))
             figures[f"{name}_{value}_ms_per_frame"] = t["total_ms_per_frame_p50"]
             figures[f"{name}_{value}_ate_se3_m"] = ate
-            print(f"{name}={value}: {t['total_ms_per_frame_p50']:.1f} ms/frame, "
-                  f"{t['frames_per_s']:.1f} frames/s, ATE {ate:.3f} m ({pct:.2f} %)", flush=True)
+            print(
+                f"{name}={value}: {t['total_ms_per_frame_p50']:.1f} ms/frame, "
+                f"{t['frames_per_s']:.1f} frames/s, ATE {ate:.3f} m ({pct:.2f} %)",
+                flush=True,
+            )
     figures["load_average_1min"] = float(os.getloadavg()[0])
     write_json(args.json, figures)
     if not args.no_markdown:
@@ -180,18 +219,26 @@ def main(argv: list[str] | None = None) -> int:
             "| --- | --- | --- | --- | --- | --- |",
         ]
         for tag, t in rows:
-            lines.append(f"| {tag} | {t['tracking_ms_per_frame']:.1f} | "
-                         f"{t['estimation_ms_per_frame']:.1f} | {t['total_ms_per_frame_p50']:.1f} | "
-                         f"{t['total_ms_per_frame_p95']:.1f} | {t['frames_per_s']:.1f} |")
+            lines.append(
+                f"| {tag} | {t['tracking_ms_per_frame']:.1f} | "
+                f"{t['estimation_ms_per_frame']:.1f} | {t['total_ms_per_frame_p50']:.1f} | "
+                f"{t['total_ms_per_frame_p95']:.1f} | {t['frames_per_s']:.1f} |"
+            )
         if sweep:
-            lines += ["", "Run time against ATE (621x188, keyframes, SE(3)-aligned), one knob at a "
-                      "time from the defaults; the sweep starts from the true state at frame 0 "
-                      "(benchmark harness only) so that the initialisation's scale choice does not "
-                      "drown the knob's effect:", "",
-                      "| knob | value | ms/frame (p50) | frames/s | ATE m | ATE % of path |",
-                      "| --- | --- | --- | --- | --- | --- |"]
-            lines += [f"| {n} | {v} | {ms:.1f} | {fps:.1f} | {a:.3f} | {p:.2f} |"
-                      for n, v, ms, fps, a, p in sweep]
+            lines += [
+                "",
+                "Run time against ATE (621x188, keyframes, SE(3)-aligned), one knob at a "
+                "time from the defaults; the sweep starts from the true state at frame 0 "
+                "(benchmark harness only) so that the initialisation's scale choice does not "
+                "drown the knob's effect:",
+                "",
+                "| knob | value | ms/frame (p50) | frames/s | ATE m | ATE % of path |",
+                "| --- | --- | --- | --- | --- | --- |",
+            ]
+            lines += [
+                f"| {n} | {v} | {ms:.1f} | {fps:.1f} | {a:.3f} | {p:.2f} |"
+                for n, v, ms, fps, a, p in sweep
+            ]
         lines += traj_lines(args.traj_json)
         update_markdown_section("frontend", "\n".join(lines))
     print(json.dumps(figures, indent=1, default=float))

@@ -65,11 +65,14 @@ def latency(data, poses, repeats: int) -> dict[str, float]:
     out = {
         "graph_seg_ms_per_keyframe": _median_ms(lambda: segment_graph(rgb), repeats),
         "slic_seg_ms_per_keyframe": _median_ms(
-            lambda: segment_graph(rgb, GraphSegParams(method="slic")), repeats),
+            lambda: segment_graph(rgb, GraphSegParams(method="slic")), repeats
+        ),
         "flow_prior_1ref_ms_per_keyframe": _median_ms(
-            lambda: compute_flow_prior(rgb, data.K, poses[i], refs_one, fp), repeats),
+            lambda: compute_flow_prior(rgb, data.K, poses[i], refs_one, fp), repeats
+        ),
         "flow_prior_2ref_ms_per_keyframe": _median_ms(
-            lambda: compute_flow_prior(rgb, data.K, poses[i], refs_two, fp), repeats),
+            lambda: compute_flow_prior(rgb, data.K, poses[i], refs_two, fp), repeats
+        ),
     }
     out.update(_onnx_latency(rgb, max(1, repeats // 3)))
     return out
@@ -92,8 +95,9 @@ def _onnx_latency(rgb: np.ndarray, repeats: int) -> dict[str, float]:
         da_path = _tiny_onnx.export_depth_anything(Path(tmp) / "da.onnx", dynamic=True)
         sam = SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, threads=1))
         da = DepthAnythingOnnx(DepthAnythingParams(model_path=da_path, threads=1))
-        SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, threads=1,
-                          points_per_side=2)).generate(rgb)  # warm-up
+        SamOnnx(
+            SamParams(encoder_path=enc, decoder_path=dec, threads=1, points_per_side=2)
+        ).generate(rgb)  # warm-up
         da_runs = []
         for _ in range(repeats + 1):
             t = time.perf_counter()
@@ -107,9 +111,12 @@ def _onnx_latency(rgb: np.ndarray, repeats: int) -> dict[str, float]:
         return {
             "sam_tiny_amg32_total_ms_per_keyframe": sam_total,
             "sam_tiny_amg32_overhead_ms_per_keyframe": sam_total - sam_model,
-            "depth_anything_tiny_518_total_ms_per_keyframe": float(np.median([a for a, _ in da_runs])),
-            "depth_anything_tiny_518_overhead_ms_per_keyframe":
-                float(np.median([a - b for a, b in da_runs])),
+            "depth_anything_tiny_518_total_ms_per_keyframe": float(
+                np.median([a for a, _ in da_runs])
+            ),
+            "depth_anything_tiny_518_overhead_ms_per_keyframe": float(
+                np.median([a - b for a, b in da_runs])
+            ),
         }
 
 
@@ -129,11 +136,15 @@ def coverage_vs_baseline(data, poses, n_frames: int) -> dict[str, float]:
             j = int(np.argmin(np.abs(d - b)))
             if abs(d[j] - b) <= 0.2 * b:
                 cand.append((i, j))
-        pick = [cand[k] for k in np.unique(np.linspace(0, len(cand) - 1, n_frames).astype(int))] \
-            if cand else []
+        pick = (
+            [cand[k] for k in np.unique(np.linspace(0, len(cand) - 1, n_frames).astype(int))]
+            if cand
+            else []
+        )
         for i, j in pick:
-            pair = two_view_depth(data.rgb[i], data.rgb[j], data.K,
-                                  se3_inverse(poses[j]) @ poses[i], fp)
+            pair = two_view_depth(
+                data.rgb[i], data.rgb[j], data.K, se3_inverse(poses[j]) @ poses[i], fp
+            )
             gt = data.lidar_m[i]
             g = gt > 0
             m = g & pair.valid
@@ -173,14 +184,14 @@ def _markdown(fig: dict[str, float], args: argparse.Namespace) -> str:
         "flow_prior_1ref_ms_per_keyframe": "flow prior, 1 reference (DIS medium, full resolution)",
         "flow_prior_2ref_ms_per_keyframe": "flow prior, 2 references",
         "sam_tiny_amg32_total_ms_per_keyframe": "SAM ONNX AMG 32x32 prompts, tiny test models, "
-                                                "total (the tiny decoder's mask upsampling to "
-                                                "1024^2 included)",
+        "total (the tiny decoder's mask upsampling to "
+        "1024^2 included)",
         "sam_tiny_amg32_overhead_ms_per_keyframe": "SAM ONNX AMG 32x32, pipeline overhead only "
-                                                   "(pre/post-processing, filters, NMS, painting)",
+        "(pre/post-processing, filters, NMS, painting)",
         "depth_anything_tiny_518_total_ms_per_keyframe": "Depth Anything ONNX 518 px, tiny test "
-                                                         "model, total",
+        "model, total",
         "depth_anything_tiny_518_overhead_ms_per_keyframe": "Depth Anything ONNX 518 px, "
-                                                            "pipeline overhead only",
+        "pipeline overhead only",
     }
     for k, label in names.items():
         if k in fig:
@@ -195,9 +206,11 @@ def _markdown(fig: dict[str, float], args: argparse.Namespace) -> str:
     ]
     for b in BASELINES_M:
         k = f"{b:g}m"
-        lines.append(f"| {b:g} | {fig[f'flow_frames_b{k}']:.0f} | "
-                     f"{fig[f'flow_coverage_ratio_b{k}']:.3f} | {fig[f'flow_absrel_b{k}']:.3f} | "
-                     f"{fig[f'flow_absrel_0_20m_b{k}']:.3f} |")
+        lines.append(
+            f"| {b:g} | {fig[f'flow_frames_b{k}']:.0f} | "
+            f"{fig[f'flow_coverage_ratio_b{k}']:.3f} | {fig[f'flow_absrel_b{k}']:.3f} | "
+            f"{fig[f'flow_absrel_0_20m_b{k}']:.3f} |"
+        )
     return "\n".join(lines)
 
 

@@ -65,6 +65,4 @@ def check_signature(
             if name not in have:
                 raise ModelError(f"{where}: model has no {kind} {name!r} (it has {sorted(have)})")
             if have[name] != rank:
-                raise ModelError(
-                    f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}"
-                )
+                raise ModelError(f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}")

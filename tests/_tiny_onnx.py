@@ -35,8 +35,9 @@ class TinyEncoder(torch.nn.Module):
 class TinyDecoder(torch.nn.Module):
     img_size = 1024
 
-    def forward(self, image_embeddings, point_coords, point_labels, mask_input, has_mask_input,
-                orig_im_size):
+    def forward(
+        self, image_embeddings, point_coords, point_labels, mask_input, has_mask_input, orig_im_size
+    ):
         fg = (point_labels == 1).to(torch.float32)  # [1, N]
         p = (point_coords * fg[..., None]).sum(1) / fg.sum(1, keepdim=True)  # [1, 2]
         c = torch.arange(256, dtype=torch.float32) * 4.0 + 1.5  # low-res cell centres (1024 frame)
@@ -47,8 +48,9 @@ class TinyDecoder(torch.nn.Module):
         gains = torch.tensor(GAINS).view(4, 1, 1)
         low = ((radii - dist[None]) * gains)[None]  # [1, 4, 256, 256]
         low = low + 0.0 * mask_input * has_mask_input
-        masks = F.interpolate(low, size=(self.img_size, self.img_size), mode="bilinear",
-                              align_corners=False)
+        masks = F.interpolate(
+            low, size=(self.img_size, self.img_size), mode="bilinear", align_corners=False
+        )
         size = orig_im_size.to(torch.float32)
         scale = self.img_size / torch.max(size)
         pre = torch.floor(scale * size + 0.5).to(torch.int64)
@@ -62,9 +64,15 @@ class TinyDecoder(torch.nn.Module):
 def export(tmpdir) -> tuple[str, str]:
     enc = str(tmpdir / "sam_tiny_encoder.onnx")
     dec = str(tmpdir / "sam_tiny_decoder.onnx")
-    torch.onnx.export(TinyEncoder(), (torch.zeros(1, 3, 1024, 1024),), enc,
-                      input_names=["image"], output_names=["image_embeddings"],
-                      opset_version=17, dynamo=False)
+    torch.onnx.export(
+        TinyEncoder(),
+        (torch.zeros(1, 3, 1024, 1024),),
+        enc,
+        input_names=["image"],
+        output_names=["image_embeddings"],
+        opset_version=17,
+        dynamo=False,
+    )
     args = (
         torch.zeros(1, 256, 64, 64),
         torch.tensor([[[100.0, 100.0], [0.0, 0.0]]]),
@@ -74,13 +82,25 @@ def export(tmpdir) -> tuple[str, str]:
         torch.tensor([200.0, 300.0]),
     )
     torch.onnx.export(
-        TinyDecoder(), args, dec,
-        input_names=["image_embeddings", "point_coords", "point_labels", "mask_input",
-                     "has_mask_input", "orig_im_size"],
+        TinyDecoder(),
+        args,
+        dec,
+        input_names=[
+            "image_embeddings",
+            "point_coords",
+            "point_labels",
+            "mask_input",
+            "has_mask_input",
+            "orig_im_size",
+        ],
         output_names=["masks", "iou_predictions", "low_res_masks"],
-        dynamic_axes={"point_coords": {1: "num_points"}, "point_labels": {1: "num_points"},
-                      "masks": {2: "h", 3: "w"}},
-        opset_version=17, dynamo=False,
+        dynamic_axes={
+            "point_coords": {1: "num_points"},
+            "point_labels": {1: "num_points"},
+            "masks": {2: "h", 3: "w"},
+        },
+        opset_version=17,
+        dynamo=False,
     )
     return enc, dec
 
@@ -102,6 +122,14 @@ class TinyDepth(torch.nn.Module):
 def export_depth_anything(path, dynamic: bool = True, hw=(56, 84), out_name="depth") -> str:
     x = torch.zeros(1, 3, *hw)
     axes = {"image": {2: "h", 3: "w"}, out_name: {1: "h", 2: "w"}} if dynamic else None
-    torch.onnx.export(TinyDepth(), (x,), str(path), input_names=["image"],
-                      output_names=[out_name], dynamic_axes=axes, opset_version=17, dynamo=False)
+    torch.onnx.export(
+        TinyDepth(),
+        (x,),
+        str(path),
+        input_names=["image"],
+        output_names=[out_name],
+        dynamic_axes=axes,
+        opset_version=17,
+        dynamo=False,
+    )
     return str(path)

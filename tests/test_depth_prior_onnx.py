@@ -97,9 +97,16 @@ def test_non_positive_output_has_no_confidence(tmp_path) -> None:
             return image[:, 0] * 0 - 1.0 + (image[:, 1] > 0).to(image.dtype) * 3.0
 
     path = str(tmp_path / "neg.onnx")
-    torch.onnx.export(Neg(), (torch.zeros(1, 3, 28, 28),), path, input_names=["image"],
-                      output_names=["depth"], dynamic_axes={"image": {2: "h", 3: "w"}},
-                      opset_version=17, dynamo=False)
+    torch.onnx.export(
+        Neg(),
+        (torch.zeros(1, 3, 28, 28),),
+        path,
+        input_names=["image"],
+        output_names=["depth"],
+        dynamic_axes={"image": {2: "h", 3: "w"}},
+        opset_version=17,
+        dynamo=False,
+    )
     rgb = np.zeros((28, 56, 3), np.uint8)
     rgb[:, 28:, 1] = 255  # green high -> normalised > 0 -> positive output
     out = DepthAnythingOnnx(DepthAnythingParams(model_path=path, input_size=28)).infer(rgb)

@@ -48,8 +48,9 @@ def test_static_pnp_prefers_the_motion_a_car_can_make() -> None:
     assert n >= 35
     np.testing.assert_allclose(T[:3, 3], T_ego[:3, 3], atol=0.02)
     # plain RANSAC follows the truck
-    ok, rv, tv, inl = cv2.solvePnPRansac(X, uv, CAM.K, None, reprojectionError=1.0,
-                                         iterationsCount=300, flags=cv2.SOLVEPNP_EPNP)
+    ok, rv, tv, inl = cv2.solvePnPRansac(
+        X, uv, CAM.K, None, reprojectionError=1.0, iterationsCount=300, flags=cv2.SOLVEPNP_EPNP
+    )
     assert len(inl) > 60 and abs(tv[0, 0] + 0.3) < 0.05
 
 

@@ -45,7 +45,9 @@ def test_kitti_round_trip_and_errors(tmp_path):
 
 
 def straight_line(n: int = 50, step: float = 1.0) -> np.ndarray:
-    return make_T(np.tile(np.eye(3), (n, 1, 1)), np.c_[np.arange(n) * step, np.zeros(n), np.zeros(n)])
+    return make_T(
+        np.tile(np.eye(3), (n, 1, 1)), np.c_[np.arange(n) * step, np.zeros(n), np.zeros(n)]
+    )
 
 
 def helix(n: int = 50, scale: float = 1.0) -> np.ndarray:

@@ -27,14 +27,22 @@ def texture(seed: int, size: int = 1024) -> np.ndarray:
     return (img * 255).astype(np.uint8)
 
 
-def plane_view(tex: np.ndarray, R_cam_world: np.ndarray, t_cam_world: np.ndarray,
-               depth_m: float = 5.0, px_per_m: float = 100.0) -> np.ndarray:
+def plane_view(
+    tex: np.ndarray,
+    R_cam_world: np.ndarray,
+    t_cam_world: np.ndarray,
+    depth_m: float = 5.0,
+    px_per_m: float = 100.0,
+) -> np.ndarray:
     """Image of a textured plane z = depth_m (world) seen by camera (R, t): exact homography."""
     s = tex.shape[0]
     # texture pixel (a, b) <-> world point ((a - s/2)/ppm, (b - s/2)/ppm, depth)
-    A = np.array([[1 / px_per_m, 0, -s / 2 / px_per_m], [0, 1 / px_per_m, -s / 2 / px_per_m],
-                  [0, 0, 1.0]])
-    M = np.column_stack([R_cam_world[:, 0], R_cam_world[:, 1], R_cam_world[:, 2] * depth_m + t_cam_world])
+    A = np.array(
+        [[1 / px_per_m, 0, -s / 2 / px_per_m], [0, 1 / px_per_m, -s / 2 / px_per_m], [0, 0, 1.0]]
+    )
+    M = np.column_stack(
+        [R_cam_world[:, 0], R_cam_world[:, 1], R_cam_world[:, 2] * depth_m + t_cam_world]
+    )
     Hm = CAM.K @ M @ A
     return cv2.warpPerspective(tex, Hm, (W, H), flags=cv2.INTER_LINEAR)
 
@@ -118,8 +126,12 @@ def test_bad_input_raises():
 
 
 @settings(max_examples=30, deadline=None)
-@given(model=st.sampled_from(["radtan", "equidistant"]), k1=st.floats(-0.3, 0.3),
-       k2=st.floats(-0.05, 0.05), seed=st.integers(0, 1000))
+@given(
+    model=st.sampled_from(["radtan", "equidistant"]),
+    k1=st.floats(-0.3, 0.3),
+    k2=st.floats(-0.05, 0.05),
+    seed=st.integers(0, 1000),
+)
 def test_undistort_distort_round_trip(model, k1, k2, seed):
     coeffs = (k1, k2, 1e-3, -1e-3) if model == "radtan" else (k1, k2, 0.01, -0.005)
     cam = CameraModel(CAM, model, coeffs)

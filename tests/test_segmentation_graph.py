@@ -13,8 +13,17 @@ def _blocks_image(
     rng: np.random.Generator, H: int = 120, W: int = 200
 ) -> tuple[np.ndarray, np.ndarray]:
     """A 2x3 grid of strongly different flat colours with mild noise; returns (rgb, gt_ids)."""
-    colours = np.array([[200, 30, 30], [30, 200, 30], [30, 30, 200],
-                        [220, 220, 40], [40, 220, 220], [120, 120, 120]], np.float64)
+    colours = np.array(
+        [
+            [200, 30, 30],
+            [30, 200, 30],
+            [30, 30, 200],
+            [220, 220, 40],
+            [40, 220, 220],
+            [120, 120, 120],
+        ],
+        np.float64,
+    )
     gt = (np.arange(H)[:, None] * 2 // H) * 3 + (np.arange(W)[None, :] * 3 // W)
     img = colours[gt] + rng.normal(0, 4.0, (H, W, 3))
     return np.clip(img, 0, 255).astype(np.uint8), gt

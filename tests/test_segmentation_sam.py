@@ -120,8 +120,9 @@ def test_automatic_masks_filtered_nms_painted(sam) -> None:
 
 def test_nms_suppresses_overlapping_masks(models) -> None:
     enc, dec = models
-    dense = SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8,
-                              box_nms_thresh=0.3))
+    dense = SamOnnx(
+        SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8, box_nms_thresh=0.3)
+    )
     res = dense.generate(np.zeros((H, W, 3), np.uint8))
     assert res.stats["n_after_filters"] == 128
     assert 0 < res.stats["n_masks"] < 128

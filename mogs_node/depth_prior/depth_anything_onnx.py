@@ -92,22 +92,29 @@ class DepthAnythingOnnx:
 
     def __init__(self, params: DepthAnythingParams) -> None:
         self.params = params
-        self.session = open_session(params.model_path, provider=params.provider,
-                                    threads=params.threads)
+        self.session = open_session(
+            params.model_path, provider=params.provider, threads=params.threads
+        )
         check_signature(self.session, params.model_path, [(params.input_name, 4)], [])
         outs = {o.name: o.shape for o in self.session.get_outputs()}
         if params.output_name not in outs or len(outs[params.output_name]) not in (3, 4):
-            raise ModelError(f"{params.model_path}: expected output {params.output_name!r} of "
-                             f"shape [1, h, w] or [1, 1, h, w], model has {outs}")
+            raise ModelError(
+                f"{params.model_path}: expected output {params.output_name!r} of "
+                f"shape [1, h, w] or [1, 1, h, w], model has {outs}"
+            )
         shape = next(i.shape for i in self.session.get_inputs() if i.name == params.input_name)
         if isinstance(shape[1], int) and shape[1] != 3:
-            raise ModelError(f"{params.model_path}: input {params.input_name!r} must have 3 "
-                             f"channels, has {shape[1]}")
+            raise ModelError(
+                f"{params.model_path}: input {params.input_name!r} must have 3 "
+                f"channels, has {shape[1]}"
+            )
         static = all(isinstance(s, int) for s in shape[2:])
         self.static_hw = (shape[2], shape[3]) if static else None
         if self.static_hw and any(s % params.multiple_of for s in self.static_hw):
-            raise ModelError(f"{params.model_path}: static input size {self.static_hw} is not a "
-                             f"multiple of {params.multiple_of}")
+            raise ModelError(
+                f"{params.model_path}: static input size {self.static_hw} is not a "
+                f"multiple of {params.multiple_of}"
+            )
 
     def net_size(self, H: int, W: int) -> tuple[int, int]:
         if self.static_hw is not None:
@@ -133,8 +140,9 @@ class DepthAnythingOnnx:
         if out.ndim == 4:
             out = out[:, 0]
         if out.ndim != 3 or out.shape[0] != 1:
-            raise ModelError(f"{self.params.model_path}: output shape {list(out.shape)}, "
-                             "expected [1, h, w]")
+            raise ModelError(
+                f"{self.params.model_path}: output shape {list(out.shape)}, expected [1, h, w]"
+            )
         value = cv2.resize(out[0], (W, H), interpolation=cv2.INTER_LINEAR)
         ok = np.isfinite(value) & (value > 0)
         return MonoDepth(

@@ -47,8 +47,9 @@ class DepthPriorParams:
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
-            raise ConfigError(f"depth_prior.backend: expected one of {BACKENDS}, got "
-                              f"{self.backend!r}")
+            raise ConfigError(
+                f"depth_prior.backend: expected one of {BACKENDS}, got {self.backend!r}"
+            )
 
 
 @dataclass
@@ -69,11 +70,13 @@ class DepthPriorNode(Node):
         self.net: DepthAnythingOnnx | None = None
         if p.backend == "depth_anything":
             self.net = DepthAnythingOnnx(
-                parse_params(DepthAnythingParams, p.onnx, where=f"{self.name}.onnx"))
+                parse_params(DepthAnythingParams, p.onnx, where=f"{self.name}.onnx")
+            )
         self.history: deque[_Past] = deque(maxlen=self.flow_params.history)
         self._K: np.ndarray | None = None
-        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe,
-                       idempotent=True)
+        self.subscribe(
+            p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe, idempotent=True
+        )
         self.catch_up((p.in_topic,), (p.out_topic,))  # after a restart: the keyframes missed
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
@@ -88,18 +91,30 @@ class DepthPriorNode(Node):
             depth, conf, kind, extra = out.value, out.confidence, out.kind, {}
         else:
             depth, conf, kind, extra = self._flow(kf)
-        self.publish(self.params.out_topic, msgs.DepthMap(
-            stamp_ns=kf.stamp_ns, frame_id=kf.frame_id, keyframe_id=kf.keyframe_id, kind=kind,
-            depth=np.ascontiguousarray(depth, np.float32),
-            confidence=np.ascontiguousarray(conf, np.float32), source=self.params.backend,
-            object_labels=None, object_model=None))
+        self.publish(
+            self.params.out_topic,
+            msgs.DepthMap(
+                stamp_ns=kf.stamp_ns,
+                frame_id=kf.frame_id,
+                keyframe_id=kf.keyframe_id,
+                kind=kind,
+                depth=np.ascontiguousarray(depth, np.float32),
+                confidence=np.ascontiguousarray(conf, np.float32),
+                source=self.params.backend,
+                object_labels=None,
+                object_model=None,
+            ),
+        )
         self.log.debug("keyframe %d: prior %s", kf.keyframe_id, extra)
 
     def _grey(self, kf: msgs.Keyframe) -> np.ndarray:
         """The keyframe in grey; the history is reset when the camera changed."""
         grey = kf.image if kf.image.ndim == 2 else cv2.cvtColor(kf.image, cv2.COLOR_RGB2GRAY)
-        if self._K is None or not np.array_equal(self._K, kf.K) or (
-                self.history and self.history[-1].grey.shape != grey.shape):
+        if (
+            self._K is None
+            or not np.array_equal(self._K, kf.K)
+            or (self.history and self.history[-1].grey.shape != grey.shape)
+        ):
             self.history.clear()  # another camera or resolution: old keyframes are unusable
             self._K = np.array(kf.K)
         return np.ascontiguousarray(grey)
@@ -107,13 +122,21 @@ class DepthPriorNode(Node):
     def _flow(self, kf: msgs.Keyframe):
         grey = self._grey(kf)
         past = list(self.history)
-        refs = choose_references(kf.T_world_cam, np.array([q.T_world_cam for q in past])
-                                 if past else np.zeros((0, 4, 4)), self.flow_params)
-        prior = compute_flow_prior(grey, kf.K, kf.T_world_cam,
-                                   [(past[j].grey, past[j].T_world_cam) for j in refs],
-                                   self.flow_params)
-        self.history.append(_Past(kf.keyframe_id, np.ascontiguousarray(grey),
-                                  np.array(kf.T_world_cam)))
+        refs = choose_references(
+            kf.T_world_cam,
+            np.array([q.T_world_cam for q in past]) if past else np.zeros((0, 4, 4)),
+            self.flow_params,
+        )
+        prior = compute_flow_prior(
+            grey,
+            kf.K,
+            kf.T_world_cam,
+            [(past[j].grey, past[j].T_world_cam) for j in refs],
+            self.flow_params,
+        )
+        self.history.append(
+            _Past(kf.keyframe_id, np.ascontiguousarray(grey), np.array(kf.T_world_cam))
+        )
         extra = dict(prior.stats)
         extra["references"] = [past[j].keyframe_id for j in refs]
         if len(kf.feature_xyz_cam_m):  # diagnostic: robust scale of the prior vs sparse points

@@ -88,12 +88,15 @@ def load_kitti78(folder: str | Path) -> Kitti78:
             raise DatasetError(f"{f.source}: LiDAR depth missing or of another size")
         rgb.append(np.ascontiguousarray(img))
         lidar.append(d.astype(np.float32))
-    return Kitti78(rgb=rgb, lidar_m=lidar, K=seq.camera.K,
-                   names=[Path(f.source).stem for f in seq.frames])
+    return Kitti78(
+        rgb=rgb, lidar_m=lidar, K=seq.camera.K, names=[Path(f.source).stem for f in seq.frames]
+    )
 
 
 def sample_lidar(
-    depth_m: NDArray[np.float32], uv_px: NDArray[np.floating], radius: int = SAMPLE_RADIUS_PX,
+    depth_m: NDArray[np.float32],
+    uv_px: NDArray[np.floating],
+    radius: int = SAMPLE_RADIUS_PX,
     max_spread: float = SAMPLE_MAX_SPREAD,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """LiDAR depth at pixels ``uv_px`` ``[N, 2]``: nearest return within ``radius`` (0 = none).
@@ -151,8 +154,14 @@ def _static_pnp(
         if len(idx) < 8:
             break
         ok, rv, tv, inl = cv2.solvePnPRansac(
-            X[idx], x[idx], K, None, reprojectionError=PNP_THRESH_PX, iterationsCount=300,
-            flags=cv2.SOLVEPNP_EPNP)
+            X[idx],
+            x[idx],
+            K,
+            None,
+            reprojectionError=PNP_THRESH_PX,
+            iterationsCount=300,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
         if not ok or inl is None or len(inl) < 6:
             break
         inl = idx[inl[:, 0]]
@@ -172,8 +181,10 @@ def localise_pnp(data: Kitti78) -> tuple[NDArray[np.float64], list[_Frame], dict
     from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
 
     H, W = data.lidar_m[0].shape
-    tracker = FeatureTracker(TrackerParams(max_features=TRACKER_MAX_FEATURES),
-                             CameraModel(PinholeCamera.from_K(data.K, W, H)))
+    tracker = FeatureTracker(
+        TrackerParams(max_features=TRACKER_MAX_FEATURES),
+        CameraModel(PinholeCamera.from_K(data.K, W, H)),
+    )
     poses = [np.eye(4)]
     frames: list[_Frame] = []
     prev = None
@@ -203,9 +214,12 @@ def localise_pnp(data: Kitti78) -> tuple[NDArray[np.float64], list[_Frame], dict
             poses.append(poses[-1] @ se3_inverse(T_cur_prev))
         prev = (res.ids, res.uv_px, z)
     steps = np.linalg.norm(np.diff(np.array(poses)[:, :3, 3], axis=0), axis=1)
-    stats = {"path_length_m": float(steps.sum()), "pnp_inliers_mean": float(np.mean(n_inl)),
-             "pnp_fallback_frames": float(n_fallback),
-             "sparse_points_mean": float(np.mean([len(f.z) for f in frames]))}
+    stats = {
+        "path_length_m": float(steps.sum()),
+        "pnp_inliers_mean": float(np.mean(n_inl)),
+        "pnp_fallback_frames": float(n_fallback),
+        "sparse_points_mean": float(np.mean([len(f.z) for f in frames])),
+    }
     return np.array(poses), frames, stats
 
 
@@ -224,17 +238,24 @@ def _viz(path: Path, rgb, labels, prior, prior_conf, depth, gt, gt_mask) -> None
     err = np.zeros(gt.shape, np.float32)
     m = gt_mask & (depth > 0)
     err[m] = np.abs(depth[m] - gt[m]) / gt[m]
-    err_img = cv2.applyColorMap((np.clip(err / 0.3, 0, 1) * 255).astype(np.uint8),
-                                cv2.COLORMAP_JET)[..., ::-1]
+    err_img = cv2.applyColorMap(
+        (np.clip(err / 0.3, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_JET
+    )[..., ::-1]
     err_img = cv2.dilate(np.where(m[..., None], err_img, 0).astype(np.uint8), np.ones((3, 3)))
     panels = [rgb, masks, _colour(prior, prior_conf > 0), _colour(depth, depth > 0), err_img]
-    titles = ["image", "masks (graph segmenter)", "flow prior (confident pixels)",
-              "metrized depth (full MOGS)", "AbsRel vs held-out LiDAR, 0 (blue) .. 0.3 (red)"]
+    titles = [
+        "image",
+        "masks (graph segmenter)",
+        "flow prior (confident pixels)",
+        "metrized depth (full MOGS)",
+        "AbsRel vs held-out LiDAR, 0 (blue) .. 0.3 (red)",
+    ]
     for img, title in zip(panels, titles, strict=True):
         (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
         cv2.rectangle(img, (0, 0), (tw + 12, th + 12), (0, 0, 0), -1)
-        cv2.putText(img, title, (6, th + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
-                    cv2.LINE_AA)
+        cv2.putText(
+            img, title, (6, th + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA
+        )
     strip = np.concatenate(panels, 0)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), strip[..., ::-1])
@@ -270,8 +291,9 @@ def evaluate(args: argparse.Namespace) -> dict:
         ms_per["seg"] += (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         refs = choose_references(poses[i], poses[:i], fp)
-        prior = compute_flow_prior(rgb, data.K, poses[i], [(data.rgb[j], poses[j]) for j in refs],
-                                   fp)
+        prior = compute_flow_prior(
+            rgb, data.K, poses[i], [(data.rgb[j], poses[j]) for j in refs], fp
+        )
         ms_per["prior"] += (time.perf_counter() - tic) * 1e3
         m_gt = gt_mask
         gts.append(gt[m_gt])
@@ -279,9 +301,18 @@ def evaluate(args: argparse.Namespace) -> dict:
         prior_cov.append(float((pc & (gt > 0)).sum() / max((gt > 0).sum(), 1)))
         prior_scale.append(fit_scale_huber(prior.depth_m[pc & gt_mask], gt[pc & gt_mask]))
         pred["prior_raw"].append(np.where(pc, prior.depth_m, 0.0)[m_gt])
-        kw = dict(K=data.K, labels=labels, feature_uv_px=f.uv, feature_depth_m=f.z,
-                  feature_weight=f.w, prior=prior.depth_m, prior_confidence=prior.confidence,
-                  prior_kind="metric", image_rgb=rgb, params=mp)
+        kw = dict(
+            K=data.K,
+            labels=labels,
+            feature_uv_px=f.uv,
+            feature_depth_m=f.z,
+            feature_weight=f.w,
+            prior=prior.depth_m,
+            prior_confidence=prior.confidence,
+            prior_kind="metric",
+            image_rgb=rgb,
+            params=mp,
+        )
         full_depth = None
         for name in METHODS:
             tic = time.perf_counter()
@@ -291,8 +322,16 @@ def evaluate(args: argparse.Namespace) -> dict:
             if name == "full":
                 full_depth = out.depth_m
         if viz_dir is not None:
-            _viz(viz_dir / f"kitti78_{data.names[i]}.png", rgb, labels, prior.depth_m,
-                 prior.confidence, full_depth, gt, gt_mask)
+            _viz(
+                viz_dir / f"kitti78_{data.names[i]}.png",
+                rgb,
+                labels,
+                prior.depth_m,
+                prior.confidence,
+                full_depth,
+                gt,
+                gt_mask,
+            )
         log.info("frame %d (%d/%d) done", i, n + 1, len(eligible))
     g = np.concatenate(gts) if gts else np.zeros(0)
     cat = {name: (np.concatenate(parts) if parts else np.zeros(0)) for name, parts in pred.items()}
@@ -319,9 +358,12 @@ def evaluate(args: argparse.Namespace) -> dict:
         "methods": methods,
         "gt_points": int(len(g)),
         "common_points": int(common.sum()),
-        "prior": {"coverage_of_lidar": float(np.mean(prior_cov)) if prior_cov else 0.0,
-                  "huber_scale_vs_lidar_median": float(np.nanmedian(prior_scale))
-                  if prior_scale else float("nan")},
+        "prior": {
+            "coverage_of_lidar": float(np.mean(prior_cov)) if prior_cov else 0.0,
+            "huber_scale_vs_lidar_median": float(np.nanmedian(prior_scale))
+            if prior_scale
+            else float("nan"),
+        },
         "localisation": loc_stats,
         "ms_per_frame": {k: v / n_f for k, v in ms_per.items()},
         "wall_s": time.perf_counter() - t0,
@@ -334,11 +376,14 @@ def evaluate(args: argparse.Namespace) -> dict:
 
 def _markdown(res: dict, args: argparse.Namespace) -> str:
     cmd = "mogs eval depth --dataset kitti78 --json kitti78.json"
-    names = {"no_msc_cdr": "prior, globally aligned (w/o MSC, CDR)",
-             "interp_nearest": "sparse only, nearest",
-             "interp_edge_aware": "sparse only, edge-aware",
-             "no_msc": "MOGS w/o MSC", "full": "MOGS (full)",
-             "prior_raw": "flow prior itself (where confident)"}
+    names = {
+        "no_msc_cdr": "prior, globally aligned (w/o MSC, CDR)",
+        "interp_nearest": "sparse only, nearest",
+        "interp_edge_aware": "sparse only, edge-aware",
+        "no_msc": "MOGS w/o MSC",
+        "full": "MOGS (full)",
+        "prior_raw": "flow prior itself (where confident)",
+    }
     lines = [
         "## Depth on real KITTI (kitti_raw_2011_09_26_78) against LiDAR",
         "",
@@ -364,7 +409,8 @@ def _markdown(res: dict, args: argparse.Namespace) -> str:
             f"| {names[name]} (`{name}`) | {m['absrel']:.4f} | {m['rmse']:.3f} | "
             f"{m['delta1']:.4f} | {m['count'] / max(res['gt_points'], 1):.3f} | "
             f"{br['0-20']['absrel']:.4f} | {br['20-40']['absrel']:.4f} | "
-            f"{br['40-80']['absrel']:.4f} |")
+            f"{br['40-80']['absrel']:.4f} |"
+        )
     lines += [
         "",
         "Each method on its own coverage (pixels where it predicts a depth):",
@@ -379,7 +425,8 @@ def _markdown(res: dict, args: argparse.Namespace) -> str:
         lines.append(
             f"| `{name}` | {m['absrel']:.4f} | {m['rmse']:.3f} | {m['delta1']:.4f} | "
             f"{m['coverage']:.3f} | {br['0-20']['absrel']:.4f} | {br['20-40']['absrel']:.4f} | "
-            f"{br['40-80']['absrel']:.4f} |")
+            f"{br['40-80']['absrel']:.4f} |"
+        )
     pr = res["prior"]
     loc = res["localisation"]
     lines += [

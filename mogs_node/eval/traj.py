@@ -25,8 +25,9 @@ __all__ = ["evaluate", "trajectory_metrics"]
 log = logging.getLogger(__name__)
 
 
-def trajectory_metrics(stamps_ns: NDArray, poses_est: NDArray, poses_ref: NDArray,
-                       rpe_delta_frames: int = 10) -> dict[str, float]:
+def trajectory_metrics(
+    stamps_ns: NDArray, poses_est: NDArray, poses_ref: NDArray, rpe_delta_frames: int = 10
+) -> dict[str, float]:
     """ATE (SE(3)- and Sim(3)-aligned, Umeyama), scale error and RPE of ``poses_est`` [N, 4, 4]
     against ``poses_ref`` [N, 4, 4] at the same ``stamps_ns`` [N].
 
@@ -54,8 +55,10 @@ def trajectory_metrics(stamps_ns: NDArray, poses_est: NDArray, poses_ref: NDArra
         out[name] = float(ape.get_statistic(metrics.StatisticsType.rmse))
     out["scale_error"] = float(abs(s - 1.0))
     delta = max(1, min(int(rpe_delta_frames), len(est) - 1))
-    for name, rel in (("rpe_trans_m", metrics.PoseRelation.translation_part),
-                      ("rpe_rot_deg", metrics.PoseRelation.rotation_angle_deg)):
+    for name, rel in (
+        ("rpe_trans_m", metrics.PoseRelation.translation_part),
+        ("rpe_rot_deg", metrics.PoseRelation.rotation_angle_deg),
+    ):
         rpe = metrics.RPE(rel, delta=delta, delta_unit=metrics.Unit.frames, all_pairs=False)
         rpe.process_data((traj_ref, traj_est))
         out[name] = float(rpe.get_statistic(metrics.StatisticsType.rmse))
@@ -70,5 +73,11 @@ def evaluate(args: argparse.Namespace) -> dict:
     OXTS drive has none and uses the dynamic initialisation."""
     from mogs_node.frontend.runs import run_dataset
 
-    return run_dataset(args.dataset, seconds=args.seconds, seed=args.seed, data=args.data,
-                       out_dir=args.out, static_start_s=getattr(args, "static_start_s", None))
+    return run_dataset(
+        args.dataset,
+        seconds=args.seconds,
+        seed=args.seed,
+        data=args.data,
+        out_dir=args.out,
+        static_start_s=getattr(args, "static_start_s", None),
+    )

@@ -36,7 +36,8 @@ class CameraModel:
         need = {"none": (0,), "radtan": (4, 5), "equidistant": (4,)}[self.model]
         if len(self.coeffs) not in need:
             raise ConfigError(
-                f"camera.coeffs: {self.model} needs {need} values, got {len(self.coeffs)}")
+                f"camera.coeffs: {self.model} needs {need} values, got {len(self.coeffs)}"
+            )
 
     @property
     def K(self) -> NDArray[np.float64]:
@@ -64,8 +65,9 @@ class CameraModel:
             return uv.copy()
         rays = self.pinhole.rays(uv)
         if self.model == "radtan":
-            out, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K,
-                                       self._dist())
+            out, _ = cv2.projectPoints(
+                rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self._dist()
+            )
         else:
             out = cv2.fisheye.distortPoints(rays[:, None, :2].copy(), self.K, self._dist())
         return out.reshape(-1, 2).astype(np.float64)

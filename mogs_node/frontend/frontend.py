@@ -144,7 +144,9 @@ class Frontend:
     def __init__(self, params: FrontendParams, camera: CameraModel, T_imu_cam: NDArray) -> None:
         self.params = params
         self.camera = camera
-        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(float)
+        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(
+            float
+        )
         self.tracker = FeatureTracker(params.tracker, camera)
         self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
         self._pim_params = make_params(params.imu)
@@ -154,8 +156,9 @@ class Frontend:
         self._last_frame_ns: int | None = None  # IMU time of the last processed frame
         self._frame_index = 0
         self._keyframe_id = 0
-        self._dyn_init = DynamicInitializer(params.init, params.estimator, camera.pinhole,
-                                            self.T_imu_cam, params.imu)
+        self._dyn_init = DynamicInitializer(
+            params.init, params.estimator, camera.pinhole, self.T_imu_cam, params.imu
+        )
         self._last_kf: tuple[int, NDArray, NDArray] | None = None
         self._undistort_maps = None
         if camera.model != "none":
@@ -163,14 +166,25 @@ class Frontend:
             D = np.asarray(camera.coeffs, float)
             size = (camera.pinhole.width, camera.pinhole.height)
             if camera.model == "radtan":
-                self._undistort_maps = cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
+                self._undistort_maps = cv2.initUndistortRectifyMap(
+                    K, D, None, K, size, cv2.CV_32FC1
+                )
             else:
                 self._undistort_maps = cv2.fisheye.initUndistortRectifyMap(
-                    K, D, np.eye(3), K, size, cv2.CV_32FC1)
+                    K, D, np.eye(3), K, size, cv2.CV_32FC1
+                )
         self.counters: dict[str, int] = {
-            "frames": 0, "keyframes": 0, "imu_samples": 0, "imu_time_backwards": 0,
-            "image_time_backwards": 0, "imu_gap_resets": 0, "divergence_resets": 0,
-            "frames_dropped_waiting_imu": 0, "bad_input": 0, "static_inits": 0, "dynamic_inits": 0,
+            "frames": 0,
+            "keyframes": 0,
+            "imu_samples": 0,
+            "imu_time_backwards": 0,
+            "image_time_backwards": 0,
+            "imu_gap_resets": 0,
+            "divergence_resets": 0,
+            "frames_dropped_waiting_imu": 0,
+            "bad_input": 0,
+            "static_inits": 0,
+            "dynamic_inits": 0,
             "image_wrong_size": 0,
         }
 
@@ -185,12 +199,17 @@ class Frontend:
 
     # ------------------------------------------------------------------------------------ input
 
-    def add_imu(self, t_ns: int, gyro_rad_s: tuple | NDArray, accel_m_s2: tuple | NDArray
-                ) -> list[FrameOutput]:
+    def add_imu(
+        self, t_ns: int, gyro_rad_s: tuple | NDArray, accel_m_s2: tuple | NDArray
+    ) -> list[FrameOutput]:
         """One IMU sample (IMU clock). Out-of-order or non-finite samples are rejected and counted."""
         g = np.asarray(gyro_rad_s, float).reshape(-1)
         a = np.asarray(accel_m_s2, float).reshape(-1)
-        if g.shape != (3,) or a.shape != (3,) or not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
+        if (
+            g.shape != (3,)
+            or a.shape != (3,)
+            or not (np.all(np.isfinite(g)) and np.all(np.isfinite(a)))
+        ):
             self.counters["bad_input"] += 1
             return []
         last = self.imu.last_ns
@@ -201,11 +220,16 @@ class Frontend:
         self.counters["imu_samples"] += 1
         return self._drain()
 
-    def add_imu_batch(self, stamps_ns: NDArray, gyro_rad_s: NDArray, accel_m_s2: NDArray
-                      ) -> list[FrameOutput]:
+    def add_imu_batch(
+        self, stamps_ns: NDArray, gyro_rad_s: NDArray, accel_m_s2: NDArray
+    ) -> list[FrameOutput]:
         out: list[FrameOutput] = []
-        for t, g, a in zip(np.asarray(stamps_ns).tolist(), np.asarray(gyro_rad_s),
-                           np.asarray(accel_m_s2), strict=True):
+        for t, g, a in zip(
+            np.asarray(stamps_ns).tolist(),
+            np.asarray(gyro_rad_s),
+            np.asarray(accel_m_s2),
+            strict=True,
+        ):
             out += self.add_imu(int(t), g, a)
         return out
 
@@ -219,8 +243,13 @@ class Frontend:
             # a frame of another size would corrupt the KLT state: reject it, count it
             n = self.counters["image_wrong_size"] = self.counters["image_wrong_size"] + 1
             if n & (n - 1) == 0:  # 1st, 2nd, 4th, ...: a stream of bad frames is not a log flood
-                log.warning("image %s rejected (%d so far): expected %dx%d (calibration)",
-                            image.shape, n, pin.width, pin.height)
+                log.warning(
+                    "image %s rejected (%d so far): expected %dx%d (calibration)",
+                    image.shape,
+                    n,
+                    pin.width,
+                    pin.height,
+                )
             return []
         self._last_image_ns = int(stamp_ns)
         self._pending.append((int(stamp_ns), image))
@@ -232,8 +261,11 @@ class Frontend:
     def _drain(self) -> list[FrameOutput]:
         out = []
         last = self.imu.last_ns
-        while self._pending and last is not None and \
-                self._pending[0][0] + self.params.time_offset_ns <= last:
+        while (
+            self._pending
+            and last is not None
+            and self._pending[0][0] + self.params.time_offset_ns <= last
+        ):
             stamp, img = self._pending.popleft()
             out.append(self._process(stamp, img))
         return out
@@ -256,7 +288,11 @@ class Frontend:
         flow = tr.stats.get("median_flow_px", 0.0)
         prev_t = self._last_frame_ns
         self._last_frame_ns = t_ns
-        if self.initialized and prev_t is not None and self.imu.max_gap_s(prev_t, t_ns) > p.max_imu_gap_s:
+        if (
+            self.initialized
+            and prev_t is not None
+            and self.imu.max_gap_s(prev_t, t_ns) > p.max_imu_gap_s
+        ):
             self.counters["imu_gap_resets"] += 1
             log.warning("IMU gap before frame %d: re-initialising", idx)
             self._reset()
@@ -272,15 +308,24 @@ class Frontend:
                 kf = self._make_keyframe(stamp_ns, image, T_wc)
         else:
             dt_kf = (t_ns - self._last_kf[0]) * 1e-9
-            make_kf, parallax = is_keyframe(p.keyframes, self._last_kf[1], self._last_kf[2],
-                                            tr.ids, tr.uv_px, dt_kf)
-            still = is_still(p.init, imu, t_ns, flow) and \
-                self._compensated_accel_m_s2(imu, t_ns) < p.init.still_accel_dev_m_s2
+            make_kf, parallax = is_keyframe(
+                p.keyframes, self._last_kf[1], self._last_kf[2], tr.ids, tr.uv_px, dt_kf
+            )
+            still = (
+                is_still(p.init, imu, t_ns, flow)
+                and self._compensated_accel_m_s2(imu, t_ns) < p.init.still_accel_dev_m_s2
+            )
             stats["parallax_px"] = parallax
             try:
-                st = self.estimator.add_frame(t_ns, tr.ids, tr.uv_px, imu,
-                                              is_keyframe=make_kf or p.window_every_frame,
-                                              stationary=still, track_len=tr.track_len)
+                st = self.estimator.add_frame(
+                    t_ns,
+                    tr.ids,
+                    tr.uv_px,
+                    imu,
+                    is_keyframe=make_kf or p.window_every_frame,
+                    stationary=still,
+                    track_len=tr.track_len,
+                )
             except EstimatorDivergedError as err:
                 self.counters["divergence_resets"] += 1
                 log.warning("frame %d: %s; re-initialising", idx, err)
@@ -299,10 +344,16 @@ class Frontend:
         else:
             self.imu.trim(t_ns - int(p.imu_history_s * 1e9))
         t2 = time.perf_counter()
-        return FrameOutput(stamp_ns=stamp_ns, frame_index=idx, status=status, T_world_cam=T_wc,
-                           velocity_world_m_s=v, keyframe=kf,
-                           timings_ms={"tracking": 1e3 * (t1 - t0), "estimation": 1e3 * (t2 - t1)},
-                           stats=stats)
+        return FrameOutput(
+            stamp_ns=stamp_ns,
+            frame_index=idx,
+            status=status,
+            T_world_cam=T_wc,
+            velocity_world_m_s=v,
+            keyframe=kf,
+            timings_ms={"tracking": 1e3 * (t1 - t0), "estimation": 1e3 * (t2 - t1)},
+            stats=stats,
+        )
 
     def _reset(self) -> None:
         self.estimator.reset()
@@ -340,14 +391,25 @@ class Frontend:
     def _try_init(self, frame: tuple, imu: ImuSamples, flow: float) -> None:
         p = self.params
         t_ns = frame[0]
-        if p.init_mode in ("auto", "static") and len(imu.stamps_ns) and \
-                (imu.stamps_ns[0] <= t_ns - int(p.init.still_window_s * 1e9)) and \
-                is_still(p.init, imu, t_ns, flow):
+        if (
+            p.init_mode in ("auto", "static")
+            and len(imu.stamps_ns)
+            and (imu.stamps_ns[0] <= t_ns - int(p.init.still_window_s * 1e9))
+            and is_still(p.init, imu, t_ns, flow)
+        ):
             res = static_init(p.init, imu, t_ns)
             self._dyn_init.reset()
             _, ids, uv, tl = frame
-            self.estimator.initialize(t_ns, res.T_world_imu[-1], res.velocity_world_m_s[-1],
-                                      res.gyro_bias_rad_s, res.accel_bias_m_s2, ids, uv, tl)
+            self.estimator.initialize(
+                t_ns,
+                res.T_world_imu[-1],
+                res.velocity_world_m_s[-1],
+                res.gyro_bias_rad_s,
+                res.accel_bias_m_s2,
+                ids,
+                uv,
+                tl,
+            )
             self.counters["static_inits"] += 1
             self._last_kf = (t_ns, ids, uv)
             log.info("static initialisation at %.3f s", t_ns * 1e-9)
@@ -360,8 +422,11 @@ class Frontend:
             f = est.frames[-1]
             self._last_kf = (f.t_ns, f.ids, f.uv_px)
             self.counters["dynamic_inits"] += 1
-            log.info("dynamic initialisation at %.3f s (speed %.2f m/s)", f.t_ns * 1e-9,
-                     float(np.linalg.norm(est.state().velocity_world_m_s)))
+            log.info(
+                "dynamic initialisation at %.3f s (speed %.2f m/s)",
+                f.t_ns * 1e-9,
+                float(np.linalg.norm(est.state().velocity_world_m_s)),
+            )
 
     def _make_keyframe(self, stamp_ns: int, image: NDArray, T_world_cam: NDArray) -> KeyframeOutput:
         lm = self.estimator.newest_landmarks()
@@ -370,9 +435,17 @@ class Frontend:
         if self._undistort_maps is not None:
             img = cv2.remap(img, *self._undistort_maps, cv2.INTER_LINEAR)
         kf = KeyframeOutput(
-            keyframe_id=self._keyframe_id, stamp_ns=stamp_ns, image=img, K=self.camera.K.copy(),
-            T_world_cam=T_world_cam.copy(), feature_ids=lm.track_ids, feature_uv_px=lm.uv_px,
-            feature_xyz_cam_m=lm.xyz_cam_m, feature_cov_cam_m2=lm.cov_cam_m2, feature_weight=w)
+            keyframe_id=self._keyframe_id,
+            stamp_ns=stamp_ns,
+            image=img,
+            K=self.camera.K.copy(),
+            T_world_cam=T_world_cam.copy(),
+            feature_ids=lm.track_ids,
+            feature_uv_px=lm.uv_px,
+            feature_xyz_cam_m=lm.xyz_cam_m,
+            feature_cov_cam_m2=lm.cov_cam_m2,
+            feature_weight=w,
+        )
         self._keyframe_id += 1
         self.counters["keyframes"] += 1
         return kf

@@ -59,7 +59,9 @@ def is_keyframe(
     _, ia, ib = np.intersect1d(kf_ids, ids, assume_unique=True, return_indices=True)
     parallax = float(np.mean(np.linalg.norm(kf_uv_px[ia] - uv_px[ib], axis=1))) if len(ia) else 0.0
     few = len(ia) < max(params.min_tracked, params.min_tracked_ratio * len(kf_ids))
-    return bool(parallax >= params.min_parallax_px or few or dt_s >= params.max_interval_s), parallax
+    return bool(
+        parallax >= params.min_parallax_px or few or dt_s >= params.max_interval_s
+    ), parallax
 
 
 def triangulate_midpoint(
@@ -90,7 +92,10 @@ def triangulate_midpoint(
 
 
 def landmark_covariance(
-    points_world: NDArray, T_world_cams: NDArray, obs_mask: NDArray, camera: PinholeCamera,
+    points_world: NDArray,
+    T_world_cams: NDArray,
+    obs_mask: NDArray,
+    camera: PinholeCamera,
     pixel_sigma: float,
 ) -> NDArray[np.float64]:
     """Covariance [N, 3, 3] of each landmark with the poses held fixed (Gauss-Newton, first order).
@@ -117,7 +122,9 @@ def landmark_covariance(
     return np.linalg.inv(info)
 
 
-def omega_weight(track_len: NDArray, reproj_err_px: NDArray, params: KeyframeParams) -> NDArray[np.float32]:
+def omega_weight(
+    track_len: NDArray, reproj_err_px: NDArray, params: KeyframeParams
+) -> NDArray[np.float32]:
     """Weight omega in [0, 1] per feature: ``(1 - exp(-len / L0)) / (1 + (err / e0)^2)``."""
     n = np.asarray(track_len, dtype=np.float64)
     e = np.asarray(reproj_err_px, dtype=np.float64)

@@ -34,8 +34,24 @@ from mogs_node.node import Node, parse_params
 
 __all__ = ["FrontendNode", "FrontendNodeParams"]
 
-_KITTI_T_IMU_CAM = (0.0, 0.0, 1.0, 0.81, -1.0, 0.0, 0.0, -0.32, 0.0, -1.0, 0.0, 0.72,
-                    0.0, 0.0, 0.0, 1.0)
+_KITTI_T_IMU_CAM = (
+    0.0,
+    0.0,
+    1.0,
+    0.81,
+    -1.0,
+    0.0,
+    0.0,
+    -0.32,
+    0.0,
+    -1.0,
+    0.0,
+    0.72,
+    0.0,
+    0.0,
+    0.0,
+    1.0,
+)
 
 
 @dataclass(frozen=True)
@@ -77,14 +93,18 @@ class FrontendNodeParams:
             "init": parse_params(InitParams, self.init, where=f"{where}.init"),
             "imu": parse_params(ImuNoise, self.imu, where=f"{where}.imu"),
         }
-        params = FrontendParams(init_mode=self.init_mode, time_offset_ns=self.time_offset_ns,
-                                **groups)
-        cam = CameraModel(PinholeCamera(self.fx_px, self.fy_px, self.cx_px, self.cy_px,
-                                        self.width, self.height),
-                          self.distortion_model, tuple(self.distortion_coeffs))
+        params = FrontendParams(
+            init_mode=self.init_mode, time_offset_ns=self.time_offset_ns, **groups
+        )
+        cam = CameraModel(
+            PinholeCamera(self.fx_px, self.fy_px, self.cx_px, self.cy_px, self.width, self.height),
+            self.distortion_model,
+            tuple(self.distortion_coeffs),
+        )
         T = np.asarray(self.T_imu_cam, dtype=np.float64).reshape(4, 4)
-        if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5) or \
-                not np.allclose(T[3], [0, 0, 0, 1]):
+        if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5) or not np.allclose(
+            T[3], [0, 0, 0, 1]
+        ):
             raise ConfigError(f"{where}.T_imu_cam: not a rigid transform")
         return params, cam, T
 
@@ -130,14 +150,27 @@ class FrontendNode(Node):
     def _acknowledge(self, stamp_ns: int, status: str) -> None:
         self._send_odometry(stamp_ns, -1, self._last_T_world_cam, self._last_velocity, status)
 
-    def _send_odometry(self, stamp_ns: int, frame_index: int, T_world_cam: np.ndarray,
-                       velocity: np.ndarray, status: str) -> None:
+    def _send_odometry(
+        self,
+        stamp_ns: int,
+        frame_index: int,
+        T_world_cam: np.ndarray,
+        velocity: np.ndarray,
+        status: str,
+    ) -> None:
         p: FrontendNodeParams = self.params
         v = velocity
-        self.publish(p.odometry_topic, msgs.Odometry(
-            stamp_ns=int(stamp_ns), frame_id=p.frame_id, frame_index=int(frame_index),
-            T_world_cam=np.ascontiguousarray(T_world_cam, dtype=np.float64),
-            velocity_world_m_s=(float(v[0]), float(v[1]), float(v[2])), status=status))
+        self.publish(
+            p.odometry_topic,
+            msgs.Odometry(
+                stamp_ns=int(stamp_ns),
+                frame_id=p.frame_id,
+                frame_index=int(frame_index),
+                T_world_cam=np.ascontiguousarray(T_world_cam, dtype=np.float64),
+                velocity_world_m_s=(float(v[0]), float(v[1]), float(v[2])),
+                status=status,
+            ),
+        )
 
     def _publish(self, out: FrameOutput) -> None:
         p: FrontendNodeParams = self.params
@@ -145,18 +178,26 @@ class FrontendNode(Node):
             self._last_T_world_cam = np.array(out.T_world_cam, dtype=np.float64)
             self._last_velocity = np.asarray(out.velocity_world_m_s, dtype=np.float64)
         # one odometry per handled frame, with the best pose available while initialising
-        self._send_odometry(out.stamp_ns, out.frame_index, self._last_T_world_cam,
-                            self._last_velocity, out.status)
+        self._send_odometry(
+            out.stamp_ns, out.frame_index, self._last_T_world_cam, self._last_velocity, out.status
+        )
         kf = out.keyframe
         if kf is not None:
-            self.publish(p.keyframe_topic, msgs.Keyframe(
-                stamp_ns=kf.stamp_ns, frame_id=p.frame_id, keyframe_id=kf.keyframe_id,
-                image=np.ascontiguousarray(kf.image), K=kf.K.astype(np.float64),
-                T_world_cam=kf.T_world_cam.astype(np.float64),
-                feature_ids=kf.feature_ids.astype(np.int64),
-                feature_uv_px=kf.feature_uv_px.astype(np.float32),
-                feature_xyz_cam_m=kf.feature_xyz_cam_m.astype(np.float32),
-                feature_weight=kf.feature_weight.astype(np.float32)))
+            self.publish(
+                p.keyframe_topic,
+                msgs.Keyframe(
+                    stamp_ns=kf.stamp_ns,
+                    frame_id=p.frame_id,
+                    keyframe_id=kf.keyframe_id,
+                    image=np.ascontiguousarray(kf.image),
+                    K=kf.K.astype(np.float64),
+                    T_world_cam=kf.T_world_cam.astype(np.float64),
+                    feature_ids=kf.feature_ids.astype(np.int64),
+                    feature_uv_px=kf.feature_uv_px.astype(np.float32),
+                    feature_xyz_cam_m=kf.feature_xyz_cam_m.astype(np.float32),
+                    feature_weight=kf.feature_weight.astype(np.float32),
+                ),
+            )
 
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
         d = super().diagnostics(status)

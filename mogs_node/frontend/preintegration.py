@@ -38,8 +38,14 @@ class ImuNoise:
     gravity_m_s2: float = 9.81  # magnitude of gravity; world z is up
 
     def __post_init__(self) -> None:
-        vals = (self.gyro_noise_rad_s_rthz, self.accel_noise_m_s2_rthz, self.gyro_walk_rad_s2_rthz,
-                self.accel_walk_m_s3_rthz, self.integration_sigma, self.gravity_m_s2)
+        vals = (
+            self.gyro_noise_rad_s_rthz,
+            self.accel_noise_m_s2_rthz,
+            self.gyro_walk_rad_s2_rthz,
+            self.accel_walk_m_s3_rthz,
+            self.integration_sigma,
+            self.gravity_m_s2,
+        )
         if not all(np.isfinite(v) and v > 0 for v in vals):
             raise ConfigError(f"imu noise: every value must be finite and > 0, got {vals}")
 
@@ -65,7 +71,9 @@ def zero_bias() -> gtsam.imuBias.ConstantBias:
     return gtsam.imuBias.ConstantBias(np.zeros(3), np.zeros(3))
 
 
-def make_params(noise: ImuNoise, T_imu_cam: NDArray | None = None) -> gtsam.PreintegrationCombinedParams:
+def make_params(
+    noise: ImuNoise, T_imu_cam: NDArray | None = None
+) -> gtsam.PreintegrationCombinedParams:
     """GTSAM parameters (world z up, gravity ``-g z``). Covariances are continuous-time densities
     squared, as GTSAM expects. ``T_imu_cam`` is not used here: poses in the graph are IMU poses."""
     del T_imu_cam

@@ -37,9 +37,14 @@ class RunResult:
     timings_ms: dict[str, float] = field(default_factory=dict)  # mean per frame
 
 
-def run_frontend(frontend: Frontend, stamps_ns: NDArray, images: Iterable[NDArray],
-                 imu_stamps_ns: NDArray, gyro_rad_s: NDArray, accel_m_s2: NDArray
-                 ) -> list[FrameOutput]:
+def run_frontend(
+    frontend: Frontend,
+    stamps_ns: NDArray,
+    images: Iterable[NDArray],
+    imu_stamps_ns: NDArray,
+    gyro_rad_s: NDArray,
+    accel_m_s2: NDArray,
+) -> list[FrameOutput]:
     """Stream a recorded sequence into ``frontend`` in time order (IMU up to each frame first)."""
     outs: list[FrameOutput] = []
     k = 0
@@ -57,9 +62,15 @@ SIM_STATIC_START_S = 2.0  # default standstill before the sim drive: the static 
 # (gravity from the accelerometer, zero velocity) fixes the metric scale
 
 
-def load_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
-                 data: str | Path | None = None, size: tuple[int, int] = (621, 188),
-                 static_start_s: float | None = None) -> dict:
+def load_dataset(
+    dataset: str,
+    *,
+    seconds: float | None = None,
+    seed: int = 0,
+    data: str | Path | None = None,
+    size: tuple[int, int] = (621, 188),
+    static_start_s: float | None = None,
+) -> dict:
     """Sequence as plain arrays: stamps, image loader, IMU, camera model, ``T_imu_cam`` and GT.
 
     ``static_start_s``: seconds the sim vehicle stands still before driving off (``sim`` only;
@@ -77,20 +88,31 @@ def load_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
                 raise DatasetError("static_start_s: the OXTS drive has no standstill")
         else:
             seconds = seconds or 60.0
-            kw = {"static_start_s": SIM_STATIC_START_S if static_start_s is None
-                  else float(static_start_s)}
+            kw = {
+                "static_start_s": SIM_STATIC_START_S
+                if static_start_s is None
+                else float(static_start_s)
+            }
             if seconds < kw["static_start_s"] + 1.0:
-                raise DatasetError(f"seconds: {seconds} s leaves the sim parked "
-                                   f"(static_start_s {kw['static_start_s']} s); use >= "
-                                   f"{kw['static_start_s'] + 1.0} s or static_start_s=0")
-        cfg = SimConfig(seed=seed, n_frames=int(round(seconds * 10.0)) + 1, width=size[0],
-                        height=size[1], **kw)
+                raise DatasetError(
+                    f"seconds: {seconds} s leaves the sim parked "
+                    f"(static_start_s {kw['static_start_s']} s); use >= "
+                    f"{kw['static_start_s'] + 1.0} s or static_start_s=0"
+                )
+        cfg = SimConfig(
+            seed=seed, n_frames=int(round(seconds * 10.0)) + 1, width=size[0], height=size[1], **kw
+        )
         seq = make_sequence(cfg)
-        return dict(stamps_ns=seq.stamps_ns, image=lambda i: seq.render(i).rgb,
-                    imu=(seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2),
-                    camera=CameraModel(seq.camera), T_imu_cam=seq.T_imu_cam,
-                    gt=seq.T_world_cam, velocity=seq.velocity_world_m_s,
-                    name=f"{dataset} seed {seed} {seconds:.1f}s")
+        return dict(
+            stamps_ns=seq.stamps_ns,
+            image=lambda i: seq.render(i).rgb,
+            imu=(seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2),
+            camera=CameraModel(seq.camera),
+            T_imu_cam=seq.T_imu_cam,
+            gt=seq.T_world_cam,
+            velocity=seq.velocity_world_m_s,
+            name=f"{dataset} seed {seed} {seconds:.1f}s",
+        )
     if dataset == "euroc":
         from mogs_node.datasets.euroc import read_euroc
 
@@ -105,18 +127,28 @@ def load_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
         if any(f.T_world_cam is None for f in frames):
             raise DatasetError(f"{root}: ground truth does not cover every frame")
         dist = seq.distortion or {"model": "radial-tangential", "coeffs": []}
-        cam = CameraModel(frames[0].camera, "radtan" if dist["coeffs"] else "none",
-                          tuple(float(c) for c in dist["coeffs"]))
-        return dict(stamps_ns=np.array([f.stamp_ns for f in frames], np.int64),
-                    image=lambda i: frames[i].image,
-                    imu=(seq.imu.stamps_ns, seq.imu.gyro_rad_s, seq.imu.accel_m_s2),
-                    camera=cam, T_imu_cam=seq.T_imu_cam,
-                    gt=np.stack([f.T_world_cam for f in frames]), name=f"euroc {root.name}")
+        cam = CameraModel(
+            frames[0].camera,
+            "radtan" if dist["coeffs"] else "none",
+            tuple(float(c) for c in dist["coeffs"]),
+        )
+        return dict(
+            stamps_ns=np.array([f.stamp_ns for f in frames], np.int64),
+            image=lambda i: frames[i].image,
+            imu=(seq.imu.stamps_ns, seq.imu.gyro_rad_s, seq.imu.accel_m_s2),
+            camera=cam,
+            T_imu_cam=seq.T_imu_cam,
+            gt=np.stack([f.T_world_cam for f in frames]),
+            name=f"euroc {root.name}",
+        )
     raise DatasetError(f"dataset: unknown {dataset!r} (sim, oxts, euroc)")
 
 
-def run_dataset_frames(d: dict, params: FrontendParams | None = None,
-                       on_frame: Callable[[FrameOutput], None] | None = None) -> RunResult:
+def run_dataset_frames(
+    d: dict,
+    params: FrontendParams | None = None,
+    on_frame: Callable[[FrameOutput], None] | None = None,
+) -> RunResult:
     fe = Frontend(params or FrontendParams(), d["camera"], d["T_imu_cam"])
     t0 = time.perf_counter()
     images = (d["image"](i) for i in range(len(d["stamps_ns"])))
@@ -125,7 +157,9 @@ def run_dataset_frames(d: dict, params: FrontendParams | None = None,
     if on_frame:
         for o in outs:
             on_frame(o)
-    timings = {k: float(np.mean([o.timings_ms[k] for o in outs])) for k in ("tracking", "estimation")}
+    timings = {
+        k: float(np.mean([o.timings_ms[k] for o in outs])) for k in ("tracking", "estimation")
+    }
     return RunResult(outs, d["gt"], d["stamps_ns"], dict(fe.counters), wall, timings)
 
 
@@ -134,8 +168,11 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
     from mogs_node.eval.traj import trajectory_metrics
 
     stamp_index = {int(t): i for i, t in enumerate(run.stamps_ns)}
-    sel = [o for o in run.outputs if o.T_world_cam is not None
-           and (o.keyframe is not None or not keyframes_only)]
+    sel = [
+        o
+        for o in run.outputs
+        if o.T_world_cam is not None and (o.keyframe is not None or not keyframes_only)
+    ]
     if len(sel) < 3:
         raise DatasetError(f"run: only {len(sel)} estimated poses, cannot score")
     idx = np.array([stamp_index[o.stamp_ns] for o in sel])
@@ -145,23 +182,36 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
     per_s = max(1, int(round(len(sel) / max((sel[-1].stamp_ns - sel[0].stamp_ns) * 1e-9, 1e-9))))
     out = trajectory_metrics(run.stamps_ns[idx], est, ref, rpe_delta_frames=per_s)
     E = se3_inverse(se3_inverse(ref[0]) @ ref[-1]) @ (se3_inverse(est[0]) @ est[-1])
-    out.update({
-        "end_drift_m": float(np.linalg.norm(E[:3, 3])),
-        "ate_se3_percent_of_path": 100.0 * out["ate_se3_rmse_m"] / max(out["path_length_m"], 1e-9),
-        "poses_scored": len(sel),
-        "frames": len(run.stamps_ns),
-        "first_pose_s": float((sel[0].stamp_ns - run.stamps_ns[0]) * 1e-9),
-        "frame_rate_hz": float(rate),
-        "tracking_ms_per_frame": run.timings_ms.get("tracking", 0.0),
-        "estimation_ms_per_frame": run.timings_ms.get("estimation", 0.0),
-        "resets": int(run.counters.get("divergence_resets", 0) + run.counters.get("imu_gap_resets", 0)),
-    })
+    out.update(
+        {
+            "end_drift_m": float(np.linalg.norm(E[:3, 3])),
+            "ate_se3_percent_of_path": 100.0
+            * out["ate_se3_rmse_m"]
+            / max(out["path_length_m"], 1e-9),
+            "poses_scored": len(sel),
+            "frames": len(run.stamps_ns),
+            "first_pose_s": float((sel[0].stamp_ns - run.stamps_ns[0]) * 1e-9),
+            "frame_rate_hz": float(rate),
+            "tracking_ms_per_frame": run.timings_ms.get("tracking", 0.0),
+            "estimation_ms_per_frame": run.timings_ms.get("estimation", 0.0),
+            "resets": int(
+                run.counters.get("divergence_resets", 0) + run.counters.get("imu_gap_resets", 0)
+            ),
+        }
+    )
     return out
 
 
-def run_dataset(dataset: str, *, seconds: float | None = None, seed: int = 0,
-                data: str | Path | None = None, out_dir: str | Path | None = None,
-                params: FrontendParams | None = None, static_start_s: float | None = None) -> dict:
+def run_dataset(
+    dataset: str,
+    *,
+    seconds: float | None = None,
+    seed: int = 0,
+    data: str | Path | None = None,
+    out_dir: str | Path | None = None,
+    params: FrontendParams | None = None,
+    static_start_s: float | None = None,
+) -> dict:
     """Run the frontend on ``dataset`` and score it; optionally write TUM/KITTI trajectories."""
     d = load_dataset(dataset, seconds=seconds, seed=seed, data=data, static_start_s=static_start_s)
     log.info("running the frontend on %s (%d frames)", d["name"], len(d["stamps_ns"]))

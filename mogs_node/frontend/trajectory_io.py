@@ -19,9 +19,11 @@ def write_tum(path: str | Path, stamps_ns: NDArray, poses_se3: NDArray) -> None:
     T = check_array("poses_se3", poses_se3, shape=(None, 4, 4), finite=True)
     t = check_array("stamps_ns", stamps_ns, shape=(len(T),), dtype=np.integer)
     q = quat_wxyz_from_rotmat(T[:, :3, :3])
-    lines = [f"{int(s) // 1_000_000_000}.{int(s) % 1_000_000_000:09d} "
-             + " ".join(f"{v:.9f}" for v in (*p[:3, 3], qq[1], qq[2], qq[3], qq[0]))
-             for s, p, qq in zip(t, T, q, strict=True)]
+    lines = [
+        f"{int(s) // 1_000_000_000}.{int(s) % 1_000_000_000:09d} "
+        + " ".join(f"{v:.9f}" for v in (*p[:3, 3], qq[1], qq[2], qq[3], qq[0]))
+        for s, p, qq in zip(t, T, q, strict=True)
+    ]
     Path(path).write_text("\n".join(lines) + ("\n" if lines else ""))
 
 

@@ -99,7 +99,9 @@ def segment_graph(
     else:
         lab = cv2.cvtColor(small, cv2.COLOR_RGB2LAB)
         slic = cv2.ximgproc.createSuperpixelSLIC(
-            lab, algorithm=cv2.ximgproc.SLIC, region_size=int(params.slic_region_px),
+            lab,
+            algorithm=cv2.ximgproc.SLIC,
+            region_size=int(params.slic_region_px),
             ruler=float(params.slic_ruler),
         )
         slic.iterate(int(params.slic_iterations))

@@ -36,8 +36,9 @@ class SegmentationParams:
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
-            raise ConfigError(f"segmentation.backend: expected one of {BACKENDS}, got "
-                              f"{self.backend!r}")
+            raise ConfigError(
+                f"segmentation.backend: expected one of {BACKENDS}, got {self.backend!r}"
+            )
 
 
 class SegmentationNode(Node):
@@ -51,8 +52,9 @@ class SegmentationNode(Node):
         self.sam: SamOnnx | None = None
         if p.backend == "sam":
             self.sam = SamOnnx(parse_params(SamParams, p.sam, where=f"{self.name}.sam"))
-        self.subscribe(p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe,
-                       idempotent=True)
+        self.subscribe(
+            p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe, idempotent=True
+        )
         self.catch_up((p.in_topic,), (p.out_topic,))  # after a restart: the keyframes missed
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
@@ -63,7 +65,14 @@ class SegmentationNode(Node):
             labels = self.sam.generate(np.ascontiguousarray(rgb)).labels
         else:
             labels = segment_graph(rgb, self.graph_params)
-        self.publish(self.params.out_topic, msgs.Masks(
-            stamp_ns=kf.stamp_ns, frame_id=kf.frame_id, keyframe_id=kf.keyframe_id,
-            labels=labels.astype(np.int32), backend=self.params.backend))
+        self.publish(
+            self.params.out_topic,
+            msgs.Masks(
+                stamp_ns=kf.stamp_ns,
+                frame_id=kf.frame_id,
+                keyframe_id=kf.keyframe_id,
+                labels=labels.astype(np.int32),
+                backend=self.params.backend,
+            ),
+        )
         self.log.debug("keyframe %d: %d segments", kf.keyframe_id, int(labels.max()) + 1)

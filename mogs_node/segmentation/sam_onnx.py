@@ -51,8 +51,14 @@ log = logging.getLogger(__name__)
 
 PIXEL_MEAN = np.array([123.675, 116.28, 103.53], np.float32)
 PIXEL_STD = np.array([58.395, 57.12, 57.375], np.float32)
-DECODER_INPUTS = [("image_embeddings", 4), ("point_coords", 3), ("point_labels", 2),
-                  ("mask_input", 4), ("has_mask_input", 1), ("orig_im_size", 1)]
+DECODER_INPUTS = [
+    ("image_embeddings", 4),
+    ("point_coords", 3),
+    ("point_labels", 2),
+    ("mask_input", 4),
+    ("has_mask_input", 1),
+    ("orig_im_size", 1),
+]
 DECODER_OUTPUTS = [("masks", 4), ("iou_predictions", 2)]
 
 
@@ -195,12 +201,18 @@ class SamOnnx:
 
     def __init__(self, params: SamParams) -> None:
         self.params = params
-        self.encoder = open_session(params.encoder_path, provider=params.provider,
-                                    threads=params.threads)
-        check_signature(self.encoder, params.encoder_path, [(params.encoder_input, 4)],
-                        [(params.encoder_output, 4)])
-        self.decoder = open_session(params.decoder_path, provider=params.provider,
-                                    threads=params.threads)
+        self.encoder = open_session(
+            params.encoder_path, provider=params.provider, threads=params.threads
+        )
+        check_signature(
+            self.encoder,
+            params.encoder_path,
+            [(params.encoder_input, 4)],
+            [(params.encoder_output, 4)],
+        )
+        self.decoder = open_session(
+            params.decoder_path, provider=params.provider, threads=params.threads
+        )
         check_signature(self.decoder, params.decoder_path, DECODER_INPUTS, DECODER_OUTPUTS)
         self.model_ms = 0.0  # time spent inside the two networks (running total)
 
@@ -248,8 +260,10 @@ class SamOnnx:
         masks = np.asarray(masks, np.float32)[0]
         iou = np.asarray(iou, np.float32)[0]
         if masks.shape[1:] != (H, W) or masks.shape[0] != iou.shape[0]:
-            raise ModelError(f"{self.params.decoder_path}: masks {list(masks.shape)} do not "
-                              f"match the image {H}x{W} / iou {list(iou.shape)}")
+            raise ModelError(
+                f"{self.params.decoder_path}: masks {list(masks.shape)} do not "
+                f"match the image {H}x{W} / iou {list(iou.shape)}"
+            )
         return masks, iou
 
     def generate(
@@ -271,8 +285,11 @@ class SamOnnx:
                 logits, iou = logits[1:], iou[1:]
             n_total += len(iou)
             for k in np.flatnonzero(iou >= p.pred_iou_thresh):  # loop over <= 3 masks
-                stab = float(stability_score(logits[k:k + 1], p.mask_threshold,
-                                             p.stability_score_offset)[0])
+                stab = float(
+                    stability_score(logits[k : k + 1], p.mask_threshold, p.stability_score_offset)[
+                        0
+                    ]
+                )
                 if stab < p.stability_score_thresh:
                     continue
                 m = logits[k] > p.mask_threshold
@@ -282,7 +299,7 @@ class SamOnnx:
                 cols = np.flatnonzero(m.any(axis=0))
                 box = (cols[0], rows[0], cols[-1], rows[-1])
                 boxes.append(box)
-                crops.append(m[box[1]:box[3] + 1, box[0]:box[2] + 1].copy())
+                crops.append(m[box[1] : box[3] + 1, box[0] : box[2] + 1].copy())
                 keep_iou.append(iou[k])
                 keep_stab.append(stab)
                 keep_pts.append(pt)
@@ -290,18 +307,31 @@ class SamOnnx:
         ious = np.asarray(keep_iou, np.float32)
         stabs = np.asarray(keep_stab, np.float32)
         kpts = np.asarray(keep_pts, np.float64).reshape(-1, 2)
-        idx = (box_nms(np.asarray(boxes, np.float64), ious, p.box_nms_thresh) if crops
-               else np.zeros(0, np.int64))
+        idx = (
+            box_nms(np.asarray(boxes, np.float64), ious, p.box_nms_thresh)
+            if crops
+            else np.zeros(0, np.int64)
+        )
         masks = np.zeros((len(idx), H, W), bool)
         for j, i in enumerate(idx):  # paste the survivors (loop over masks, not pixels)
             u0, v0, u1, v1 = boxes[i]
-            masks[j, v0:v1 + 1, u0:u1 + 1] = crops[i]
+            masks[j, v0 : v1 + 1, u0 : u1 + 1] = crops[i]
         ious, stabs, kpts = ious[idx], stabs[idx], kpts[idx]
         labels, _ = paint_masks(masks, depth_m)
-        stats = {"n_prompts": float(len(pts)), "n_candidates": float(n_total),
-                 "n_after_filters": float(n_filtered), "n_masks": float(len(masks)),
-                 "coverage": float(np.mean(labels >= 0)),
-                 "model_ms": self.model_ms - model_ms0}
+        stats = {
+            "n_prompts": float(len(pts)),
+            "n_candidates": float(n_total),
+            "n_after_filters": float(n_filtered),
+            "n_masks": float(len(masks)),
+            "coverage": float(np.mean(labels >= 0)),
+            "model_ms": self.model_ms - model_ms0,
+        }
         log.debug("SAM AMG: %s", stats)
-        return SamMasks(labels=labels, masks=masks, iou=ious.astype(np.float32),
-                        stability=stabs.astype(np.float32), points_px=kpts, stats=stats)
+        return SamMasks(
+            labels=labels,
+            masks=masks,
+            iou=ious.astype(np.float32),
+            stability=stabs.astype(np.float32),
+            points_px=kpts,
+            stats=stats,
+        )
