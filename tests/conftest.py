@@ -1,4 +1,5 @@
-"""Shared test fixtures: paths to the real data excerpts, private bus endpoints."""
+"""Shared test fixtures: paths to the real data excerpts, private bus endpoints, a broker process,
+an in-process broker and worker nodes wired to it."""
 
 from __future__ import annotations
 
@@ -28,6 +29,29 @@ def ipc_endpoints(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str]:
     return f"ipc://{d}/pub.ipc", f"ipc://{d}/sub.ipc"
 
 
+@pytest.fixture
+def broker_bus(ipc_endpoints: tuple[str, str]):
+    """A broker process on the private ipc endpoints; yields its ``BusConfig``, stops it after."""
+    from _reliability_harness import start_broker, stop_process
+
+    from mogs_node.bus import BusConfig
+
+    bus = BusConfig(*ipc_endpoints)
+    broker = start_broker(bus)
+    yield bus
+    stop_process(broker)
+
+
+@pytest.fixture
+def bus_subscriber(broker_bus):
+    """A subscriber (no topics yet) on ``broker_bus``, closed after the test."""
+    from mogs_node.bus import Subscriber
+
+    sub = Subscriber(broker_bus)
+    yield sub
+    sub.close()
+
+
 @pytest.fixture(autouse=True)
 def _no_leftover_processes():
     """Kill whatever a test left running (a failed test must not leave nodes burning CPU)."""
@@ -47,22 +71,38 @@ def inproc_bus():
 
     For in-process node tests: nodes and publishers must use the yielded context.
     """
-    import threading
+    from _reliability_harness import broker_thread
 
-    import zmq
+    from mogs_node.bus import BusConfig
 
-    from mogs_node.bus import BusConfig, run_broker
-
-    ctx = zmq.Context()
     name = uuid.uuid4().hex[:8]
     bus = BusConfig(f"inproc://{name}-pub", f"inproc://{name}-sub", reliable_hwm=10_000)
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(
-        target=run_broker, args=(bus, stop), kwargs={"ready": ready, "context": ctx}
-    )
-    t.start()
-    assert ready.wait(5)
-    yield bus, ctx
-    stop.set()
-    t.join(5)
-    ctx.destroy(linger=0)  # a failed test may leave sockets open: term() would wait for them
+    with broker_thread(bus) as ctx:
+        yield bus, ctx
+
+
+@pytest.fixture
+def wired_node(inproc_bus):
+    """Wires in-process worker nodes on ``inproc_bus``: ``wired_node(node, inputs, output)`` returns
+    a ``WiredNode`` once the node has subscribed to every input topic and the watcher to
+    ``output``; every wired node, its publisher and watcher are closed after the test."""
+    from _reliability_harness import WiredNode
+
+    from mogs_node.bus import Publisher, Subscriber
+
+    bus, ctx = inproc_bus
+    wired: list[WiredNode] = []
+
+    def wire(node, inputs: tuple[str, ...], output: str) -> WiredNode:
+        watcher = Subscriber(bus, context=ctx)
+        watcher.subscribe(output)
+        w = WiredNode(node, Publisher(bus, context=ctx), watcher)
+        wired.append(w)
+        for topic in inputs:
+            assert w.pub.wait_for_subscriber(topic, 5)
+        assert node._pub.wait_for_subscriber(output, 5)
+        return w
+
+    yield wire
+    for w in wired:
+        w.close()

@@ -4,22 +4,18 @@ of the pipeline (every launch file's nodes and parameters: tests/test_launch_fil
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _reliability_harness import REPO, run_cli
+from conftest import shared_data
 
 from mogs_node.launch import load_launch_file
-
-REPO = Path(__file__).resolve().parents[1]
-EUROC = REPO.parent / "shared" / "data" / "euroc_v1_01_micro"
 
 
 @pytest.mark.shared_data
 def test_euroc_launch_file_plays_the_excerpt(tmp_path: Path, ipc_endpoints) -> None:
-    if not EUROC.exists():
-        pytest.skip(f"real data excerpt not found: {EUROC} (a user checkout has no ../shared/data)")
+    euroc = shared_data("euroc_v1_01_micro")
     from mogs_node.datasets import read_euroc
 
     summary = tmp_path / "rec.json"
@@ -43,27 +39,19 @@ def test_euroc_launch_file_plays_the_excerpt(tmp_path: Path, ipc_endpoints) -> N
     }
     path = tmp_path / "euroc.yaml"
     path.write_text(json.dumps(data))  # JSON is YAML
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mogs_node.cli",
-            "launch",
-            str(path),
-            "--set",
-            f"player.path={EUROC}",
-            "--set",
-            "player.rate=0",
-            "--set",
-            f"recorder.summary_path={summary}",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
+    r = run_cli(
+        "launch",
+        str(path),
+        "--set",
+        f"player.path={euroc}",
+        "--set",
+        "player.rate=0",
+        "--set",
+        f"recorder.summary_path={summary}",
+        timeout_s=120,
     )
     assert r.returncode == 0, r.stdout + r.stderr
-    seq = read_euroc(EUROC)
+    seq = read_euroc(euroc)
     imu_lo = seq.frames[0].stamp_ns - 100_000_000
     n_imu = int(
         ((seq.imu.stamps_ns >= imu_lo) & (seq.imu.stamps_ns <= seq.frames[-1].stamp_ns)).sum()

@@ -3,11 +3,8 @@ ZeroMQ IMU nodes as real processes (127.0.0.1 and ipc only, bounded loops)."""
 
 from __future__ import annotations
 
-import json
 import math
 import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -16,6 +13,7 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
+from _reliability_harness import cli_process, receive_for, receive_until, run_cli
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -29,11 +27,8 @@ from bridges.imu_text import (
 )
 from bridges.live import CameraStamper, DeviceError, LiveCameraNode, parse_udp_source
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Subscriber
+from mogs_node.bus import BusConfig
 from mogs_node.errors import ConfigError
-
-REPO = Path(__file__).resolve().parents[1]
-PY = [sys.executable, "-m", "mogs_node.cli"]
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 t_ns = st.integers(0, (1 << 63) - 1)
@@ -180,21 +175,14 @@ def test_camera_stamper_uses_backend_times_then_falls_back_to_host() -> None:
 def test_missing_camera_is_a_clear_error(ipc_endpoints) -> None:
     with pytest.raises(DeviceError, match="cannot open camera '/dev/video99'"):
         LiveCameraNode("camera", {"device": "/dev/video99"}, BusConfig(*ipc_endpoints))
-    r = subprocess.run(
-        [
-            *PY,
-            "live",
-            "camera",
-            "/nonexistent/cam.mp4",
-            "--sub",
-            ipc_endpoints[1],
-            "--pub",
-            ipc_endpoints[0],
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
+    r = run_cli(
+        "live",
+        "camera",
+        "/nonexistent/cam.mp4",
+        "--sub",
+        ipc_endpoints[1],
+        "--pub",
+        ipc_endpoints[0],
     )
     assert r.returncode == 1
     assert "cannot open camera '/nonexistent/cam.mp4' (no such file)" in r.stderr
@@ -203,47 +191,6 @@ def test_missing_camera_is_a_clear_error(ipc_endpoints) -> None:
 
 
 # ----------------------------------------------------------------------------- processes
-
-
-def _broker(bus: BusConfig) -> subprocess.Popen:
-    proc = subprocess.Popen([*PY, "broker", "--bus-json", json.dumps(bus.to_dict())], cwd=REPO)
-    for _ in range(200):
-        if Path(bus.sub_endpoint[6:]).exists():
-            return proc
-        time.sleep(0.05)
-    proc.kill()
-    raise RuntimeError("broker did not come up")
-
-
-def _live(bus: BusConfig, *args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*PY, "live", *args, "--bus-json", json.dumps(bus.to_dict())],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(2)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
-def _receive_until(sub: Subscriber, pred, timeout_s: float) -> list[msgs.Envelope]:
-    got: list[msgs.Envelope] = []
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        env = sub.receive(timeout_ms=100)
-        if env is not None:
-            got.append(env)
-            if pred(env):
-                break
-    return got
 
 
 def _free_udp_port() -> int:
@@ -259,7 +206,7 @@ def _final_diag(got: list[msgs.Envelope], node: str) -> msgs.Diagnostics:
 
 
 def test_camera_node_streams_a_video_file_with_media_time_stamps(
-    ipc_endpoints, tmp_path: Path
+    broker_bus, bus_subscriber, tmp_path: Path
 ) -> None:
     video = tmp_path / "clip.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
@@ -267,22 +214,16 @@ def test_camera_node_streams_a_video_file_with_media_time_stamps(
     for i in range(12):
         w.write(np.full((48, 64, 3), (10 * i, 100, 200), np.uint8))  # BGR
     w.release()
-    bus = BusConfig(*ipc_endpoints)
-    broker = _broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     sub.subscribe("/camera/image")
-    try:
-        proc = _live(bus, "camera", str(video), "--wait", "10")
-        got: list[msgs.Envelope] = []
-        deadline = time.monotonic() + 60
-        while len(got) < 12 and time.monotonic() < deadline:
-            env = sub.receive(timeout_ms=200)
-            if env is not None:
-                got.append(env)
-        out = proc.communicate(timeout=30)[0].decode()
-    finally:
-        sub.close()
-        _stop(broker)
+    proc = cli_process(broker_bus, "live", "camera", str(video), "--wait", "10")
+    got: list[msgs.Envelope] = []
+    deadline = time.monotonic() + 60
+    while len(got) < 12 and time.monotonic() < deadline:
+        env = sub.receive(timeout_ms=200)
+        if env is not None:
+            got.append(env)
+    out = proc.communicate(timeout=30)[0].decode()
     assert proc.returncode == 0, out
     assert len(got) == 12
     stamps = np.array([e.msg.stamp_ns for e in got])
@@ -294,44 +235,42 @@ def test_camera_node_streams_a_video_file_with_media_time_stamps(
     assert "camera" in out and "12 frames (backend stamps)" in out
 
 
-def test_udp_imu_reader_publishes_good_lines_and_counts_bad_ones(ipc_endpoints) -> None:
+def test_udp_imu_reader_publishes_good_lines_and_counts_bad_ones(
+    broker_bus, bus_subscriber
+) -> None:
     port = _free_udp_port()
-    bus = BusConfig(*ipc_endpoints)
-    broker = _broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     sub.subscribe("/imu")
     sub.subscribe("/diagnostics")
     good = [(1000 + 10 * k, [0.01 * k, -0.02, 0.5, 0.1, -0.2, 9.81 + k]) for k in range(20)]
-    try:
-        proc = _live(bus, "imu-lines", f"udp://127.0.0.1:{port}", "--samples", "20")
-        _receive_until(sub, lambda e: e.topic == "/diagnostics" and e.msg.node == "imu", 30)
-        lines = ["# t_ns,gx,gy,gz,ax,ay,az"]
-        for k, (t, v) in enumerate(good):
-            lines.append(_line(t, v))
-            if k == 3:
-                lines += ["1035,0,0,0,0,0,nan", "garbage", "1035,1,2,3", "abc,0,0,0,0,0,9.8"]
-            if k == 7:
-                lines.append(_line(good[2][0], good[2][1]))  # time going backwards
-        payload = "\n".join(lines).encode()
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
-            half = payload.index(b"\n", len(payload) // 2)
-            tx.sendto(payload[:half] + b"\n", ("127.0.0.1", port))  # a line never spans datagrams
-            tx.sendto(payload[half + 1 :], ("127.0.0.1", port))
-        got = _receive_until(
-            sub,
-            lambda e: (
-                e.topic == "/diagnostics"
-                and e.msg.status
-                and e.msg.counters.get("imu_published") == 20
-                and e.msg.node == "imu"
-            ),
-            30,
-        )
-        out = proc.communicate(timeout=30)[0].decode()
-        got += _receive_until(sub, lambda e: False, 0.3)
-    finally:
-        sub.close()
-        _stop(broker)
+    proc = cli_process(
+        broker_bus, "live", "imu-lines", f"udp://127.0.0.1:{port}", "--samples", "20"
+    )
+    receive_until(sub, lambda e: e.topic == "/diagnostics" and e.msg.node == "imu", 30)
+    lines = ["# t_ns,gx,gy,gz,ax,ay,az"]
+    for k, (t, v) in enumerate(good):
+        lines.append(_line(t, v))
+        if k == 3:
+            lines += ["1035,0,0,0,0,0,nan", "garbage", "1035,1,2,3", "abc,0,0,0,0,0,9.8"]
+        if k == 7:
+            lines.append(_line(good[2][0], good[2][1]))  # time going backwards
+    payload = "\n".join(lines).encode()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        half = payload.index(b"\n", len(payload) // 2)
+        tx.sendto(payload[:half] + b"\n", ("127.0.0.1", port))  # a line never spans datagrams
+        tx.sendto(payload[half + 1 :], ("127.0.0.1", port))
+    got = receive_until(
+        sub,
+        lambda e: (
+            e.topic == "/diagnostics"
+            and e.msg.status
+            and e.msg.counters.get("imu_published") == 20
+            and e.msg.node == "imu"
+        ),
+        30,
+    )
+    out = proc.communicate(timeout=30)[0].decode()
+    got += receive_for(sub, 0.3)
     assert proc.returncode == 0, out
     imu = [e.msg for e in got if e.topic == "/imu"]
     assert [(m.stamp_ns, [*m.gyro_rad_s, *m.accel_m_s2]) for m in imu] == good
@@ -344,20 +283,18 @@ def test_udp_imu_reader_publishes_good_lines_and_counts_bad_ones(ipc_endpoints) 
 
 
 def test_zmq_imu_input_accepts_msgpack_maps_and_counts_bad_ones(
-    ipc_endpoints, tmp_path: Path
+    broker_bus, bus_subscriber, tmp_path: Path
 ) -> None:
     endpoint = f"ipc://{tmp_path}/imu-in.ipc"
-    bus = BusConfig(*ipc_endpoints)
-    broker = _broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     sub.subscribe("/imu")
     sub.subscribe("/diagnostics")
     ctx = zmq.Context()
     push = ctx.socket(zmq.PUSH)
     push.linger = 1000
     try:
-        proc = _live(bus, "imu-zmq", "--endpoint", endpoint, "--samples", "5")
-        _receive_until(sub, lambda e: e.topic == "/diagnostics" and e.msg.node == "imu", 30)
+        proc = cli_process(broker_bus, "live", "imu-zmq", "--endpoint", endpoint, "--samples", "5")
+        receive_until(sub, lambda e: e.topic == "/diagnostics" and e.msg.node == "imu", 30)
         push.connect(endpoint)
         push.send(msgpack.packb({"t_ns": 10, "gyro": [0.1, 0.2, 0.3], "accel": [0, 0, 9.81]}))
         push.send(b"\xc1 not msgpack")
@@ -371,14 +308,12 @@ def test_zmq_imu_input_accepts_msgpack_maps_and_counts_bad_ones(
                 ]
             )
         )
-        got = _receive_until(sub, lambda e: e.topic == "/imu" and e.msg.stamp_ns == 33, 30)
+        got = receive_until(sub, lambda e: e.topic == "/imu" and e.msg.stamp_ns == 33, 30)
         out = proc.communicate(timeout=30)[0].decode()
-        got += _receive_until(sub, lambda e: False, 0.3)
+        got += receive_for(sub, 0.3)
     finally:
         push.close()
         ctx.term()
-        sub.close()
-        _stop(broker)
     assert proc.returncode == 0, out
     imu = [e.msg for e in got if e.topic == "/imu"]
     assert [m.stamp_ns for m in imu] == [10, 30, 31, 32, 33]
@@ -389,29 +324,17 @@ def test_zmq_imu_input_accepts_msgpack_maps_and_counts_bad_ones(
     assert d.counters["imu_rejected_not_increasing"] == 1
 
 
-def test_line_reader_on_a_file_stops_at_its_end(ipc_endpoints, tmp_path: Path) -> None:
+def test_line_reader_on_a_file_stops_at_its_end(broker_bus, bus_subscriber, tmp_path: Path) -> None:
     """The serial-port path of the line reader (os.read on a non-blocking fd), on a plain file."""
     src = tmp_path / "imu.txt"
     src.write_bytes(
         b"# header\r\n10,0,0,0,0,0,9.8\r\n20,1e-3,0,0,0,0,9.8\r\n15,0,0,0,0,0,9.8\n30,0,0,0,0,0,9.8"
     )
-    bus = BusConfig(*ipc_endpoints)
-    broker = _broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     sub.subscribe("/imu")
-    try:
-        proc = subprocess.Popen(
-            [*PY, "live", "imu-lines", str(src), "--wait", "10"]
-            + ["--bus-json", json.dumps(bus.to_dict())],
-            cwd=REPO,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-        )
-        got = _receive_until(sub, lambda e: e.msg.stamp_ns == 30, 30)
-        out = proc.communicate(timeout=30)[0].decode()
-    finally:
-        sub.close()
-        _stop(broker)
+    proc = cli_process(broker_bus, "live", "imu-lines", str(src), "--wait", "10")
+    got = receive_until(sub, lambda e: e.msg.stamp_ns == 30, 30)
+    out = proc.communicate(timeout=30)[0].decode()
     assert proc.returncode == 0, out
     assert [e.msg.stamp_ns for e in got] == [10, 20, 30]  # the last line has no line end
     assert got[1].msg.gyro_rad_s == (1e-3, 0.0, 0.0)

@@ -22,50 +22,14 @@ from mogs_node.bus import BusConfig, Subscriber
 from mogs_node.demo_nodes import make_keyframe
 from mogs_node.node import Node
 
-REPO = Path(__file__).resolve().parents[1]
-PY = [sys.executable, "-m", "mogs_node.cli"]
+# node processes import this module (its test node classes) without tests/ on their path
+sys.path.insert(0, str(Path(__file__).parent))
+from _reliability_harness import cli_process, receive_for, start_node, stop_process  # noqa: E402
+
 log = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------ helper processes
-
-
-def start_broker(bus: BusConfig) -> subprocess.Popen:
-    proc = subprocess.Popen([*PY, "broker", "--bus-json", json.dumps(bus.to_dict())], cwd=REPO)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        if Path(bus.sub_endpoint[len("ipc://") :]).exists():
-            return proc
-        time.sleep(0.05)
-    proc.kill()
-    raise RuntimeError("broker did not come up")
-
-
-def start_node(cls: str, name: str, params: dict, bus: BusConfig) -> subprocess.Popen:
-    # imported here: node processes import this module (its test node classes) without tests/
-    # on their path
-    from _reliability_harness import node_argv
-
-    return subprocess.Popen(node_argv(cls, name, params, bus), cwd=REPO)
-
-
-def play(bus: BusConfig, *args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*PY, "play", *args, "--bus-json", json.dumps(bus.to_dict())],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(2)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def collect(
@@ -88,6 +52,22 @@ def collect(
             if time.monotonic() - quiet_since > 0.5:
                 break
     return out
+
+
+def play_to_end(
+    bus: BusConfig,
+    sub: Subscriber,
+    timeout_s: float,
+    *args: str,
+    arrivals: list[float] | None = None,
+) -> tuple[list[msgs.Envelope], str]:
+    """Runs ``mogs play ARGS`` to its successful end: what ``sub`` received (see :func:`collect`)
+    and the player's output."""
+    proc = cli_process(bus, "play", *args)
+    got = collect(sub, proc, timeout_s, arrivals)
+    out = proc.communicate(timeout=30)[0].decode()
+    assert proc.returncode == 0, out
+    return got, out
 
 
 # ------------------------------------------------------------------------ slow consumer nodes
@@ -186,38 +166,31 @@ class SlowMetrizer(Node):
 # ------------------------------------------------------------------------ tests
 
 
-def test_sim_sequence_streams_every_message_in_time_order(ipc_endpoints) -> None:
+def test_sim_sequence_streams_every_message_in_time_order(broker_bus, bus_subscriber) -> None:
     from mogs_node.sim import SimConfig, make_sequence
 
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     for t in ("/camera/image", "/imu", "/groundtruth/pose", "/groundtruth/depth"):
         sub.subscribe(t)
-    try:
-        proc = play(
-            bus,
-            "sim",
-            "--gt-depth",
-            "--frames",
-            "6",
-            "--size",
-            "96x32",
-            "--seed",
-            "2",
-            "--rate",
-            "0",
-            "--start",
-            "0.1",
-            "--end",
-            "0.4",
-        )
-        got = collect(sub, proc, 120)
-        out = proc.communicate(timeout=30)[0].decode()
-    finally:
-        sub.close()
-        stop(broker)
-    assert proc.returncode == 0, out
+    got, out = play_to_end(
+        broker_bus,
+        sub,
+        120,
+        "sim",
+        "--gt-depth",
+        "--frames",
+        "6",
+        "--size",
+        "96x32",
+        "--seed",
+        "2",
+        "--rate",
+        "0",
+        "--start",
+        "0.1",
+        "--end",
+        "0.4",
+    )
     seq = make_sequence(SimConfig(seed=2, n_frames=6, width=96, height=32))
     # frames 1..4 (0.1 s .. 0.4 s after frame 0), IMU from 0.1 s before frame 1 up to frame 4
     t1, t4 = int(seq.stamps_ns[1]), int(seq.stamps_ns[4])
@@ -249,20 +222,20 @@ def test_sim_sequence_streams_every_message_in_time_order(ipc_endpoints) -> None
 
 
 @pytest.mark.shared_data
-def test_kitti_excerpt_streams_all_78_frames_at_10_hz(ipc_endpoints, tmp_path: Path) -> None:
-    data = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_raw_2011_09_26_78"
-    if not data.exists():
-        pytest.skip(f"real data excerpt not found: {data} (a user checkout has no ../shared/data)")
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
+def test_kitti_excerpt_streams_all_78_frames_at_10_hz(
+    broker_bus, bus_subscriber, tmp_path: Path
+) -> None:
+    from conftest import shared_data
+
+    data = shared_data("kitti_raw_2011_09_26_78")
     summary = tmp_path / "recorder.json"
     recorder = start_node(
         "mogs_node.demo_nodes:Recorder",
         "recorder",
         {"topics": ["/camera/image"], "expect": 78, "summary_path": str(summary)},
-        bus,
+        broker_bus,
     )
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     sub.subscribe("/diagnostics")
     arrivals: list[float] = []
     try:
@@ -274,17 +247,14 @@ def test_kitti_excerpt_streams_all_78_frames_at_10_hz(ipc_endpoints, tmp_path: P
                 break
         sub.subscribe("/camera/image")
         sub.socket.setsockopt(zmq.UNSUBSCRIBE, b"/diagnostics")
-        proc = play(bus, "kitti", str(data), "--progress", "1")
-        got = collect(sub, proc, 120, arrivals)
-        out = proc.communicate(timeout=30)[0].decode()
+        got, out = play_to_end(
+            broker_bus, sub, 120, "kitti", str(data), "--progress", "1", arrivals=arrivals
+        )
         recorder.wait(20)
         arrivals = [t for t, e in zip(arrivals, got) if e.topic == "/camera/image"]
         got = [e for e in got if e.topic == "/camera/image"]
     finally:
-        sub.close()
-        stop(recorder)
-        stop(broker)
-    assert proc.returncode == 0, out
+        stop_process(recorder)
     assert recorder.returncode == 0
     counted = json.loads(summary.read_text())
     assert counted["count"] == {"/camera/image": 78}
@@ -324,31 +294,28 @@ def _flow_run(
     )
     try:
         time.sleep(0.5)  # both consumers subscribed before the player starts
-        proc = play(bus, "sim", "--frames", "18", "--size", "64x24", "--wait", "10", *play_args)
+        proc = cli_process(
+            bus, "play", "sim", "--frames", "18", "--size", "64x24", "--wait", "10", *play_args
+        )
         out = proc.communicate(timeout=120)[0].decode()
         time.sleep(0.5)  # the metrizer finishes its last keyframe
     finally:
-        stop(fe)
-        stop(mz)
+        stop_process(fe)
+        stop_process(mz)
     assert proc.returncode == 0, out
     return json.loads(fe_sum.read_text()), json.loads(mz_sum.read_text()), out
 
 
 def test_fast_mode_loses_no_frame_and_bounds_the_keyframe_backlog(
-    ipc_endpoints, tmp_path: Path
+    broker_bus, tmp_path: Path
 ) -> None:
     from mogs_node.sim import SimConfig, make_sequence
 
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
-    try:
-        # the default window (1 image in flight) with a frontend that keeps working after its
-        # acknowledgement: the next image waits in its latest-wins queue and is not superseded
-        fe, mz, out = _flow_run(
-            bus, tmp_path, ["--fast", "--max-keyframes-in-flight", "1"], 20.0, after_ack_ms=20.0
-        )
-    finally:
-        stop(broker)
+    # the default window (1 image in flight) with a frontend that keeps working after its
+    # acknowledgement: the next image waits in its latest-wins queue and is not superseded
+    fe, mz, out = _flow_run(
+        broker_bus, tmp_path, ["--fast", "--max-keyframes-in-flight", "1"], 20.0, after_ack_ms=20.0
+    )
     stamps = make_sequence(SimConfig(n_frames=18, width=64, height=24)).stamps_ns.tolist()
     assert fe["stamps"] == stamps  # every image handled, in order
     assert fe["topics"]["/camera/image"]["dropped"] == 0
@@ -359,32 +326,22 @@ def test_fast_mode_loses_no_frame_and_bounds_the_keyframe_backlog(
 
 @pytest.mark.slow
 def test_two_images_in_flight_lose_frames_to_a_latest_wins_frontend(
-    ipc_endpoints, tmp_path: Path
+    broker_bus, tmp_path: Path
 ) -> None:
     """Why the default window is 1: with 2, the image sent on an acknowledgement arrives while
     the previous one still waits in the frontend's one-deep queue and supersedes it."""
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
-    try:
-        fe, _, out = _flow_run(
-            bus, tmp_path, ["--fast", "--max-in-flight", "2"], 20.0, after_ack_ms=60.0
-        )
-    finally:
-        stop(broker)
+    fe, _, out = _flow_run(
+        broker_bus, tmp_path, ["--fast", "--max-in-flight", "2"], 20.0, after_ack_ms=60.0
+    )
     st = fe["topics"]["/camera/image"]
     assert "18/18 frames (100.0%)" in out  # all published (dropped ones acknowledged by later)
     assert st["dropped"] > 0 and len(fe["stamps"]) == 18 - st["dropped"]
 
 
 @pytest.mark.slow
-def test_without_flow_control_a_slow_consumer_drops_frames(ipc_endpoints, tmp_path: Path) -> None:
+def test_without_flow_control_a_slow_consumer_drops_frames(broker_bus, tmp_path: Path) -> None:
     """The control experiment: the same consumers, everything published at once (rate 0)."""
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
-    try:
-        fe, _, _ = _flow_run(bus, tmp_path, ["--rate", "0"], frontend_delay_ms=300.0)
-    finally:
-        stop(broker)
+    fe, _, _ = _flow_run(broker_bus, tmp_path, ["--rate", "0"], frontend_delay_ms=300.0)
     st = fe["topics"]["/camera/image"]
     assert len(fe["stamps"]) < 18
     assert st["dropped"] + st["lost"] == 18 - len(fe["stamps"])  # every missing image is counted
@@ -398,7 +355,7 @@ def test_without_flow_control_a_slow_consumer_drops_frames(ipc_endpoints, tmp_pa
     ],
 )
 def test_standard_bag_replays_images_imu_and_ground_truth(
-    ipc_endpoints, tmp_path: Path, fmt: str, compressed: bool
+    broker_bus, bus_subscriber, tmp_path: Path, fmt: str, compressed: bool
 ) -> None:
     from mogs_node.datasets import BagTopics, write_sim_bag
     from mogs_node.sim import SimConfig, make_sequence
@@ -407,31 +364,24 @@ def test_standard_bag_replays_images_imu_and_ground_truth(
     bag = tmp_path / ("sim.bag" if fmt == "rosbag1" else "sim_mcap")
     topics = BagTopics(image="/cam/image", imu="/imu0")
     write_sim_bag(seq, bag, fmt=fmt, topics=topics, compressed=compressed, with_depth=False)
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     for t in ("/camera/image", "/imu", "/groundtruth/pose"):
         sub.subscribe(t)
-    try:
-        proc = play(
-            bus,
-            "bag",
-            str(bag),
-            "--image-topic",
-            "/cam/image",
-            "--imu-topic",
-            "/imu0",
-            "--rate",
-            "0",
-            "--encoding",
-            "bgr8",
-        )
-        got = collect(sub, proc, 60)
-        out = proc.communicate(timeout=30)[0].decode()
-    finally:
-        sub.close()
-        stop(broker)
-    assert proc.returncode == 0, out
+    got, _ = play_to_end(
+        broker_bus,
+        sub,
+        60,
+        "bag",
+        str(bag),
+        "--image-topic",
+        "/cam/image",
+        "--imu-topic",
+        "/imu0",
+        "--rate",
+        "0",
+        "--encoding",
+        "bgr8",
+    )
     images = [e.msg for e in got if e.topic == "/camera/image"]
     assert [m.stamp_ns for m in images] == seq.stamps_ns.tolist()
     for i, m in enumerate(images):
@@ -448,41 +398,28 @@ def test_standard_bag_replays_images_imu_and_ground_truth(
 
 
 @pytest.mark.slow
-def test_sigusr1_pauses_and_sigusr2_resumes(ipc_endpoints) -> None:
+def test_sigusr1_pauses_and_sigusr2_resumes(broker_bus, bus_subscriber) -> None:
     import signal
 
-    bus = BusConfig(*ipc_endpoints)
-    broker = start_broker(bus)
-    sub = Subscriber(bus)
+    sub = bus_subscriber
     sub.subscribe("/camera/image")
     got: list[msgs.Envelope] = []
-    try:
-        proc = play(bus, "sim", "--frames", "12", "--size", "32x16", "--rate", "2")
-        while not got:
-            env = sub.receive(timeout_ms=30_000)
-            assert env is not None, "player published nothing"
-            got.append(env)
-        proc.send_signal(signal.SIGUSR1)
-        time.sleep(0.1)  # the pause applies at the next tick; a frame may be on its way
-        n_paused = len(got) + len(_drain(sub, 0.1))
-        during = _drain(sub, 0.6)  # 0.6 s paused: at 2 x 10 Hz about 12 frames would come
-        proc.send_signal(signal.SIGUSR2)
-        rest = collect(sub, proc, 60)
-        out = proc.communicate(timeout=30)[0].decode()
-    finally:
-        sub.close()
-        stop(broker)
+    proc = cli_process(
+        broker_bus, "play", "sim", "--frames", "12", "--size", "32x16", "--rate", "2"
+    )
+    while not got:
+        env = sub.receive(timeout_ms=30_000)
+        assert env is not None, "player published nothing"
+        got.append(env)
+    proc.send_signal(signal.SIGUSR1)
+    time.sleep(0.1)  # the pause applies at the next tick; a frame may be on its way
+    n_paused = len(got) + len(receive_for(sub, 0.1))
+    during = receive_for(sub, 0.6)  # 0.6 s paused: at 2 x 10 Hz about 12 frames would come
+    proc.send_signal(signal.SIGUSR2)
+    rest = collect(sub, proc, 60)
+    out = proc.communicate(timeout=30)[0].decode()
     assert proc.returncode == 0, out
     assert during == []
     assert n_paused < 12
     assert n_paused + len(rest) == 12
     assert "paused at frame" in out and "resumed" in out
-
-
-def _drain(sub: Subscriber, seconds: float) -> list[msgs.Envelope]:
-    out, deadline = [], time.monotonic() + seconds
-    while (left := deadline - time.monotonic()) > 0:
-        env = sub.receive(timeout_ms=int(left * 1000) + 1)
-        if env is not None:
-            out.append(env)
-    return out

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zmq
+from _reliability_harness import cli_process
 
 from bridges import ros2
 from bridges.recording import (
@@ -23,12 +21,9 @@ from bridges.recording import (
     split_frames,
 )
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher
+from mogs_node.bus import Publisher
 from mogs_node.demo_nodes import make_keyframe
 from mogs_node.errors import DatasetError
-
-REPO = Path(__file__).resolve().parents[1]
-PY = [sys.executable, "-m", "mogs_node.cli"]
 
 
 def _messages() -> list[tuple[str, msgs.Message]]:
@@ -175,40 +170,13 @@ def test_writer_and_reader_round_trip_with_ros2_types(tmp_path: Path, name: str)
         RecordingWriter(path)
 
 
-def _broker(bus: BusConfig) -> subprocess.Popen:
-    proc = subprocess.Popen([*PY, "broker", "--bus-json", json.dumps(bus.to_dict())], cwd=REPO)
-    for _ in range(200):
-        if Path(bus.sub_endpoint[6:]).exists():
-            return proc
-        time.sleep(0.05)
-    proc.kill()
-    raise RuntimeError("broker did not come up")
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(2)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
-def test_record_from_a_live_bus_and_replay_bit_exactly(ipc_endpoints, tmp_path: Path) -> None:
-    bus = BusConfig(*ipc_endpoints)
-    broker = _broker(bus)
+def test_record_from_a_live_bus_and_replay_bit_exactly(broker_bus, tmp_path: Path) -> None:
+    bus = broker_bus
     out = tmp_path / "run.mcap"
-    bus_json = json.dumps(bus.to_dict())
     ctx = zmq.Context()
     try:
         n = len(_messages())
-        rec = subprocess.Popen(
-            [*PY, "record", str(out), "--count", str(n), "--bus-json", bus_json],
-            cwd=REPO,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-        )
+        rec = cli_process(bus, "record", str(out), "--count", str(n))
         pub = Publisher(bus, context=ctx)
         assert pub.wait_for_subscriber("/imu", 30)
         sent = []
@@ -224,23 +192,8 @@ def test_record_from_a_live_bus_and_replay_bit_exactly(ipc_endpoints, tmp_path: 
         sub.connect(bus.sub_endpoint)
         sub.setsockopt(zmq.SUBSCRIBE, b"/")
         time.sleep(0.3)
-        play = subprocess.Popen(
-            [
-                *PY,
-                "play",
-                "bag",
-                str(out),
-                "--rate",
-                "0",
-                "--bus-json",
-                bus_json,
-                "--wait",
-                "10",
-                "--no-groundtruth",
-            ],
-            cwd=REPO,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
+        play = cli_process(
+            bus, "play", "bag", str(out), "--rate", "0", "--wait", "10", "--no-groundtruth"
         )
         got = []
         deadline = time.monotonic() + 60
@@ -254,7 +207,6 @@ def test_record_from_a_live_bus_and_replay_bit_exactly(ipc_endpoints, tmp_path: 
         sub.close(linger=0)
     finally:
         ctx.term()
-        _stop(broker)
     assert play.returncode == 0, play_out
     assert got == sent
     assert "3/3 frames (100.0%)" in play_out

@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import importlib.util
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from _reliability_harness import run_cli
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -16,8 +14,6 @@ from bridges import ros2
 from mogs_node import msgs
 from mogs_node.errors import MessageError
 from mogs_node.geometry import make_T, so3_exp
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def cdr(rmsg, rtype: str):
@@ -187,12 +183,6 @@ def test_to_ros_covers_every_bridged_type() -> None:
 
 @pytest.mark.skipif(importlib.util.find_spec("rclpy") is not None, reason="rclpy is installed")
 def test_ros2_command_without_rclpy_says_what_is_missing() -> None:
-    r = subprocess.run(
-        [sys.executable, "-m", "mogs_node.cli", "ros2"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    r = run_cli("ros2")
     assert r.returncode == 1
     assert "rclpy is not importable: `mogs ros2` needs a ROS 2 installation" in r.stderr

@@ -3,56 +3,14 @@
 from __future__ import annotations
 
 import json
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-from _reliability_harness import node_argv
+from _reliability_harness import free_tcp_port, start_broker, start_node, stop_process
 
 from mogs_node.bus import BusConfig
-
-PY = [sys.executable, "-m", "mogs_node.cli"]
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_broker(bus: BusConfig) -> subprocess.Popen:
-    proc = subprocess.Popen([*PY, "broker", "--bus-json", json.dumps(bus.to_dict())])
-    deadline = time.monotonic() + 10
-    ep = bus.sub_endpoint
-    while time.monotonic() < deadline:
-        if ep.startswith("ipc://") and Path(ep[6:]).exists():
-            return proc
-        if ep.startswith("tcp://"):
-            host, port = ep[6:].rsplit(":", 1)
-            with socket.socket() as s:
-                if s.connect_ex((host, int(port))) == 0:
-                    return proc
-        time.sleep(0.05)
-    proc.kill()
-    raise RuntimeError("broker did not come up")
-
-
-def run_node(cls: str, name: str, params: dict, bus: BusConfig) -> subprocess.Popen:
-    return subprocess.Popen(node_argv(cls, name, params, bus))
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(2)
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @pytest.mark.parametrize("transport", ["tcp", "ipc"])
@@ -67,14 +25,14 @@ def test_500_large_keyframes_arrive_complete_and_in_order(
     summary = tmp_path / "sub.json"
     n = 500
     try:
-        sub = run_node(
+        sub = start_node(
             "mogs_node.demo_nodes:Recorder",
             "sub",
             {"topics": ["/frontend/keyframe"], "expect": n, "summary_path": str(summary)},
             bus,
         )
         # 800x640 RGB + 500 features = 1.55 MB per keyframe
-        pub = run_node(
+        pub = start_node(
             "mogs_node.demo_nodes:SyntheticSource",
             "pub",
             {"n_frames": n, "rate_hz": 1000.0, "keyframes": True, "width": 800, "height": 640},
@@ -85,7 +43,7 @@ def test_500_large_keyframes_arrive_complete_and_in_order(
     finally:
         for p in (locals().get("pub"), locals().get("sub"), broker):
             if p is not None:
-                stop(p)
+                stop_process(p, 5)
     data = json.loads(summary.read_text())
     assert data["ids"] == list(range(n))
     st = data["topics"]["/frontend/keyframe"]
@@ -102,13 +60,13 @@ def test_overwhelmed_reliable_subscriber_reports_exact_gap_count(
     summary = tmp_path / "slow.json"
     n = 300
     try:
-        sub = run_node(
+        sub = start_node(
             "mogs_node.demo_nodes:Recorder",
             "slow",
             {"topics": ["/frontend/keyframe"], "summary_path": str(summary), "delay_ms": 20.0},
             bus,
         )
-        pub = run_node(
+        pub = start_node(
             "mogs_node.demo_nodes:SyntheticSource",
             "fast",
             {
@@ -123,12 +81,12 @@ def test_overwhelmed_reliable_subscriber_reports_exact_gap_count(
         )
         assert pub.wait(60) == 0
         time.sleep(1.0)  # the final frame reaches the idle subscriber
-        stop(sub)
+        stop_process(sub, 5)
         assert sub.returncode == 0
     finally:
         for p in (locals().get("pub"), locals().get("sub"), broker):
             if p is not None:
-                stop(p)
+                stop_process(p, 5)
     data = json.loads(summary.read_text())
     ids = data["ids"]
     st = data["topics"]["/frontend/keyframe"]

@@ -2,23 +2,17 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from pathlib import Path
 
 import pytest
 import zmq
+from _reliability_harness import broker_thread, free_tcp_port, receive_for
 
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, CurveConfig, Publisher, Subscriber, generate_keys, run_broker
 from mogs_node.errors import BusError
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _imu(k: int) -> msgs.Imu:
@@ -33,7 +27,8 @@ def curve_bus(tmp_path: Path):
     generate_keys(keys, ["broker", "good"])
     generate_keys(tmp_path / "rogue", ["rogue"])  # a valid key pair that the broker does not know
     base = dict(
-        pub_endpoint=f"tcp://127.0.0.1:{_port()}", sub_endpoint=f"tcp://127.0.0.1:{_port()}"
+        pub_endpoint=f"tcp://127.0.0.1:{free_tcp_port()}",
+        sub_endpoint=f"tcp://127.0.0.1:{free_tcp_port()}",
     )
     broker_cfg = BusConfig(
         **base,
@@ -58,72 +53,60 @@ def curve_bus(tmp_path: Path):
         ),
     )
     plain = BusConfig(**base)
+    with broker_thread(broker_cfg):
+        yield {"good": good, "rogue": rogue, "plain": plain}
+
+
+@pytest.fixture
+def imu_peer(curve_bus):
+    """``imu_peer(who)``: a subscriber to /imu and a publisher with ``who``'s keys (``good``,
+    ``rogue`` or ``plain``); every peer is closed after the test."""
     ctx = zmq.Context()
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(
-        target=run_broker, args=(broker_cfg, stop), kwargs={"ready": ready, "context": ctx}
-    )
-    t.start()
-    assert ready.wait(5)
-    yield {"good": good, "rogue": rogue, "plain": plain}
-    stop.set()
-    t.join(5)
+    pubs: list[Publisher] = []
+    subs: list[Subscriber] = []
+
+    def connect(who: str) -> tuple[Publisher, Subscriber]:
+        subs.append(Subscriber(curve_bus[who], context=ctx))
+        subs[-1].subscribe("/imu")
+        pubs.append(Publisher(curve_bus[who], context=ctx))
+        return pubs[-1], subs[-1]
+
+    yield connect
+    for pub in pubs:
+        pub.close(0)
+    for sub in subs:
+        sub.close()
     ctx.term()
 
 
-def _receive_all(sub: Subscriber, seconds: float) -> list[msgs.Envelope]:
-    out, end = [], time.monotonic() + seconds
-    while time.monotonic() < end:
-        env = sub.receive(timeout_ms=50)
-        if env is not None:
-            out.append(env)
-    return out
-
-
-def test_authorised_peers_communicate(curve_bus) -> None:
-    ctx = zmq.Context()
-    sub = Subscriber(curve_bus["good"], context=ctx)
-    sub.subscribe("/imu")
-    pub = Publisher(curve_bus["good"], context=ctx)
+def test_authorised_peers_communicate(imu_peer) -> None:
+    pub, sub = imu_peer("good")
     assert pub.wait_for_subscriber("/imu", 5)
     for k in range(10):
         pub.publish("/imu", _imu(k))
-    got = _receive_all(sub, 1.0)
+    got = receive_for(sub, 1.0)
     assert [e.msg.stamp_ns for e in got] == list(range(10))
-    pub.close(0)
-    sub.close()
-    ctx.term()
 
 
 @pytest.mark.parametrize("intruder", ["rogue", "plain"])
-def test_unauthenticated_peers_get_nothing_in_or_out(curve_bus, intruder: str) -> None:
-    ctx = zmq.Context()
-    good_sub = Subscriber(curve_bus["good"], context=ctx)
-    good_sub.subscribe("/imu")
-    good_pub = Publisher(curve_bus["good"], context=ctx)
+def test_unauthenticated_peers_get_nothing_in_or_out(imu_peer, intruder: str) -> None:
+    good_pub, good_sub = imu_peer("good")
     assert good_pub.wait_for_subscriber("/imu", 5)
-    bad_sub = Subscriber(curve_bus[intruder], context=ctx)
-    bad_sub.subscribe("/imu")
-    bad_pub = Publisher(curve_bus[intruder], context=ctx)
+    bad_pub, bad_sub = imu_peer(intruder)
     # the intruder's subscription never reaches a publisher...
     assert not bad_pub.wait_for_subscriber("/imu", 1.0)
     time.sleep(0.5)
     for k in range(5):
         good_pub.publish("/imu", _imu(k))  # ...so it must not read this
         bad_pub.publish("/imu", _imu(1000 + k))  # and this must not reach the good subscriber
-    got_good = _receive_all(good_sub, 1.0)
-    got_bad = _receive_all(bad_sub, 0.5)
+    got_good = receive_for(good_sub, 1.0)
+    got_bad = receive_for(bad_sub, 0.5)
     assert [e.msg.stamp_ns for e in got_good] == list(range(5))
     assert got_bad == []
-    for s in (good_pub, bad_pub):
-        s.close(0)
-    for s in (good_sub, bad_sub):
-        s.close()
-    ctx.term()
 
 
 def test_broker_refuses_public_addresses_unless_allowed() -> None:
-    cfg = BusConfig(f"tcp://0.0.0.0:{_port()}", f"tcp://127.0.0.1:{_port()}")
+    cfg = BusConfig(f"tcp://0.0.0.0:{free_tcp_port()}", f"tcp://127.0.0.1:{free_tcp_port()}")
     with pytest.raises(BusError, match="non-loopback"):
         run_broker(cfg, threading.Event())
 
@@ -142,7 +125,7 @@ def test_missing_key_file_is_a_clear_error(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("intruder", ["rogue", "plain"])
-def test_unauthenticated_traffic_count_is_zero_both_ways(curve_bus, intruder: str) -> None:
+def test_unauthenticated_traffic_count_is_zero_both_ways(imu_peer, intruder: str) -> None:
     """The figure in docs/reliability.md ("CURVE"): 1,000 messages each way, none gets through.
 
     The intruder publishes 1,000 IMU samples on /imu while an authorised publisher sends 1,000
@@ -150,27 +133,17 @@ def test_unauthenticated_traffic_count_is_zero_both_ways(curve_bus, intruder: st
     the intruder's subscriber receives 0 of them and its publisher never sees a subscription.
     """
     n = 1000
-    ctx = zmq.Context()
-    good_sub = Subscriber(curve_bus["good"], context=ctx)
-    good_sub.subscribe("/imu")
-    good_pub = Publisher(curve_bus["good"], context=ctx)
+    good_pub, good_sub = imu_peer("good")
     assert good_pub.wait_for_subscriber("/imu", 5)
-    bad_sub = Subscriber(curve_bus[intruder], context=ctx)
-    bad_sub.subscribe("/imu")
-    bad_pub = Publisher(curve_bus[intruder], context=ctx)
+    bad_pub, bad_sub = imu_peer(intruder)
     assert not bad_pub.wait_for_subscriber("/imu", 1.0)
     for k in range(n):
         bad_pub.publish("/imu", _imu(10_000 + k))
         good_pub.publish("/imu", _imu(k))
-    got_good = _receive_all(good_sub, 2.0)
-    got_bad = _receive_all(bad_sub, 0.5)
+    got_good = receive_for(good_sub, 2.0)
+    got_bad = receive_for(bad_sub, 0.5)
     stamps = [e.msg.stamp_ns for e in got_good]
     assert stamps == list(range(n))  # all authorised traffic, in order, and nothing else
     assert sum(s >= 10_000 for s in stamps) == 0
     assert len(got_bad) == 0
     assert good_sub.stats["/imu"].malformed == 0 and good_sub.malformed == 0
-    for s in (good_pub, bad_pub):
-        s.close(0)
-    for s in (good_sub, bad_sub):
-        s.close()
-    ctx.term()

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mogs_node import msgs
-from mogs_node.bus import Publisher, Subscriber
 from mogs_node.depth_prior.node import DepthPriorNode
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import make_T, so3_exp
@@ -41,29 +39,19 @@ def keyframe(kid: int, T: np.ndarray) -> tuple[msgs.Keyframe, np.ndarray]:
     return kf, depth
 
 
-def test_flow_node_publishes_prior_per_keyframe(inproc_bus) -> None:
+def test_flow_node_publishes_prior_per_keyframe(inproc_bus, wired_node) -> None:
     bus, ctx = inproc_bus
     node = DepthPriorNode(
         "prior", {"flow": {"far_baseline_m": 0.0}}, bus, context=ctx, diagnostics_period_s=0
     )
-    watcher = Subscriber(bus, context=ctx)
-    watcher.subscribe("/prior/depth")
-    pub = Publisher(bus, context=ctx)
-    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
-    assert node._pub.wait_for_subscriber("/prior/depth", 5)
+    w = wired_node(node, ("/frontend/keyframe",), "/prior/depth")
     poses = [np.eye(4), make_T(so3_exp(np.array([0.0, 0.01, 0.0])), np.array([0.05, 0, 0.5]))]
     truth = []
     for kid, T in enumerate(poses, start=7):
         kf, depth = keyframe(kid, T)
         truth.append(depth)
-        pub.publish("/frontend/keyframe", kf)
-    got: list[msgs.DepthMap] = []
-    deadline = time.monotonic() + 20
-    while len(got) < 2 and time.monotonic() < deadline:
-        node.spin_once(100)
-        env = watcher.receive(timeout_ms=50)
-        if env is not None:
-            got.append(env.msg)
+        w.pub.publish("/frontend/keyframe", kf)
+    got = w.collect(2, 20)
     assert [m.keyframe_id for m in got] == [7, 8]
     first, second = got
     assert first.kind == "metric" and first.source == "flow"
@@ -73,9 +61,6 @@ def test_flow_node_publishes_prior_per_keyframe(inproc_bus) -> None:
     err = np.abs(second.depth[m] - truth[1][m]) / truth[1][m]
     assert np.median(err) < 0.03
     assert node.counters["handler_errors"] == 0
-    pub.close(0)
-    watcher.close()
-    node.close()
 
 
 def test_bad_params_and_missing_model_fail_at_start(inproc_bus, tmp_path) -> None:
@@ -94,7 +79,7 @@ def test_bad_params_and_missing_model_fail_at_start(inproc_bus, tmp_path) -> Non
         )
 
 
-def test_depth_anything_node_publishes_declared_kind(inproc_bus, tmp_path) -> None:
+def test_depth_anything_node_publishes_declared_kind(inproc_bus, wired_node, tmp_path) -> None:
     pytest.importorskip("torch")
     import warnings
 
@@ -111,24 +96,12 @@ def test_depth_anything_node_publishes_declared_kind(inproc_bus, tmp_path) -> No
         context=ctx,
         diagnostics_period_s=0,
     )
-    watcher = Subscriber(bus, context=ctx)
-    watcher.subscribe("/prior/depth")
-    pub = Publisher(bus, context=ctx)
-    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
-    assert node._pub.wait_for_subscriber("/prior/depth", 5)
+    w = wired_node(node, ("/frontend/keyframe",), "/prior/depth")
     kf, _ = keyframe(3, np.eye(4))
-    pub.publish("/frontend/keyframe", kf)
-    got = None
-    deadline = time.monotonic() + 10
-    while got is None and time.monotonic() < deadline:
-        node.spin_once(100)
-        env = watcher.receive(timeout_ms=50)
-        got = env.msg if env is not None else None
+    w.pub.publish("/frontend/keyframe", kf)
+    got = w.collect_one(10)
     assert got is not None and got.keyframe_id == 3
     assert got.kind == "relative_inverse_depth" and got.source == "depth_anything"
     assert got.depth.shape == kf.image.shape[:2] and np.all(got.confidence == 1)
     assert node.net is not None
     np.testing.assert_allclose(got.depth, node.net.infer(kf.image).value)
-    pub.close(0)
-    watcher.close()
-    node.close()

@@ -14,16 +14,15 @@ import json
 import re
 import shlex
 import socket
-import threading
 import time
 from pathlib import Path
 
 import pytest
 import yaml
-import zmq
+from _reliability_harness import broker_thread
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher, Subscriber, generate_keys, run_broker
+from mogs_node.bus import BusConfig, Publisher, Subscriber, generate_keys
 from mogs_node.cli import SUBCOMMANDS
 from mogs_node.commands.node import load_node_class
 from mogs_node.node import parse_params
@@ -153,14 +152,7 @@ def test_compose_bus_carries_messages_between_services_and_rejects_others(
         keys,
         ports,
     )
-    ctx = zmq.Context()
-    stop, ready = threading.Event(), threading.Event()
-    t = threading.Thread(
-        target=run_broker, args=(broker, stop), kwargs={"ready": ready, "context": ctx}
-    )
-    t.start()
-    try:
-        assert ready.wait(5)
+    with broker_thread(broker) as ctx:
         sub = Subscriber(report, context=ctx)
         sub.subscribe("/mapper/stats")
         bad = Subscriber(intruder, context=ctx)
@@ -192,10 +184,6 @@ def test_compose_bus_carries_messages_between_services_and_rejects_others(
         for s in (sub, bad):
             s.close()
         pub.close(0)
-    finally:
-        stop.set()
-        t.join(5)
-        ctx.term()
 
 
 def _instructions(path: Path) -> list[tuple[str, str]]:

@@ -9,13 +9,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import shared_data
 
 from mogs_node.commands.node import load_node_class
 from mogs_node.launch import LaunchFile, NodeSpec, load_launch_file
 from mogs_node.node import parse_params
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
 LAUNCH_FILES = sorted((REPO / "launch").glob("*.yaml"))
 PIPELINE = ("frontend", "segmentation", "prior", "metrizer", "mapper", "report")
 
@@ -91,21 +91,26 @@ def test_distributed_launch_file_spans_hosts_over_curve_tcp() -> None:
     assert len(hosts) >= 2 and "localhost" not in hosts  # every node names its host
 
 
-@pytest.mark.shared_data
-def test_kitti_launch_file_has_the_excerpts_calibration() -> None:
-    root = DATA / "kitti_raw_2011_09_26_78"
-    if not root.exists():
-        pytest.skip(f"real data excerpt not found: {root}")
-    from mogs_node.datasets import read_kitti_raw
-
-    seq = read_kitti_raw(root)
-    _, parsed = _load(REPO / "launch" / "kitti.yaml")
+def _frontend_against_excerpt(launch: str, seq: Any) -> Any:
+    """The frontend parameters of ``launch``, their intrinsics checked against the camera of the
+    excerpt ``seq``'s first frame (the caller checks the rest)."""
+    _, parsed = _load(REPO / "launch" / f"{launch}.yaml")
     fe = parsed["frontend"]
     cam = seq.frames[0].camera
-    assert (fe.width, fe.height) == (cam.width, cam.height)
     np.testing.assert_allclose(
         [fe.fx_px, fe.fy_px, fe.cx_px, fe.cy_px], [cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px]
     )
+    return fe
+
+
+@pytest.mark.shared_data
+def test_kitti_launch_file_has_the_excerpts_calibration() -> None:
+    from mogs_node.datasets import read_kitti_raw
+
+    seq = read_kitti_raw(shared_data("kitti_raw_2011_09_26_78"))
+    fe = _frontend_against_excerpt("kitti", seq)
+    cam = seq.frames[0].camera
+    assert (fe.width, fe.height) == (cam.width, cam.height)
     np.testing.assert_allclose(
         np.reshape(fe.T_imu_cam, (4, 4)), seq.T_imu_cam, atol=2e-6
     )  # printed to 6 decimals
@@ -113,17 +118,10 @@ def test_kitti_launch_file_has_the_excerpts_calibration() -> None:
 
 @pytest.mark.shared_data
 def test_euroc_launch_file_has_the_excerpts_calibration() -> None:
-    root = DATA / "euroc_v1_01_micro"
-    if not root.exists():
-        pytest.skip(f"real data excerpt not found: {root}")
     from mogs_node.datasets import read_euroc
 
-    seq = read_euroc(root)
-    _, parsed = _load(REPO / "launch" / "euroc.yaml")
-    fe = parsed["frontend"]
+    seq = read_euroc(shared_data("euroc_v1_01_micro"))
+    fe = _frontend_against_excerpt("euroc", seq)
     cam = seq.frames[0].camera  # undistorted by the player: same K, no distortion
     assert (fe.width, fe.height, fe.distortion_model) == (cam.width, cam.height, "none")
-    np.testing.assert_allclose(
-        [fe.fx_px, fe.fy_px, fe.cx_px, fe.cy_px], [cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px]
-    )
     np.testing.assert_allclose(np.reshape(fe.T_imu_cam, (4, 4)), seq.T_imu_cam, atol=1e-9)

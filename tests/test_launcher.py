@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
-import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
 import pytest
 import yaml
+from _reliability_harness import cli_argv
 
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Subscriber
@@ -28,24 +30,53 @@ def _diag_until(sub: Subscriber, pred, timeout_s: float) -> msgs.Diagnostics:
     raise AssertionError("expected diagnostics did not arrive")
 
 
+def _source(width: int, height: int) -> dict:
+    """A synthetic source of keyframes, 20 a second until stopped."""
+    return {
+        "name": "source",
+        "class": "mogs_node.demo_nodes:SyntheticSource",
+        "params": {
+            "n_frames": 0,
+            "rate_hz": 20.0,
+            "keyframes": True,
+            "width": width,
+            "height": height,
+        },
+    }
+
+
+@contextlib.contextmanager
+def _launched(
+    tmp_path: Path, launch: dict, endpoints: tuple[str, str]
+) -> Iterator[tuple[subprocess.Popen, Subscriber]]:
+    """``mogs launch`` of ``launch`` on ``endpoints`` (in a session of its own, output piped) and a
+    subscriber to ``/diagnostics``; the launcher is killed on leaving if it still runs."""
+    path = tmp_path / f"{launch['name']}.yaml"
+    bus = {"pub_endpoint": endpoints[0], "sub_endpoint": endpoints[1]}
+    path.write_text(yaml.safe_dump({**launch, "bus": bus}))
+    proc = subprocess.Popen(
+        cli_argv("launch", str(path)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    sub = Subscriber(BusConfig(*endpoints))
+    sub.subscribe("/diagnostics")
+    try:
+        yield proc, sub
+    finally:
+        sub.close()
+        if proc.poll() is None:
+            proc.kill()
+
+
 def test_killed_node_is_respawned_and_sigint_stops_everything(
     tmp_path: Path, ipc_endpoints
 ) -> None:
     launch = {
         "name": "lt",
-        "bus": {"pub_endpoint": ipc_endpoints[0], "sub_endpoint": ipc_endpoints[1]},
         "nodes": [
-            {
-                "name": "source",
-                "class": "mogs_node.demo_nodes:SyntheticSource",
-                "params": {
-                    "n_frames": 0,
-                    "rate_hz": 20.0,
-                    "keyframes": True,
-                    "width": 64,
-                    "height": 48,
-                },
-            },
+            _source(64, 48),
             {
                 "name": "sink",
                 "class": "mogs_node.demo_nodes:Recorder",
@@ -60,17 +91,7 @@ def test_killed_node_is_respawned_and_sigint_stops_everything(
             },
         ],
     }
-    path = tmp_path / "lt.yaml"
-    path.write_text(yaml.safe_dump(launch))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mogs_node.cli", "launch", str(path)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    sub = Subscriber(BusConfig(*ipc_endpoints))
-    sub.subscribe("/diagnostics")
-    try:
+    with _launched(tmp_path, launch, ipc_endpoints) as (proc, sub):
         first = _diag_until(sub, lambda d: d.node == "sink" and d.counters["received"] >= 5, 30)
         os.kill(first.pid, signal.SIGKILL)
         second = _diag_until(
@@ -93,10 +114,6 @@ def test_killed_node_is_respawned_and_sigint_stops_everything(
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=10)
         elapsed = time.monotonic() - t0
-    finally:
-        sub.close()
-        if proc.poll() is None:
-            proc.kill()
     text = out.decode()
     assert proc.returncode == 0, text
     assert elapsed < 5.0, f"shutdown took {elapsed:.1f} s"
@@ -134,19 +151,8 @@ def test_repository_launch_files_parse() -> None:
 def test_hung_node_is_killed_and_respawned(tmp_path: Path, ipc_endpoints) -> None:
     launch = {
         "name": "hang",
-        "bus": {"pub_endpoint": ipc_endpoints[0], "sub_endpoint": ipc_endpoints[1]},
         "nodes": [
-            {
-                "name": "source",
-                "class": "mogs_node.demo_nodes:SyntheticSource",
-                "params": {
-                    "n_frames": 0,
-                    "rate_hz": 20.0,
-                    "keyframes": True,
-                    "width": 32,
-                    "height": 24,
-                },
-            },
+            _source(32, 24),
             {
                 "name": "sink",
                 "class": "mogs_node.demo_nodes:Recorder",
@@ -156,26 +162,12 @@ def test_hung_node_is_killed_and_respawned(tmp_path: Path, ipc_endpoints) -> Non
             },
         ],
     }
-    path = tmp_path / "hang.yaml"
-    path.write_text(yaml.safe_dump(launch))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mogs_node.cli", "launch", str(path)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    sub = Subscriber(BusConfig(*ipc_endpoints))
-    sub.subscribe("/diagnostics")
-    try:
+    with _launched(tmp_path, launch, ipc_endpoints) as (proc, sub):
         first = _diag_until(sub, lambda d: d.node == "sink" and d.counters["received"] >= 1, 30)
         # the sink hangs on its 40th keyframe; the launcher must notice the silence and respawn it
         _diag_until(sub, lambda d: d.node == "sink" and d.pid != first.pid, 40)
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=10)
-    finally:
-        sub.close()
-        if proc.poll() is None:
-            proc.kill()
     text = out.decode()
     assert "sent no heartbeat" in text and "respawning sink" in text
     assert proc.returncode == 0

@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
 from mogs_node import msgs
-from mogs_node.bus import Publisher, Subscriber
 from mogs_node.errors import ModelError
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
 from mogs_node.segmentation.node import SegmentationNode
@@ -29,39 +26,26 @@ def _kf(kid: int, image: np.ndarray) -> msgs.Keyframe:
     )
 
 
-def test_graph_node_publishes_labels(inproc_bus) -> None:
+def test_graph_node_publishes_labels(inproc_bus, wired_node) -> None:
     bus, ctx = inproc_bus
     node = SegmentationNode(
         "seg", {"graph": {"scale": 1.0, "k": 200.0}}, bus, context=ctx, diagnostics_period_s=0
     )
-    watcher = Subscriber(bus, context=ctx)
-    watcher.subscribe("/seg/masks")
-    pub = Publisher(bus, context=ctx)
-    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
-    assert node._pub.wait_for_subscriber("/seg/masks", 5)
+    w = wired_node(node, ("/frontend/keyframe",), "/seg/masks")
     rng = np.random.default_rng(0)
     rgb = np.zeros((60, 80, 3), np.uint8)
     rgb[:, 40:] = (200, 40, 40)
     rgb = np.clip(rgb + rng.normal(0, 3, rgb.shape), 0, 255).astype(np.uint8)
     grey = rgb[..., 0].copy()
-    pub.publish("/frontend/keyframe", _kf(3, rgb))
-    pub.publish("/frontend/keyframe", _kf(4, grey))
-    got: list[msgs.Masks] = []
-    deadline = time.monotonic() + 10
-    while len(got) < 2 and time.monotonic() < deadline:
-        node.spin_once(100)
-        env = watcher.receive(timeout_ms=50)
-        if env is not None:
-            got.append(env.msg)
+    w.pub.publish("/frontend/keyframe", _kf(3, rgb))
+    w.pub.publish("/frontend/keyframe", _kf(4, grey))
+    got = w.collect(2, 10)
     assert [m.keyframe_id for m in got] == [3, 4]
     assert got[0].backend == "graph" and got[0].labels.dtype == np.int32
     np.testing.assert_array_equal(
         got[0].labels, segment_graph(rgb, GraphSegParams(scale=1.0, k=200.0))
     )
     assert got[1].labels.shape == grey.shape
-    pub.close(0)
-    watcher.close()
-    node.close()
 
 
 def test_sam_backend_without_model_fails_at_start(inproc_bus, tmp_path) -> None:
@@ -79,7 +63,7 @@ def test_sam_backend_without_model_fails_at_start(inproc_bus, tmp_path) -> None:
         )
 
 
-def test_sam_node_publishes_painted_masks(inproc_bus, tmp_path) -> None:
+def test_sam_node_publishes_painted_masks(inproc_bus, wired_node, tmp_path) -> None:
     pytest.importorskip("torch")
     import sys
     import warnings
@@ -99,23 +83,11 @@ def test_sam_node_publishes_painted_masks(inproc_bus, tmp_path) -> None:
         context=ctx,
         diagnostics_period_s=0,
     )
-    watcher = Subscriber(bus, context=ctx)
-    watcher.subscribe("/seg/masks")
-    pub = Publisher(bus, context=ctx)
-    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
-    assert node._pub.wait_for_subscriber("/seg/masks", 5)
+    w = wired_node(node, ("/frontend/keyframe",), "/seg/masks")
     rgb = np.zeros((90, 120, 3), np.uint8)
-    pub.publish("/frontend/keyframe", _kf(9, rgb))
-    got = None
-    deadline = time.monotonic() + 10
-    while got is None and time.monotonic() < deadline:
-        node.spin_once(100)
-        env = watcher.receive(timeout_ms=50)
-        got = env.msg if env is not None else None
+    w.pub.publish("/frontend/keyframe", _kf(9, rgb))
+    got = w.collect_one(10)
     assert got is not None and got.keyframe_id == 9 and got.backend == "sam"
     assert node.sam is not None
     np.testing.assert_array_equal(got.labels, node.sam.generate(rgb).labels)
     assert (got.labels >= 0).mean() > 0.5
-    pub.close(0)
-    watcher.close()
-    node.close()
