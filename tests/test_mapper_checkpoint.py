@@ -108,6 +108,37 @@ def test_round_trip_renders_identically_and_continues_like_an_uninterrupted_run(
     np.testing.assert_array_equal(a.drain_changes().ids, b.drain_changes().ids)
 
 
+def test_keyframe_images_are_kept_as_uint8_and_version_1_files_still_load(tmp_path) -> None:
+    a = build(n_kf=2, iters=1)
+    img0 = view(0)[0]
+    assert a.keyframes[0].image.dtype == torch.uint8  # a quarter of f32's memory
+    np.testing.assert_array_equal(a.keyframes[0].image.numpy(), img0)
+    assert torch.equal(a.keyframes[0].image_f32, torch.as_tensor(img0.astype(np.float32) / 255.0))
+    # a version-1 file (images as u8 / 255 in f32) reads back to the same uint8 images
+    raw = save_checkpoint(a, tmp_path / "v2.ckpt").read_bytes()
+    state = torch.load(io.BytesIO(raw), weights_only=True)
+    meta = json.loads(state["meta"])
+    assert meta["version"] == 2
+    meta["version"] = 1
+    for i in range(len(a.keyframes)):
+        key = f"kf{i}.image"
+        state["tensors"][key] = state["tensors"][key].to(torch.float32) / 255.0
+    state["meta"] = json.dumps(meta)
+    state["sha256"] = _digest(state["meta"], state["tensors"])
+    torch.save(state, tmp_path / "v1.ckpt")
+    b = load_checkpoint(tmp_path / "v1.ckpt")
+    assert_same_state(a, b)
+    for ka, kb in zip(a.keyframes, b.keyframes, strict=True):
+        assert kb.image.dtype == torch.uint8 and torch.equal(ka.image, kb.image)
+    # a version-2 file with a float image is malformed
+    meta["version"] = 2
+    state["meta"] = json.dumps(meta)
+    state["sha256"] = _digest(state["meta"], state["tensors"])
+    torch.save(state, tmp_path / "bad.ckpt")
+    with pytest.raises(CheckpointError, match="kf0.image.*expected uint8"):
+        load_checkpoint(tmp_path / "bad.ckpt")
+
+
 def test_rng_state_is_saved(tmp_path) -> None:
     a = build(n_kf=4, iters=1)
     b = load_checkpoint(save_checkpoint(a, tmp_path / "m.ckpt"))

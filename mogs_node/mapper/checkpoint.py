@@ -45,7 +45,8 @@ __all__ = [
 ]
 
 CHECKPOINT_FORMAT = "mogs-mapper-checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: keyframe images stored as uint8 (1: f32 in [0, 1], still read)
+_READABLE_VERSIONS = (1, 2)
 CHECKPOINT_NAME = "mapper.ckpt"  # file name inside a node's checkpoint_dir
 
 _KF_TENSORS = ("image", "depth_m", "confidence", "T_cam_world", "exposure_ab")
@@ -172,6 +173,18 @@ def _tensor(t: dict[str, Any], key: str, path: Path, shape: tuple[int | None, ..
     return v
 
 
+def _keyframe_image(
+    t: dict[str, Any], key: str, path: Path, hw: tuple[int, int], version: int
+) -> torch.Tensor:
+    """The [H, W, 3] uint8 image of a keyframe; version 1 stored u8 / 255 in f32 (exact back)."""
+    v = _tensor(t, key, path, (*hw, 3))
+    if version == 1 and v.dtype == torch.float32:
+        return (v * 255.0).round().clamp(0, 255).to(torch.uint8)
+    if v.dtype != torch.uint8:
+        raise CheckpointError(f"checkpoint {path}: tensor {key!r} is {v.dtype}, expected uint8")
+    return v
+
+
 def _read(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path}: no such file")
@@ -187,10 +200,10 @@ def _read(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
         raise CheckpointError(f"checkpoint {path}: corrupt meta record ({err})") from err
     if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"checkpoint {path}: not a mapper checkpoint")
-    if meta.get("version") != CHECKPOINT_VERSION:
+    if meta.get("version") not in _READABLE_VERSIONS:
         raise CheckpointError(
             f"checkpoint {path}: version {meta.get('version')!r}, this code reads "
-            f"version {CHECKPOINT_VERSION}"
+            f"versions {list(_READABLE_VERSIONS)}"
         )
     tensors = state.get("tensors")
     if not isinstance(tensors, dict) or not all(
@@ -239,7 +252,7 @@ def load_checkpoint(
             kf = KeyframeState(
                 keyframe_id=int(rec["keyframe_id"]),
                 index=int(rec["index"]),
-                image=_tensor(t, f"kf{i}.image", path, (H, W, 3)),
+                image=_keyframe_image(t, f"kf{i}.image", path, (H, W), int(meta["version"])),
                 depth_m=_tensor(t, f"kf{i}.depth_m", path, (H, W)),
                 confidence=_tensor(t, f"kf{i}.confidence", path, (H, W)),
                 T_cam_world=_tensor(t, f"kf{i}.T_cam_world", path, (4, 4)),

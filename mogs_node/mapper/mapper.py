@@ -106,7 +106,8 @@ class KeyframeState:
 
     keyframe_id: int
     index: int  # insertion order
-    image: torch.Tensor  # [H, W, 3] f32 in [0, 1]
+    image: torch.Tensor  # [H, W, 3] uint8 as received: a quarter of f32's memory per keyframe
+    # kept for the whole drive; :attr:`image_f32` converts on use (exactly the same values)
     depth_m: torch.Tensor  # [H, W] f32, 0 = no value
     confidence: torch.Tensor  # [H, W] f32 in [0, 1]
     T_cam_world: torch.Tensor  # [4, 4] f64
@@ -118,6 +119,11 @@ class KeyframeState:
     @property
     def T_world_cam(self) -> np.ndarray:
         return se3_inverse(self.T_cam_world.numpy())
+
+    @property
+    def image_f32(self) -> torch.Tensor:
+        """[H, W, 3] f32 in [0, 1] (u8 / 255 in f32, as the image was stored before)."""
+        return self.image.to(torch.float32) / 255.0
 
 
 class GaussianMapper:
@@ -214,7 +220,7 @@ class GaussianMapper:
         kf = KeyframeState(
             keyframe_id=int(keyframe_id),
             index=index,
-            image=torch.as_tensor(img.astype(np.float32) / 255.0),
+            image=torch.as_tensor(np.ascontiguousarray(img)),
             depth_m=torch.as_tensor(d),
             confidence=torch.as_tensor(c),
             T_cam_world=torch.as_tensor(se3_inverse(T)),
@@ -318,10 +324,11 @@ class GaussianMapper:
                     params=p.raster,
                 )
                 color = out.color
+                image = kf.image_f32
                 if p.exposure:
                     ab = exposures[i] = kf.exposure_ab.clone().requires_grad_()
                     color = self._expose(color, ab)
-                l_rgb = (color - kf.image).abs().mean()
+                l_rgb = (color - image).abs().mean()
                 dmask = kf.depth_m > 0
                 if p.lambda_depth > 0 and bool(dmask.any()):
                     rel = (out.depth - kf.depth_m).abs() / kf.depth_m.clamp_min(1e-3)
@@ -329,7 +336,7 @@ class GaussianMapper:
                 else:
                     l_depth = torch.zeros(())
                 total = total + (1 - p.lambda_depth) * l_rgb + p.lambda_depth * l_depth
-                mse_sum += float(((color.detach().clamp(0, 1) - kf.image) ** 2).mean())
+                mse_sum += float(((color.detach().clamp(0, 1) - image) ** 2).mean())
             ls = leaves["log_scales"]
             if p.lambda_iso > 0 and len(rows):
                 total = total + p.lambda_iso * (ls - ls.mean(1, keepdim=True)).abs().mean()
