@@ -459,7 +459,8 @@ def overrides_from(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     """Ablation runs of the same evaluation with changed mapper settings (every initialisation
-    gets the same overrides); prints the figures, writes no docs. Example:
+    gets the same overrides); prints the figures with the MOGS / random ratios and checks,
+    writes no docs (also the way to check another seed without replacing the docs' table). Example:
     ``python -m mogs_node.eval.map --inits random,mogs --set densify=true``."""
     import json
 
@@ -477,6 +478,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--inits: choose from {INITS}")
     cfg = MapEvalConfig(seed=a.seed, budget=a.iters, mapper_overrides=overrides_from(a.sets))
     res = run_all(cfg, inits)
+    res.update(_ratios(res["inits"], cfg.budget))
+    if {"random", "mogs"} <= set(inits):
+        res["must_show"] = must_show(res, res["inits"])
     for v in res["inits"].values():
         v["curve"] = {k: c[:: max(1, len(c) // 20)] for k, c in v["curve"].items()}
     text = json.dumps(res, indent=1, default=str)

@@ -8,9 +8,11 @@ the sampled pixel footprint (``stride * depth / f``) and whose colour is the ima
 
 One policy for every depth source, a function of (depth, confidence) only: confident metric depth
 pins a surface, so one Gaussian covers a larger footprint (coarser stride, larger initial scale)
-and disagreements with the map count at a tight tolerance; unconfident depth is sampled finely
-(more depth hypotheses for the optimisation to keep or prune) and its disagreements count only at
-a loose tolerance, not at all at confidence 0. Depth sources for the paper's Table II comparison:
+and disagreements with the map count at a tight tolerance; confident depth that is also locally
+planar (the MOGS shape consensus fits planes per object) is coarsened once more, since a plane
+needs the fewest Gaussians (paper section III-D: accurate metric geometry, fewer Gaussians);
+unconfident depth is sampled finely (more depth hypotheses for the optimisation to keep or prune)
+and its disagreements count only at a loose tolerance, not at all at confidence 0. Depth sources for the paper's Table II comparison:
 the MOGS metrized depth, the globally aligned prior (``no_msc_cdr``) and random depth
 (:func:`random_depth`, which carries no information: confidence 0).
 """
@@ -26,7 +28,14 @@ import torch
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array
 
-__all__ = ["InsertionParams", "insertion_mask", "random_depth", "sample_gaussians"]
+__all__ = [
+    "InsertionParams",
+    "flat_image_mask",
+    "insertion_mask",
+    "planar_mask",
+    "random_depth",
+    "sample_gaussians",
+]
 
 
 @dataclass(frozen=True)
@@ -37,10 +46,18 @@ class InsertionParams:
     far_depth_m: float = 25.0  # beyond this depth the stride doubles (and again at 2x, 4x ...)
     max_stride_px: int = 8  # the stride never exceeds this
     coarse_conf: float = 0.7  # at/above this confidence the stride doubles (larger footprint)
+    planar_gain: float = 2.0  # ... and grows by this factor where also planar (1: off) ...
+    planar_tol: float = 0.01  # ... i.e. the relative curvature of the inverse depth,
+    # max(|d2(1/d)/du2|, |d2(1/d)/dv2|) * d per px^2, is below this (0: off)
+    planar_window_px: int = 5  # planar means: below planar_tol everywhere in this square window
+    planar_max_grad: float = 8.0  # ... and the image is flat there too: grey-level gradient
+    # (central difference, 0-255 scale, per px) below this everywhere in the window (0: no test)
     alpha_explained: float = 0.9  # pixels with rendered alpha above this may be explained ...
     depth_rel_tol: float = 0.2  # ... unless (rendered - new) / new depth > depth_rel_tol / conf
     check_depth: bool = True  # use the depth disagreement test at all (ablation switch)
     color_tol: float = 0.0  # also unexplained where mean |rendered - image| colour > this (0: off)
+    max_footprint_rad: float = 0.15  # and never exceeds this angle (stride / f): footprints stay
+    # below the mapper's size pruning (sigma > 0.2 x distance) even for short focal lengths
     scale_factor: float = 1.0  # initial sigma = scale_factor * stride * depth / f (MonoGS: NN dist)
     opacity_init: float = 0.5  # initial opacity (MonoGS: 0.5)
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
@@ -50,6 +67,14 @@ class InsertionParams:
             raise ConfigError("InsertionParams: need 1 <= stride_px <= max_stride_px")
         if not 0 < self.opacity_init < 1:
             raise ConfigError("InsertionParams.opacity_init: must be in (0, 1)")
+        if not self.max_footprint_rad > 0:
+            raise ConfigError("InsertionParams.max_footprint_rad: must be > 0")
+        if self.planar_tol < 0 or self.planar_window_px < 1 or not self.planar_gain >= 1:
+            raise ConfigError(
+                "InsertionParams: need planar_tol >= 0, planar_window_px >= 1, planar_gain >= 1"
+            )
+        if self.planar_max_grad < 0:
+            raise ConfigError("InsertionParams.planar_max_grad: must be >= 0")
 
 
 def random_depth(shape: tuple[int, int], d_min_m: float, d_max_m: float, seed: int) -> np.ndarray:
@@ -101,13 +126,82 @@ def insertion_mask(
     return usable & (unexplained | disagree)
 
 
-def _stride_map(depth_m: np.ndarray, confidence: np.ndarray, p: InsertionParams) -> np.ndarray:
-    """Per-pixel stride: ``stride_px`` doubled per octave beyond ``far_depth_m`` and once more where
+def planar_mask(depth_m: np.ndarray, tol: float, window_px: int) -> np.ndarray:
+    """Pixels ``[H, W]`` bool whose depth is locally planar.
+
+    A plane is linear in inverse depth over the image (``1/z = a u + b v + c``), so its second
+    differences of ``w = 1/d`` vanish; the relative curvature ``max(|w[u-1] - 2 w + w[u+1]|,
+    |w[v-1] - 2 w + w[v+1]|) / w`` (per px^2; scale-free: the same for a plane at any distance)
+    must stay below ``tol`` everywhere in the ``window_px`` square around the pixel. 1 % depth noise
+    alone gives ~0.025, so noisy or random depth is never planar; pixels without depth (<= 0 or
+    non-finite) and their neighbours are not planar. Image borders use the direction available.
+    """
+    d = np.asarray(depth_m, dtype=np.float64)
+    ok = np.isfinite(d) & (d > 0)
+    w = np.where(ok, 1.0 / np.where(ok, d, 1.0), np.nan)
+    curv = np.zeros_like(w)
+    if w.shape[1] >= 3:
+        curv[:, 1:-1] = np.abs(w[:, :-2] - 2.0 * w[:, 1:-1] + w[:, 2:])
+    if w.shape[0] >= 3:
+        curv[1:-1, :] = np.maximum(curv[1:-1, :], np.abs(w[:-2, :] - 2.0 * w[1:-1, :] + w[2:, :]))
+    with np.errstate(invalid="ignore"):
+        rel = curv / w
+    bad = ~np.isfinite(rel)
+    bad[:, 1:] |= ~ok[:, :-1]  # a missing neighbour: the curvature there is unknown
+    bad[:, :-1] |= ~ok[:, 1:]
+    bad[1:, :] |= ~ok[:-1, :]
+    bad[:-1, :] |= ~ok[1:, :]
+    rel = np.where(bad, np.inf, rel)
+    return _window_max(rel, window_px) < tol
+
+
+def _window_max(x: np.ndarray, window_px: int) -> np.ndarray:
+    """Maximum over the ``window_px`` square around each pixel (separable, edges replicate)."""
+    r = window_px // 2
+    if r > 0:
+        p = np.pad(x, ((0, 0), (r, r)), mode="edge")
+        x = np.lib.stride_tricks.sliding_window_view(p, 2 * r + 1, axis=1).max(-1)
+        p = np.pad(x, ((r, r), (0, 0)), mode="edge")
+        x = np.lib.stride_tricks.sliding_window_view(p, 2 * r + 1, axis=0).max(-1)
+    return x
+
+
+def flat_image_mask(image_rgb: np.ndarray, max_grad: float, window_px: int) -> np.ndarray:
+    """Pixels ``[H, W]`` bool where the image is flat: the grey level's central-difference
+    gradient (0-255 scale, per px, the larger of the two directions) stays below ``max_grad``
+    everywhere in the ``window_px`` square. A textured plane still needs fine Gaussians for its
+    colour; only a plane that is flat in geometry and colour is fully described by few."""
+    g = np.asarray(image_rgb, dtype=np.float64).mean(-1)
+    grad = np.zeros_like(g)
+    if g.shape[1] >= 3:
+        grad[:, 1:-1] = np.abs(g[:, 2:] - g[:, :-2]) / 2
+    if g.shape[0] >= 3:
+        grad[1:-1, :] = np.maximum(grad[1:-1, :], np.abs(g[2:, :] - g[:-2, :]) / 2)
+    return _window_max(grad, window_px) < max_grad
+
+
+def _stride_map(
+    depth_m: np.ndarray,
+    confidence: np.ndarray,
+    p: InsertionParams,
+    image_rgb: np.ndarray | None = None,
+) -> np.ndarray:
+    """Per-pixel stride: ``stride_px`` doubled per octave beyond ``far_depth_m``, once more where
     the depth is confident (``confidence >= coarse_conf``: the surface is known, one Gaussian
-    covers a larger footprint)."""
-    octaves = np.floor(np.log2(np.maximum(depth_m, 1e-6) / p.far_depth_m) + 1.0)
-    octaves = np.clip(octaves, 0, 8) + (confidence >= p.coarse_conf)
-    s = p.stride_px * np.power(2.0, octaves)
+    covers a larger footprint), and by ``planar_gain`` where it is confident and locally planar
+    (:func:`planar_mask`: a plane needs the fewest Gaussians) and, with ``image_rgb`` [H, W, 3]
+    given and ``planar_max_grad > 0``, also flat in colour (:func:`flat_image_mask`); at most
+    ``max_stride_px``. ``depth_m`` [H, W] may hold 0 / non-finite values (no depth: base stride,
+    never planar)."""
+    d = np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, 0.0)
+    octaves = np.floor(np.log2(np.maximum(d, 1e-6) / p.far_depth_m) + 1.0)
+    confident = confidence >= p.coarse_conf
+    s = p.stride_px * np.power(2.0, np.clip(octaves, 0, 8) + confident)
+    if p.planar_tol > 0 and p.planar_gain > 1:
+        planar = confident & planar_mask(d, p.planar_tol, p.planar_window_px)
+        if image_rgb is not None and p.planar_max_grad > 0:
+            planar &= flat_image_mask(image_rgb, p.planar_max_grad, p.planar_window_px)
+        s = np.where(planar, np.round(s * p.planar_gain), s)
     return np.minimum(s, p.max_stride_px).astype(np.int64)
 
 
@@ -124,7 +218,8 @@ def sample_gaussians(
     """New Gaussians (``PARAM_NAMES`` -> tensors) at the grid-sampled pixels of ``mask``.
 
     ``image_rgb`` [H, W, 3] uint8, ``depth_m``/``confidence`` [H, W], ``mask`` [H, W] bool,
-    ``K`` [3, 3], ``T_world_cam`` [4, 4]. A pixel (u, v) with stride s is sampled when
+    ``K`` [3, 3], ``T_world_cam`` [4, 4]. The stride (:func:`_stride_map`) is capped at
+    ``max_footprint_rad * f`` pixels. A pixel (u, v) with stride s is sampled when
     ``u % s == v % s == (offset % s)``, so strides nest (coarser grids are subsets of finer ones).
     ``offset`` shifts the grid between keyframes so that successive insertions interleave.
     """
@@ -137,7 +232,9 @@ def sample_gaussians(
     T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
     if not np.all(np.isfinite(d[m])):
         raise ShapeError("depth_m: non-finite depth inside mask")
-    s = _stride_map(np.where(m, d, 1.0), c, params)
+    s = _stride_map(d, c, params, img)  # planarity from the whole depth map, not only the mask
+    f = math.sqrt(K[0, 0] * K[1, 1])
+    s = np.minimum(s, max(params.stride_px, int(params.max_footprint_rad * f)))
     vv, uu = np.mgrid[0:H, 0:W]
     pick = m & (uu % s == offset % s) & (vv % s == offset % s)
     v, u = np.nonzero(pick)
