@@ -25,6 +25,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check mogs_node bridges tests bench
+	$(BIN)/ruff format --check mogs_node bridges tests bench
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 test-all: $(STAMP)
