@@ -45,6 +45,9 @@ class MapperNodeParams:
     """Parameters of the mapper node (flat; the mapper core's are :class:`MapperParams`)."""
 
     iters_per_keyframe: int = 30  # window iterations after each keyframe
+    iters_when_behind: int = -1  # iterations for a keyframe while more input waits (-1: never
+    # fewer than iters_per_keyframe); the iterations saved are run when the input queue is empty
+    idle_iters_per_tick: int = 2  # owed iterations run per idle timer tick (0: never run them)
     window_size: int = 8  # keyframes in the optimisation window
     n_random_past: int = 2  # random past keyframes per iteration
     lambda_depth: float = 0.1  # weight of the confidence-weighted depth loss
@@ -69,6 +72,8 @@ class MapperNodeParams:
     def __post_init__(self) -> None:
         if self.iters_per_keyframe < 0 or self.max_pending < 1 or self.threads < 0:
             raise ConfigError("mapper: iters_per_keyframe >= 0, max_pending >= 1, threads >= 0")
+        if self.iters_when_behind < -1 or self.idle_iters_per_tick < 0:
+            raise ConfigError("mapper: iters_when_behind >= -1, idle_iters_per_tick >= 0")
         if self.checkpoint_every_keyframes < 1:
             raise ConfigError("mapper.checkpoint_every_keyframes: must be >= 1")
         if self.resume and not self.checkpoint_dir:
@@ -170,7 +175,11 @@ class MapperNode(Node):
             # compile (first run on a machine: ~40 s, minutes under load) before the first
             # keyframe, not inside its handler where heartbeats stop
             load_cpp_extension()
-        self.counters.update({"keyframes_mapped": 0, "keyframes_rejected": 0})
+        self.counters.update(
+            {"keyframes_mapped": 0, "keyframes_rejected": 0, "keyframes_behind": 0, "owed_iters": 0}
+        )
+        if p.iters_when_behind >= 0 and p.idle_iters_per_tick > 0:
+            self.every(0.05, self._idle_optimize)
         self.subscribe(
             p.keyframe_topic,
             self.on_keyframe,
@@ -187,6 +196,27 @@ class MapperNode(Node):
 
     def _integrated(self, keyframe_id: int) -> bool:
         return keyframe_id in getattr(self, "integrated_keyframe_ids", ())
+
+    def iterations_for_next_keyframe(self) -> int:
+        """``iters_per_keyframe``, or ``iters_when_behind`` while more input waits in the queue.
+
+        A live drive does not wait for the mapper: keyframes it cannot map at full effort pile up
+        in the reliable input queue (memory grows, the map lags behind). Behind, every keyframe is
+        still inserted, with fewer iterations; the saved ones are owed and run when the queue is
+        empty (:meth:`_idle_optimize`), so the total optimisation is the same once it catches up.
+        """
+        p: MapperNodeParams = self.params
+        if p.iters_when_behind < 0 or self.queue_depth == 0:
+            return p.iters_per_keyframe
+        self.counters["keyframes_behind"] += 1
+        return min(p.iters_when_behind, p.iters_per_keyframe)
+
+    def _idle_optimize(self) -> None:
+        if self.mapper is None or self.queue_depth or self.counters["owed_iters"] <= 0:
+            return
+        n = min(self.params.idle_iters_per_tick, self.counters["owed_iters"])
+        self.mapper.optimize(n, should_stop=lambda: self.stopping)
+        self.counters["owed_iters"] -= n
 
     def on_keyframe(self, msg: msgs.Keyframe) -> None:
         if self._integrated(msg.keyframe_id):
@@ -216,7 +246,9 @@ class MapperNode(Node):
         d, c = depth_for_keyframe(depth, W, H)
         n_new = m.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
         self.integrated_keyframe_ids.add(int(kf.keyframe_id))
-        st = m.optimize(p.iters_per_keyframe, should_stop=lambda: self.stopping)
+        n_iters = self.iterations_for_next_keyframe()
+        self.counters["owed_iters"] += p.iters_per_keyframe - n_iters
+        st = m.optimize(n_iters, should_stop=lambda: self.stopping)
         self.counters["keyframes_mapped"] += 1
         self.publish(
             p.stats_topic,
