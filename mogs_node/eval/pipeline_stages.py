@@ -85,7 +85,7 @@ def prepare_keyframes(
     (the pipeline's flow control delivers every frame too).
     """
     from mogs_node.frontend.frontend import Frontend
-    from mogs_node.frontend.node import FrontendNodeParams
+    from mogs_node.frontend.node import FrontendNodeParams, keyframe_message
     from mogs_node.frontend.runs import run_frontend
     from mogs_node.node import parse_params
     from mogs_node.sim import SimConfig, make_sequence
@@ -121,18 +121,7 @@ def prepare_keyframes(
         i = index[int(kf.stamp_ns)]
         f = frames[i]
         gt = np.where(np.isfinite(f.depth_m) & (f.depth_m > 0), f.depth_m, 0.0).astype(np.float32)
-        msg = msgs.Keyframe(
-            stamp_ns=kf.stamp_ns,
-            frame_id="world",
-            keyframe_id=kf.keyframe_id,
-            image=np.ascontiguousarray(kf.image),
-            K=kf.K.astype(np.float64),
-            T_world_cam=kf.T_world_cam.astype(np.float64),
-            feature_ids=kf.feature_ids.astype(np.int64),
-            feature_uv_px=kf.feature_uv_px.astype(np.float32),
-            feature_xyz_cam_m=kf.feature_xyz_cam_m.astype(np.float32),
-            feature_weight=kf.feature_weight.astype(np.float32),
-        )
+        msg = keyframe_message(kf, "world")
         kfs.append(StageKeyframe(msg, i, np.array(f.T_world_cam), gt, f.instance_id))
     info = {
         "frames": seq.n_frames,

@@ -24,7 +24,7 @@ from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.estimator import EstimatorParams
-from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams
+from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams, KeyframeOutput
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
 from mogs_node.frontend.preintegration import ImuNoise
@@ -109,6 +109,22 @@ class FrontendNodeParams:
         return params, cam, T
 
 
+def keyframe_message(kf: KeyframeOutput, frame_id: str) -> msgs.Keyframe:
+    """The ``/frontend/keyframe`` message of a keyframe (wire dtypes)."""
+    return msgs.Keyframe(
+        stamp_ns=kf.stamp_ns,
+        frame_id=frame_id,
+        keyframe_id=kf.keyframe_id,
+        image=np.ascontiguousarray(kf.image),
+        K=kf.K.astype(np.float64),
+        T_world_cam=kf.T_world_cam.astype(np.float64),
+        feature_ids=kf.feature_ids.astype(np.int64),
+        feature_uv_px=kf.feature_uv_px.astype(np.float32),
+        feature_xyz_cam_m=kf.feature_xyz_cam_m.astype(np.float32),
+        feature_weight=kf.feature_weight.astype(np.float32),
+    )
+
+
 class FrontendNode(Node):
     """Visual-inertial frontend process."""
 
@@ -181,23 +197,8 @@ class FrontendNode(Node):
         self._send_odometry(
             out.stamp_ns, out.frame_index, self._last_T_world_cam, self._last_velocity, out.status
         )
-        kf = out.keyframe
-        if kf is not None:
-            self.publish(
-                p.keyframe_topic,
-                msgs.Keyframe(
-                    stamp_ns=kf.stamp_ns,
-                    frame_id=p.frame_id,
-                    keyframe_id=kf.keyframe_id,
-                    image=np.ascontiguousarray(kf.image),
-                    K=kf.K.astype(np.float64),
-                    T_world_cam=kf.T_world_cam.astype(np.float64),
-                    feature_ids=kf.feature_ids.astype(np.int64),
-                    feature_uv_px=kf.feature_uv_px.astype(np.float32),
-                    feature_xyz_cam_m=kf.feature_xyz_cam_m.astype(np.float32),
-                    feature_weight=kf.feature_weight.astype(np.float32),
-                ),
-            )
+        if out.keyframe is not None:
+            self.publish(p.keyframe_topic, keyframe_message(out.keyframe, p.frame_id))
 
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
         d = super().diagnostics(status)
