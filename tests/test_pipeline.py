@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from _reliability_harness import cli_argv
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -53,17 +53,8 @@ def run_pipeline_on_bag(bag: Path, out: Path, timeout_s: float = 1500) -> dict:
     log = out / "launch.log"  # written as the run goes: kept when the run fails or times out
     with log.open("w") as f:
         proc = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "mogs_node.cli",
-                "launch",
-                str(path),
-                "--timeout",
-                str(timeout_s),
-                "--grace",  # the mapper writes map.ply on SIGINT: seconds, on a loaded machine
-                "30",
-            ],
+            # --grace: the mapper writes map.ply on SIGINT: seconds, on a loaded machine
+            cli_argv("launch", str(path), "--timeout", str(timeout_s), "--grace", "30"),
             cwd=REPO,
             stdout=f,
             stderr=subprocess.STDOUT,

@@ -25,7 +25,6 @@ import random
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 import uuid
@@ -35,6 +34,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from _reliability_harness import cli_argv
 
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Subscriber
@@ -99,16 +99,7 @@ class Run:
         self.sub.subscribe("/frontend/keyframe")
         env = dict(os.environ, OMP_NUM_THREADS="1")
         self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mogs_node.cli",
-                "launch",
-                str(path),
-                "--timeout",
-                str(timeout_s),
-                *extra,
-            ],
+            cli_argv("launch", str(path), "--timeout", str(timeout_s), *extra),
             cwd=REPO,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
