@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,7 @@ import yaml
 
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
+from mogs_node.geometry import PinholeCamera
 
 __all__ = [
     "MASKS",
@@ -168,18 +169,12 @@ def _with_points(
     ui = np.clip(np.round(uv[:, 0]).astype(int), 0, W - 1)
     vi = np.clip(np.round(uv[:, 1]).astype(int), 0, H - 1)
     z = depth_m[vi, ui].astype(np.float64)
-    x = (uv[:, 0] - kf.K[0, 2]) / kf.K[0, 0]
-    y = (uv[:, 1] - kf.K[1, 2]) / kf.K[1, 1]
-    return msgs.Keyframe(
-        stamp_ns=kf.stamp_ns,
-        frame_id=kf.frame_id,
-        keyframe_id=kf.keyframe_id,
-        image=kf.image,
-        K=kf.K,
-        T_world_cam=kf.T_world_cam,
+    xyz = PinholeCamera.from_K(kf.K, W, H).backproject(np.asarray(uv, np.float64), z)
+    return replace(
+        kf,
         feature_ids=np.arange(len(uv), dtype=np.int64),
         feature_uv_px=np.asarray(uv, np.float32).reshape(-1, 2),
-        feature_xyz_cam_m=np.stack([x * z, y * z, z], axis=1).astype(np.float32).reshape(-1, 3),
+        feature_xyz_cam_m=xyz.astype(np.float32).reshape(-1, 3),
         feature_weight=np.asarray(weight, np.float32),
     )
 
