@@ -208,7 +208,6 @@ class MapperNode(Node):
         p: MapperNodeParams = self.params
         if p.iters_when_behind < 0 or self.queue_depth == 0:
             return p.iters_per_keyframe
-        self.counters["keyframes_behind"] += 1
         return min(p.iters_when_behind, p.iters_per_keyframe)
 
     def _idle_optimize(self) -> None:
@@ -247,7 +246,9 @@ class MapperNode(Node):
         n_new = m.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
         self.integrated_keyframe_ids.add(int(kf.keyframe_id))
         n_iters = self.iterations_for_next_keyframe()
-        self.counters["owed_iters"] += p.iters_per_keyframe - n_iters
+        if n_iters < p.iters_per_keyframe:
+            self.counters["keyframes_behind"] += 1
+            self.counters["owed_iters"] += p.iters_per_keyframe - n_iters
         st = m.optimize(n_iters, should_stop=lambda: self.stopping)
         self.counters["keyframes_mapped"] += 1
         self.publish(
