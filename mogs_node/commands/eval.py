@@ -53,6 +53,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     traj.add_argument(
         "--out", default=None, metavar="DIR", help="write TUM/KITTI trajectories here"
     )
+    traj.add_argument(
+        "--ground",
+        action="store_true",
+        help="sim/oxts: also measure the translation on the road from the camera's calibrated "
+        "height (off by default; docs/frontend.md, round 5)",
+    )
     traj.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     traj.set_defaults(_eval="traj")
 

@@ -80,4 +80,5 @@ def evaluate(args: argparse.Namespace) -> dict:
         data=args.data,
         out_dir=args.out,
         static_start_s=getattr(args, "static_start_s", None),
+        ground=getattr(args, "ground", False),
     )

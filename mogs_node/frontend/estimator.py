@@ -326,6 +326,37 @@ class VioEstimator:
         n_removed = self._reject_outliers()
         return self._state(n_removed)
 
+    def add_ground_distance(
+        self, seq_prev: int, seq_cur: int, distance_cam_m: float, sigma_m: float
+    ) -> bool:
+        """A measured distance between the camera centres of two consecutive window frames (the
+        road-plane measurement, :mod:`~mogs_node.frontend.ground`); it enters from the next solve
+        and is marginalised with the older frame. False when a frame is not in the window."""
+        if not (np.isfinite(distance_cam_m) and distance_cam_m > 0 and sigma_m > 0):
+            raise ConfigError(f"ground distance: {distance_cam_m} m, sigma {sigma_m} m")
+        seqs = [f.seq for f in self.frames]
+        if (
+            seq_cur not in seqs
+            or seq_prev not in seqs
+            or seqs.index(seq_cur) != seqs.index(seq_prev) + 1
+        ):
+            return False
+        Tp, Tc = self.pose(seq_prev), self.pose(seq_cur)
+        d_imu = float(np.linalg.norm(Tc[:3, 3] - Tp[:3, 3]))
+        t_ic = self.T_imu_cam[:3, 3]
+        d_cam = float(np.linalg.norm(Tc[:3, :3] @ t_ic + Tc[:3, 3] - Tp[:3, :3] @ t_ic - Tp[:3, 3]))
+        # the lever arm changes the IMU's distance by < 0.2 % per frame on a car: the measured
+        # camera distance is carried over to the IMU centres by the current ratio
+        r_imu = distance_cam_m * (d_imu / d_cam if d_cam > 1e-6 else 1.0)
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(self.params.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(1, sigma_m),
+        )
+        self._zero.setdefault(seq_cur, []).append(
+            gtsam.RangeFactorPose3(X(seq_prev), X(seq_cur), r_imu, noise)
+        )
+        return True
+
     def _drop_newest(self) -> None:
         f = self.frames.pop()
         self._factor_cache.pop(f.seq, None)

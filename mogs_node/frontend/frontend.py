@@ -20,6 +20,11 @@ from numpy.typing import NDArray
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.estimator import EstimatorDivergedError, EstimatorParams, VioEstimator
+from mogs_node.frontend.ground import (
+    GroundParams,
+    estimate_ground_translation,
+    road_normal_from_mount,
+)
 from mogs_node.frontend.initialization import (
     DynamicInitializer,
     InitParams,
@@ -29,7 +34,7 @@ from mogs_node.frontend.initialization import (
 from mogs_node.frontend.keyframes import KeyframeParams, is_keyframe, omega_weight
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
 from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
-from mogs_node.geometry import check_array, so3_exp
+from mogs_node.geometry import check_array, se3_inverse, so3_exp
 
 __all__ = ["FrameOutput", "Frontend", "FrontendParams", "KeyframeOutput"]
 
@@ -47,6 +52,8 @@ class FrontendParams:
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)  # keyframe policy, omega
     init: InitParams = field(default_factory=InitParams)  # static / dynamic initialisation
     imu: ImuNoise = field(default_factory=ImuNoise)  # IMU noise densities and gravity
+    ground: GroundParams = field(default_factory=GroundParams)  # road-plane distance (off unless
+    # the camera height above the road is given: a vehicle calibration, docs/frontend.md round 5)
     init_mode: str = "auto"  # 'auto' (static when still, else dynamic), 'static' or 'dynamic'
     window_every_frame: bool = True  # every frame enters the estimator's window (not only the
     # published keyframes): shorter window span, more IMU-vision coupling, better accuracy
@@ -186,7 +193,16 @@ class Frontend:
             "static_inits": 0,
             "dynamic_inits": 0,
             "image_wrong_size": 0,
+            "ground_measurements": 0,
+            "ground_rejected": 0,
         }
+        if params.ground.enabled and camera.model != "none":
+            raise ConfigError(
+                "ground.camera_height_m: the road measurement needs rectified images "
+                f"(camera model 'none', got {camera.model!r})"
+            )
+        self._road_normal = road_normal_from_mount(self.T_imu_cam)
+        self._prev_gray: tuple[int, NDArray] | None = None  # (estimator seq, grey image)
 
     @property
     def initialized(self) -> bool:
@@ -339,6 +355,8 @@ class Frontend:
                 if make_kf:
                     self._last_kf = (t_ns, tr.ids, tr.uv_px)
                     kf = self._make_keyframe(stamp_ns, image, T_wc)
+                if p.ground.enabled:
+                    self._measure_ground(image)
         if self.estimator.frames:
             self.imu.trim(self.estimator.frames[0].t_ns - int(1e9))
         else:
@@ -359,6 +377,41 @@ class Frontend:
         self.estimator.reset()
         self._dyn_init.reset()
         self._last_kf = None
+        self._prev_gray = None
+
+    def _measure_ground(self, image: NDArray) -> None:
+        """Road-plane distance between the previous and the newest window frame, added to the
+        window (used from the next solve)."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        frames = self.estimator.frames
+        prev, self._prev_gray = self._prev_gray, (frames[-1].seq, gray)
+        if prev is None or len(frames) < 2 or frames[-2].seq != prev[0]:
+            return
+        T_ic = self.T_imu_cam
+        T_cur_prev = se3_inverse(self.estimator.pose(frames[-1].seq) @ T_ic) @ (
+            self.estimator.pose(prev[0]) @ T_ic
+        )
+        t = T_cur_prev[:3, 3]
+        gp = self.params.ground
+        dist = float(np.linalg.norm(t))
+        m = None
+        if dist > 0.05:  # below ~0.5 m/s the road moves too little in 0.1 s
+            m = estimate_ground_translation(
+                prev[1],
+                gray,
+                self.camera.K,
+                T_cur_prev[:3, :3],
+                t,
+                self._road_normal,
+                dist / gp.camera_height_m,
+                gp,
+            )
+        if m is None or not self.estimator.add_ground_distance(
+            prev[0], frames[-1].seq, m.distance_m, gp.relative_sigma * m.distance_m
+        ):
+            self.counters["ground_rejected"] += dist > 0.05
+            return
+        self.counters["ground_measurements"] += 1
 
     def _compensated_accel_m_s2(self, imu: ImuSamples, t_ns: int) -> float:
         """Norm of the mean acceleration over the last ``still_accel_window_s`` with gravity and the

@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +58,7 @@ def run_frontend(
     return outs
 
 
+SIM_IMU_HEIGHT_M = 0.93  # mogs_node.sim.trajectory's default IMU height above the road
 SIM_STATIC_START_S = 2.0  # default standstill before the sim drive: the static initialisation
 # (gravity from the accelerometer, zero velocity) fixes the metric scale
 
@@ -109,6 +110,9 @@ def load_dataset(
             imu=(seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2),
             camera=CameraModel(seq.camera),
             T_imu_cam=seq.T_imu_cam,
+            # vehicle calibration: the IMU rides SIM_IMU_HEIGHT_M above the road (z up), the
+            # camera T_imu_cam[2, 3] above it (KITTI's 1.65 m)
+            camera_height_m=SIM_IMU_HEIGHT_M + float(seq.T_imu_cam[2, 3]),
             gt=seq.T_world_cam,
             velocity=seq.velocity_world_m_s,
             name=f"{dataset} seed {seed} {seconds:.1f}s",
@@ -211,12 +215,26 @@ def run_dataset(
     out_dir: str | Path | None = None,
     params: FrontendParams | None = None,
     static_start_s: float | None = None,
+    ground: bool = False,
 ) -> dict:
-    """Run the frontend on ``dataset`` and score it; optionally write TUM/KITTI trajectories."""
+    """Run the frontend on ``dataset`` and score it; optionally write TUM/KITTI trajectories.
+
+    ``ground``: add the road-plane distance measurement at the dataset's camera height (sim and
+    OXTS only), with the dynamic initialisation's velocity prior loosened so that the road can
+    correct the chosen speed (docs/frontend.md, round 5)."""
     d = load_dataset(dataset, seconds=seconds, seed=seed, data=data, static_start_s=static_start_s)
+    if ground:
+        if "camera_height_m" not in d:
+            raise DatasetError(f"ground: {dataset} has no camera height above a road")
+        params = params or FrontendParams()
+        params = replace(
+            params,
+            ground=replace(params.ground, camera_height_m=d["camera_height_m"]),
+            init=replace(params.init, dyn_vel_sigma_rel=1.0),
+        )
     log.info("running the frontend on %s (%d frames)", d["name"], len(d["stamps_ns"]))
     run = run_dataset_frames(d, params)
-    figures = {"dataset": dataset, **score_run(run)}
+    figures = {"dataset": dataset, **score_run(run), "ground": bool(ground)}
     if dataset == "sim":
         figures["static_start_s"] = SIM_STATIC_START_S if static_start_s is None else static_start_s
     all_frames = score_run(run, keyframes_only=False)

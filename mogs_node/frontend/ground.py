@@ -1,0 +1,250 @@
+"""Metric translation from the road plane (beyond the paper: docs/frontend.md, "Round 5").
+
+A car-mounted camera sees the road at a known height ``h`` (a vehicle calibration, like the
+camera-IMU extrinsics). Between two frames the road maps by the plane homography
+``H = K (R + tau u n^T) K^-1`` (``X_cur = R X_prev + t``, ``t = tau h u``, road ``n . X_prev = h``),
+so aligning the road patch of the previous image onto the current one gives ``tau = |t| / h``, a
+metric translation, from every road pixel at once. The rotation ``R`` and the direction ``u`` come
+from the visual-inertial estimate, which knows them well; what it does not know on a cruising drive
+is the scale (round 3). The road normal is kept perpendicular to the motion (a car moves along the
+road); only its roll about the motion is estimated (the pitch and the scale trade off within one
+frame pair). Pure: images and geometry in, one measurement out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import ConfigError
+from mogs_node.geometry import check_array
+
+__all__ = [
+    "GroundMeasurement",
+    "GroundParams",
+    "estimate_ground_translation",
+    "road_normal_from_mount",
+]
+
+
+@dataclass(frozen=True)
+class GroundParams:
+    """Parameters of the road-plane translation measurement."""
+
+    camera_height_m: float = 0.0  # camera centre above the road; 0 turns the measurement off
+    min_depth_m: float = 3.0  # road pixels used: between these distances (along the road normal
+    max_depth_m: float = 25.0  # ray): far road has too little parallax, near road leaves the image
+    column_margin: float = 0.15  # share of the image width left out on each side (parked cars)
+    max_pixels: int = 6000  # road pixels per pyramid level (a regular subsample beyond this)
+    levels: int = 3  # pyramid levels (coarse to fine)
+    iterations: int = 4  # Gauss-Newton iterations per level
+    search_span: float = 2.0  # coarse grid search over tau in [init / span, init * span]
+    relative_sigma: float = 0.05  # noise of one measurement relative to the distance
+    max_sigma_rel: float = 0.05  # reject when the alignment's own 1-sigma of tau exceeds this
+    # (textureless or washed-out road: the Gauss-Newton step would leave the guess unchanged)
+    max_residual: float = 12.0  # mean absolute photometric residual (grey levels) to accept
+    min_pixels: int = 400  # valid road pixels at the finest level to accept
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.camera_height_m) or self.camera_height_m < 0:
+            raise ConfigError("ground.camera_height_m: must be finite and >= 0 (0: off)")
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise ConfigError("ground: 0 < min_depth_m < max_depth_m")
+        if not 0 <= self.column_margin < 0.5 or self.levels < 1 or self.iterations < 1:
+            raise ConfigError("ground: 0 <= column_margin < 0.5, levels >= 1, iterations >= 1")
+        if self.search_span < 1 or self.relative_sigma <= 0 or self.max_pixels < 100:
+            raise ConfigError("ground: search_span >= 1, relative_sigma > 0, max_pixels >= 100")
+
+    @property
+    def enabled(self) -> bool:
+        return self.camera_height_m > 0
+
+
+@dataclass(frozen=True)
+class GroundMeasurement:
+    """Translation between two frames measured on the road."""
+
+    tau: float  # |t| / camera height
+    distance_m: float  # |t|: distance between the two camera centres
+    normal_cam: NDArray[np.float64]  # [3] road normal in the previous camera frame (towards it)
+    residual: float  # mean absolute photometric residual at the solution (grey levels)
+    sigma_rel: float  # the alignment's own 1-sigma of tau, relative
+    n_pixels: int  # valid road pixels at the finest level
+
+
+def road_normal_from_mount(T_imu_cam: NDArray) -> NDArray[np.float64]:
+    """Road normal (pointing down to the road) in the camera frame for an IMU mounted level with
+    the road, z up: the starting guess before the roll is estimated."""
+    T = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True)
+    return T[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+
+
+def _pyramid(img: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
+    out = [img]
+    for _ in range(levels - 1):
+        out.append(cv2.pyrDown(out[-1]))
+    return out
+
+
+def _level_K(K: NDArray, s: float) -> NDArray[np.float64]:
+    Kl = K.astype(np.float64).copy()
+    Kl[:2, :2] *= s
+    Kl[:2, 2] = (K[:2, 2] + 0.5) * s - 0.5
+    return Kl
+
+
+def _road_pixels(
+    shape: tuple[int, int], Kl: NDArray, n: NDArray, h: float, p: GroundParams
+) -> NDArray[np.float64]:
+    """Homogeneous normalised rays [3, M] of the road pixels between the depth bounds."""
+    H, W = shape
+    ys, xs = np.mgrid[2 : H - 2, int(p.column_margin * W) : int(np.ceil((1 - p.column_margin) * W))]
+    xs, ys = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
+    stride = max(1, int(np.ceil(len(xs) / (4 * p.max_pixels))))  # cheap pre-thinning
+    xs, ys = xs[::stride], ys[::stride]
+    r = np.linalg.solve(Kl, np.stack([xs, ys, np.ones_like(xs)]))
+    nr = n @ r  # depth along the optical axis is h / (n . r) for a ray with z = 1
+    keep = (nr >= h / p.max_depth_m) & (nr <= h / p.min_depth_m)
+    r = r[:, keep]
+    if r.shape[1] > p.max_pixels:
+        r = r[:, :: int(np.ceil(r.shape[1] / p.max_pixels))]
+    return r
+
+
+def estimate_ground_translation(
+    gray_prev: NDArray,
+    gray_cur: NDArray,
+    K: NDArray,
+    R_cur_prev: NDArray,
+    t_dir_cur_prev: NDArray,
+    normal_prev: NDArray,
+    tau_init: float,
+    params: GroundParams,
+    *,
+    search: bool = False,
+) -> GroundMeasurement | None:
+    """Align the road of ``gray_prev`` onto ``gray_cur`` by the plane homography: ``tau`` and the
+    roll of the road normal about the motion, robust Gauss-Newton coarse to fine.
+
+    ``R_cur_prev``, ``t_dir_cur_prev``: rotation and translation direction taking previous-camera
+    points into the current camera frame (from the VI estimate); ``normal_prev``: a guess of the
+    road normal in the previous camera frame (pointing to the road); ``tau_init``: a guess of
+    ``|t| / h``. ``search``: start with a grid over ``tau`` (when the guess may be far off, e.g. the
+    initialisation's). None when the road is not usable (too few pixels, no convergence, large
+    residual). Images are single-channel of the same size.
+    """
+    if not params.enabled:
+        raise ConfigError("ground.camera_height_m: 0, the road measurement is off")
+    g0 = np.asarray(gray_prev, np.float32)
+    g1 = np.asarray(gray_cur, np.float32)
+    if g0.ndim != 2 or g0.shape != g1.shape:
+        raise ConfigError(
+            f"gray images: need two 2-D images of one size, got {g0.shape} {g1.shape}"
+        )
+    R = check_array("R_cur_prev", R_cur_prev, shape=(3, 3), finite=True).astype(np.float64)
+    u = check_array("t_dir_cur_prev", t_dir_cur_prev, shape=(3,), finite=True).astype(np.float64)
+    n_in = check_array("normal_prev", normal_prev, shape=(3,), finite=True).astype(np.float64)
+    if not (np.isfinite(tau_init) and tau_init > 0):
+        return None
+    nu = np.linalg.norm(u)
+    if nu < 1e-9:
+        return None
+    u = u / nu
+    d = -R.T @ u  # direction of the camera's displacement in the previous frame
+    n0 = n_in - (n_in @ d) * d  # the road is parallel to the motion
+    if np.linalg.norm(n0) < 0.5:  # motion along the normal: not a car on a road
+        return None
+    n0 /= np.linalg.norm(n0)
+    e_roll = np.cross(d, n0)
+    e_roll /= np.linalg.norm(e_roll)
+    h = params.camera_height_m
+
+    def normal(theta: float) -> NDArray[np.float64]:
+        return np.cos(theta) * n0 + np.sin(theta) * e_roll
+
+    p = np.array([np.log(tau_init), 0.0])
+    pyr0, pyr1 = _pyramid(g0, params.levels), _pyramid(g1, params.levels)
+    res_mean, n_valid, sigma_rel = np.inf, 0, np.inf
+    for lev in range(params.levels - 1, -1, -1):
+        I0, I1 = pyr0[lev], pyr1[lev]
+        Kl = _level_K(np.asarray(K, np.float64), 0.5**lev)
+        r = _road_pixels(I0.shape, Kl, n0, h, params)
+        if r.shape[1] < 50:
+            return None
+        px0 = Kl @ r
+        ref = cv2.remap(
+            I0,
+            px0[0].astype(np.float32)[None],
+            px0[1].astype(np.float32)[None],
+            cv2.INTER_LINEAR,
+        )[0]
+        gx = cv2.Sobel(I1, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+        gy = cv2.Sobel(I1, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+
+        def warp(pp: NDArray, _Kl=Kl, _r=r) -> tuple[NDArray, NDArray]:
+            q = _Kl @ ((R + np.exp(pp[0]) * np.outer(u, normal(pp[1]))) @ _r)
+            w = np.where(np.abs(q[2]) > 1e-9, q[2], 1e-9)
+            return q[0] / w, q[1] / w
+
+        def sample(img: NDArray, qx: NDArray, qy: NDArray) -> NDArray:
+            return cv2.remap(
+                img,
+                qx.astype(np.float32)[None],
+                qy.astype(np.float32)[None],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=-1.0,
+            )[0]
+
+        if search and lev == params.levels - 1:
+            best = (np.inf, p[0])
+            for lt in p[0] + np.linspace(
+                -np.log(params.search_span), np.log(params.search_span), 25
+            ):
+                qx, qy = warp(np.array([lt, p[1]]))
+                v = sample(I1, qx, qy)
+                ok = v >= 0
+                if ok.sum() > 0.3 * len(v):
+                    c = float(np.mean(np.abs(v[ok] - ref[ok])))
+                    if c < best[0]:
+                        best = (c, lt)
+            p[0] = best[1]
+        for _ in range(params.iterations):
+            qx, qy = warp(p)
+            v = sample(I1, qx, qy)
+            ok = (v >= 0) & (qx >= 0) & (qy >= 0)
+            n_valid = int(ok.sum())
+            if n_valid < 50:
+                return None
+            res = (v - ref)[ok]
+            J = np.empty((n_valid, 2))
+            gxs, gys = sample(gx, qx, qy)[ok], sample(gy, qx, qy)[ok]
+            for k, eps in ((0, 1e-4), (1, 1e-4)):
+                dp = np.zeros(2)
+                dp[k] = eps
+                ax, ay = warp(p + dp)
+                J[:, k] = (gxs * (ax[ok] - qx[ok]) + gys * (ay[ok] - qy[ok])) / eps
+            scale = 1.4826 * float(np.median(np.abs(res))) + 1e-3
+            w = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(res), 1e-9))
+            A = J.T @ (J * w[:, None]) + np.diag([1e-9, 1e-3 * n_valid])
+            step = -np.linalg.solve(A, J.T @ (w * res))
+            step[0] = np.clip(step[0], -0.3, 0.3)
+            step[1] = np.clip(step[1], -0.02, 0.02)
+            p = p + step
+            res_mean = float(np.mean(np.abs(res)))
+            # 1-sigma of log(tau) from the robust residual scale and the information of tau
+            sigma_rel = scale / np.sqrt(max(float(A[0, 0]), 1e-30))
+            if np.max(np.abs(step)) < 1e-4:
+                break
+    if (
+        not np.all(np.isfinite(p))
+        or n_valid < params.min_pixels
+        or res_mean > params.max_residual
+        or sigma_rel > params.max_sigma_rel
+    ):
+        return None
+    tau = float(np.exp(p[0]))
+    return GroundMeasurement(tau, tau * h, normal(float(p[1])), res_mean, sigma_rel, n_valid)
