@@ -164,7 +164,7 @@ class Frontend:
         self._frame_index = 0
         self._keyframe_id = 0
         self._dyn_init = DynamicInitializer(
-            params.init, params.estimator, camera.pinhole, self.T_imu_cam, params.imu
+            params.init, params.estimator, camera.pinhole, self.T_imu_cam, params.imu, params.ground
         )
         self._last_kf: tuple[int, NDArray, NDArray] | None = None
         self._undistort_maps = None
@@ -195,6 +195,7 @@ class Frontend:
             "image_wrong_size": 0,
             "ground_measurements": 0,
             "ground_rejected": 0,
+            "ground_gated": 0,
         }
         if params.ground.enabled and camera.model != "none":
             raise ConfigError(
@@ -203,6 +204,7 @@ class Frontend:
             )
         self._road_normal = road_normal_from_mount(self.T_imu_cam)
         self._prev_gray: tuple[int, NDArray] | None = None  # (estimator seq, grey image)
+        self._ground_ratios: deque[float] = deque(maxlen=params.ground.gate_window)
 
     @property
     def initialized(self) -> bool:
@@ -292,6 +294,7 @@ class Frontend:
         p = self.params
         t_ns = stamp_ns + p.time_offset_ns
         t0 = time.perf_counter()
+        ground_s = 0.0  # road measurement (with ground on), apart from the estimation
         R_pred = self._predicted_rotation(t_ns)
         tr = self.tracker.track(image, R_pred)
         t1 = time.perf_counter()
@@ -316,7 +319,7 @@ class Frontend:
         imu = self.imu.samples()
         if not self.initialized:
             if status != "reset":  # the frame after a reset starts the new initialisation
-                self._try_init((t_ns, tr.ids, tr.uv_px, tr.track_len), imu, flow)
+                self._try_init((t_ns, tr.ids, tr.uv_px, tr.track_len), imu, flow, image)
             if self.initialized:
                 status = "tracking"
                 st = self.estimator.state()
@@ -356,7 +359,9 @@ class Frontend:
                     self._last_kf = (t_ns, tr.ids, tr.uv_px)
                     kf = self._make_keyframe(stamp_ns, image, T_wc)
                 if p.ground.enabled:
+                    tg = time.perf_counter()
                     self._measure_ground(image)
+                    ground_s = time.perf_counter() - tg
         if self.estimator.frames:
             self.imu.trim(self.estimator.frames[0].t_ns - int(1e9))
         else:
@@ -369,7 +374,11 @@ class Frontend:
             T_world_cam=T_wc,
             velocity_world_m_s=v,
             keyframe=kf,
-            timings_ms={"tracking": 1e3 * (t1 - t0), "estimation": 1e3 * (t2 - t1)},
+            timings_ms={
+                "tracking": 1e3 * (t1 - t0),
+                "estimation": 1e3 * (t2 - t1 - ground_s),
+                "ground": 1e3 * ground_s,
+            },
             stats=stats,
         )
 
@@ -378,6 +387,7 @@ class Frontend:
         self._dyn_init.reset()
         self._last_kf = None
         self._prev_gray = None
+        self._ground_ratios.clear()
 
     def _measure_ground(self, image: NDArray) -> None:
         """Road-plane distance between the previous and the newest window frame, added to the
@@ -406,10 +416,20 @@ class Frontend:
                 dist / gp.camera_height_m,
                 gp,
             )
-        if m is None or not self.estimator.add_ground_distance(
+        if m is None:
+            self.counters["ground_rejected"] += dist > 0.05
+            return
+        # A vehicle ahead or its shadow can bias a measurement for a few frames: one far from
+        # the recent ratios to the window's own distance is not used (the ratio is kept, so a
+        # lasting change of the window's scale is followed).
+        ratio = m.distance_m / dist
+        recent = self._ground_ratios
+        off = len(recent) >= 5 and abs(ratio / float(np.median(recent)) - 1) > gp.gate_rel
+        recent.append(ratio)
+        if off or not self.estimator.add_ground_distance(
             prev[0], frames[-1].seq, m.distance_m, gp.relative_sigma * m.distance_m
         ):
-            self.counters["ground_rejected"] += dist > 0.05
+            self.counters["ground_gated" if off else "ground_rejected"] += 1
             return
         self.counters["ground_measurements"] += 1
 
@@ -441,7 +461,7 @@ class Frontend:
         R_prev_cur_cam = R_ic.T @ R_imu @ R_ic
         return R_prev_cur_cam.T
 
-    def _try_init(self, frame: tuple, imu: ImuSamples, flow: float) -> None:
+    def _try_init(self, frame: tuple, imu: ImuSamples, flow: float, image: NDArray) -> None:
         p = self.params
         t_ns = frame[0]
         if (
@@ -469,7 +489,10 @@ class Frontend:
             return
         if p.init_mode == "static":
             return
-        est = self._dyn_init.add_frame(*frame, imu)
+        gray = None
+        if p.ground.enabled:
+            gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        est = self._dyn_init.add_frame(*frame, imu, gray)
         if est is not None:
             self.estimator = est
             f = est.frames[-1]

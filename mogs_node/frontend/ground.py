@@ -13,7 +13,7 @@ frame pair). Pure: images and geometry in, one measurement out.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -27,6 +27,7 @@ __all__ = [
     "GroundParams",
     "estimate_ground_translation",
     "road_normal_from_mount",
+    "road_scale_of_sfm",
 ]
 
 
@@ -37,12 +38,22 @@ class GroundParams:
     camera_height_m: float = 0.0  # camera centre above the road; 0 turns the measurement off
     min_depth_m: float = 3.0  # road pixels used: between these distances (along the road normal
     max_depth_m: float = 25.0  # ray): far road has too little parallax, near road leaves the image
-    column_margin: float = 0.15  # share of the image width left out on each side (parked cars)
+    lane_half_width_m: float = 2.0  # only road within this lateral distance of the camera: the
+    # lane ahead (wider, parked cars and kerbs bias tau by +1.5 %; docs/frontend.md round 5)
+    column_margin: float = 0.0  # share of the image width left out on each side
+    min_change: float = 3.0  # use only road pixels that change by more than this (grey levels)
+    # between the frames after the rotation alone: a vehicle ahead driving at our speed, and its
+    # shadow, look static and would pull tau to 0 (real KITTI traffic, docs/frontend.md round 5)
+    max_roll_deg: float = 1.0  # bound of the road normal's roll about the motion (from the guess)
     max_pixels: int = 6000  # road pixels per pyramid level (a regular subsample beyond this)
     levels: int = 3  # pyramid levels (coarse to fine)
     iterations: int = 4  # Gauss-Newton iterations per level
     search_span: float = 2.0  # coarse grid search over tau in [init / span, init * span]
-    relative_sigma: float = 0.05  # noise of one measurement relative to the distance
+    gate_rel: float = 0.15  # while tracking, reject a measurement whose ratio to the window's
+    gate_window: int = 15  # distance is this far from the median ratio of the last gate_window
+    max_spread: float = 0.1  # initialisation: the SfM window's per-step scales must agree (MAD)
+    relative_sigma: float = 0.03  # noise of one measurement relative to the distance (the robust
+    # std measured on the sim: 1.4826 x 1.6 % MAD = 2.4 %; docs/frontend.md round 5)
     max_sigma_rel: float = 0.05  # reject when the alignment's own 1-sigma of tau exceeds this
     # (textureless or washed-out road: the Gauss-Newton step would leave the guess unchanged)
     max_residual: float = 12.0  # mean absolute photometric residual (grey levels) to accept
@@ -55,6 +66,10 @@ class GroundParams:
             raise ConfigError("ground: 0 < min_depth_m < max_depth_m")
         if not 0 <= self.column_margin < 0.5 or self.levels < 1 or self.iterations < 1:
             raise ConfigError("ground: 0 <= column_margin < 0.5, levels >= 1, iterations >= 1")
+        if not self.lane_half_width_m > 0:
+            raise ConfigError("ground.lane_half_width_m: must be > 0")
+        if self.gate_rel <= 0 or self.gate_window < 1 or self.max_spread <= 0:
+            raise ConfigError("ground: gate_rel > 0, gate_window >= 1, max_spread > 0")
         if self.search_span < 1 or self.relative_sigma <= 0 or self.max_pixels < 100:
             raise ConfigError("ground: search_span >= 1, relative_sigma > 0, max_pixels >= 100")
 
@@ -82,6 +97,18 @@ def road_normal_from_mount(T_imu_cam: NDArray) -> NDArray[np.float64]:
     return T[:3, :3].T @ np.array([0.0, 0.0, -1.0])
 
 
+def sample_at(img: NDArray[np.float32], qx: NDArray, qy: NDArray) -> NDArray[np.float32]:
+    """Bilinear samples of ``img`` at float pixel coordinates; -1 outside the image."""
+    return cv2.remap(
+        img,
+        np.asarray(qx, np.float32)[None],
+        np.asarray(qy, np.float32)[None],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=-1.0,
+    )[0]
+
+
 def _pyramid(img: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
     out = [img]
     for _ in range(levels - 1):
@@ -99,19 +126,21 @@ def _level_K(K: NDArray, s: float) -> NDArray[np.float64]:
 def _road_pixels(
     shape: tuple[int, int], Kl: NDArray, n: NDArray, h: float, p: GroundParams
 ) -> NDArray[np.float64]:
-    """Homogeneous normalised rays [3, M] of the road pixels between the depth bounds."""
+    """Normalised rays [3, M] (z = 1) of the road pixels of the lane ahead between the depth
+    bounds, on a regular grid coarse enough to keep about ``max_pixels``."""
     H, W = shape
-    ys, xs = np.mgrid[2 : H - 2, int(p.column_margin * W) : int(np.ceil((1 - p.column_margin) * W))]
-    xs, ys = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
-    stride = max(1, int(np.ceil(len(xs) / (4 * p.max_pixels))))  # cheap pre-thinning
-    xs, ys = xs[::stride], ys[::stride]
-    r = np.linalg.solve(Kl, np.stack([xs, ys, np.ones_like(xs)]))
-    nr = n @ r  # depth along the optical axis is h / (n . r) for a ray with z = 1
+    x0, x1 = int(p.column_margin * W), int(np.ceil((1 - p.column_margin) * W))
+    step = max(1, int(np.sqrt((H - 4) * (x1 - x0) / (16.0 * p.max_pixels))))
+    xn = (np.arange(x0, x1, step, dtype=np.float64) - Kl[0, 2]) / Kl[0, 0]
+    yn = (np.arange(2, H - 2, step, dtype=np.float64) - Kl[1, 2]) / Kl[1, 1]
+    nr = n[0] * xn[None, :] + n[1] * yn[:, None] + n[2]  # depth along the axis is h / (n . r)
     keep = (nr >= h / p.max_depth_m) & (nr <= h / p.min_depth_m)
-    r = r[:, keep]
-    if r.shape[1] > p.max_pixels:
-        r = r[:, :: int(np.ceil(r.shape[1] / p.max_pixels))]
-    return r
+    keep &= np.abs(xn)[None, :] * h <= p.lane_half_width_m * nr  # lateral offset h x / (n . r)
+    iy, ix = np.nonzero(keep)
+    if len(iy) > p.max_pixels:
+        sel = slice(None, None, int(np.ceil(len(iy) / p.max_pixels)))
+        iy, ix = iy[sel], ix[sel]
+    return np.stack([xn[ix], yn[iy], np.ones(len(ix))])
 
 
 def estimate_ground_translation(
@@ -166,6 +195,7 @@ def estimate_ground_translation(
         return np.cos(theta) * n0 + np.sin(theta) * e_roll
 
     p = np.array([np.log(tau_init), 0.0])
+    max_roll = np.radians(params.max_roll_deg)
     pyr0, pyr1 = _pyramid(g0, params.levels), _pyramid(g1, params.levels)
     res_mean, n_valid, sigma_rel = np.inf, 0, np.inf
     for lev in range(params.levels - 1, -1, -1):
@@ -183,21 +213,17 @@ def estimate_ground_translation(
         )[0]
         gx = cv2.Sobel(I1, cv2.CV_32F, 1, 0, ksize=3) / 8.0
         gy = cv2.Sobel(I1, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+        q_rot = Kl @ (R @ r)
+        static = sample_at(I1, q_rot[0] / q_rot[2], q_rot[1] / q_rot[2])
+        moving = np.abs(static - ref) > params.min_change
+        if moving.sum() < 50:
+            return None
+        r, ref = r[:, moving], ref[moving]
 
         def warp(pp: NDArray, _Kl=Kl, _r=r) -> tuple[NDArray, NDArray]:
             q = _Kl @ ((R + np.exp(pp[0]) * np.outer(u, normal(pp[1]))) @ _r)
             w = np.where(np.abs(q[2]) > 1e-9, q[2], 1e-9)
             return q[0] / w, q[1] / w
-
-        def sample(img: NDArray, qx: NDArray, qy: NDArray) -> NDArray:
-            return cv2.remap(
-                img,
-                qx.astype(np.float32)[None],
-                qy.astype(np.float32)[None],
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=-1.0,
-            )[0]
 
         if search and lev == params.levels - 1:
             best = (np.inf, p[0])
@@ -205,7 +231,7 @@ def estimate_ground_translation(
                 -np.log(params.search_span), np.log(params.search_span), 25
             ):
                 qx, qy = warp(np.array([lt, p[1]]))
-                v = sample(I1, qx, qy)
+                v = sample_at(I1, qx, qy)
                 ok = v >= 0
                 if ok.sum() > 0.3 * len(v):
                     c = float(np.mean(np.abs(v[ok] - ref[ok])))
@@ -214,14 +240,14 @@ def estimate_ground_translation(
             p[0] = best[1]
         for _ in range(params.iterations):
             qx, qy = warp(p)
-            v = sample(I1, qx, qy)
+            v = sample_at(I1, qx, qy)
             ok = (v >= 0) & (qx >= 0) & (qy >= 0)
             n_valid = int(ok.sum())
             if n_valid < 50:
                 return None
             res = (v - ref)[ok]
             J = np.empty((n_valid, 2))
-            gxs, gys = sample(gx, qx, qy)[ok], sample(gy, qx, qy)[ok]
+            gxs, gys = sample_at(gx, qx, qy)[ok], sample_at(gy, qx, qy)[ok]
             for k, eps in ((0, 1e-4), (1, 1e-4)):
                 dp = np.zeros(2)
                 dp[k] = eps
@@ -234,6 +260,7 @@ def estimate_ground_translation(
             step[0] = np.clip(step[0], -0.3, 0.3)
             step[1] = np.clip(step[1], -0.02, 0.02)
             p = p + step
+            p[1] = np.clip(p[1], -max_roll, max_roll)
             res_mean = float(np.mean(np.abs(res)))
             # 1-sigma of log(tau) from the robust residual scale and the information of tau
             sigma_rel = scale / np.sqrt(max(float(A[0, 0]), 1e-30))
@@ -248,3 +275,54 @@ def estimate_ground_translation(
         return None
     tau = float(np.exp(p[0]))
     return GroundMeasurement(tau, tau * h, normal(float(p[1])), res_mean, sigma_rel, n_valid)
+
+
+def road_scale_of_sfm(
+    grays: list[NDArray],
+    T_c0_ci: NDArray,
+    K: NDArray,
+    normal_cam: NDArray,
+    params: GroundParams,
+    step_guess_m: NDArray,
+    *,
+    search_span: float = 4.0,
+    min_share: float = 0.5,
+) -> float | None:
+    """Metric scale of an up-to-scale visual SfM window (the dynamic initialisation's) from the
+    road: the median over consecutive frames of measured / SfM step length.
+
+    ``grays`` [F] images, ``T_c0_ci`` [F, 4, 4] SfM camera poses, ``normal_cam`` a road normal guess
+    in the camera frame (fixed to the car, so the same in every frame), ``step_guess_m`` [F - 1] a guess of each metric step (searched
+    within ``search_span`` either way). None when fewer than ``min_share`` of the steps give a
+    measurement."""
+    T = check_array("T_c0_ci", T_c0_ci, shape=(len(grays), 4, 4), finite=True)
+    steps = check_array("step_guess_m", step_guess_m, shape=(len(grays) - 1,))
+    if len(grays) < 2:
+        return None
+    p = replace(params, search_span=search_span)
+    ratios = []
+    for k in range(len(grays) - 1):
+        T_cur_prev = np.linalg.inv(T[k + 1]) @ T[k]
+        t = T_cur_prev[:3, 3]
+        sfm_step = float(np.linalg.norm(t))
+        if sfm_step < 1e-9 or not (np.isfinite(steps[k]) and steps[k] > 0):
+            continue
+        m = estimate_ground_translation(
+            grays[k],
+            grays[k + 1],
+            K,
+            T_cur_prev[:3, :3],
+            t,
+            normal_cam,
+            float(steps[k]) / params.camera_height_m,
+            p,
+            search=True,
+        )
+        if m is not None:
+            ratios.append(m.distance_m / sfm_step)
+    if len(ratios) < max(1, min_share * (len(grays) - 1)):
+        return None
+    med = float(np.median(ratios))
+    if np.median(np.abs(np.asarray(ratios) / med - 1)) > params.max_spread:
+        return None  # the steps disagree: something else than the road moved in the lane
+    return med

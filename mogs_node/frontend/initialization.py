@@ -9,6 +9,7 @@ IMU pose of the window has zero yaw and sits at the origin). No ground truth is 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -19,6 +20,7 @@ from scipy.optimize import least_squares
 
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.estimator import EstimatorDivergedError, EstimatorParams, VioEstimator
+from mogs_node.frontend.ground import GroundParams, road_normal_from_mount, road_scale_of_sfm
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params, preintegrate
 from mogs_node.geometry import PinholeCamera, check_array, make_T, se3_inverse, so3_log
 
@@ -48,6 +50,8 @@ class InitParams:
     # acceleration below this (a car driving off has little image flow and IMU spread)
     still_accel_window_s: float = 0.3  # IMU span of that mean (short: drive-off is seen early)
     dyn_frames: int = 10  # frames in the dynamic-initialisation window
+    road_speed_guess_m_s: float = 10.0  # road scale at the dynamic initialisation (ground on):
+    # starting guess of the speed, searched within 4x either way (2.5-40 m/s)
     dyn_min_parallax_px: float = 15.0  # parallax of the SfM pair that fixes the scale
     dyn_min_features: int = 30  # common features required by SfM
     gravity_m_s2: float = 9.81  # gravity magnitude
@@ -385,6 +389,7 @@ def dynamic_init(
     pim_params: gtsam.PreintegrationCombinedParams,
     hypotheses: int = 0,
     speeds_m_s: list[float] | None = None,
+    sfm_scale_fn: Callable[[NDArray], float | None] | None = None,
 ) -> list[InitResult]:
     """VINS-Mono dynamic initialisation over ``frames`` (ids, undistorted px) at ``stamps_ns`` [F]
     (IMU time): SfM, gyro bias from the rotations, linear alignment for velocities, gravity and
@@ -393,7 +398,10 @@ def dynamic_init(
     Returns candidate initial states, best guess first: the linear alignment's (when its scale is
     positive), then ``hypotheses`` states whose scale puts the mean speed on a geometric grid
     between ``min_speed_m_s`` and ``max_speed_m_s`` (velocities and gravity re-solved for each);
-    with ``speeds_m_s`` only those mean speeds are proposed.
+    with ``speeds_m_s`` only those mean speeds are proposed. ``sfm_scale_fn`` (SfM camera poses
+    ``T_c0_ci`` [F, 4, 4] -> metric scale or None) measures the scale directly, e.g. from the road
+    (:func:`~mogs_node.frontend.ground.road_scale_of_sfm`); when it does, that scale is the only
+    candidate.
     Under near-constant acceleration (a vehicle cruising) the scale is poorly observable in a short
     window, so the caller scores the candidates with the full visual-inertial window solve. Empty
     when the SfM fails (retry with the next frame).
@@ -432,7 +440,12 @@ def dynamic_init(
     for _ in range(6):
         v, g, s = _align(pc, R_c, t_cb, R_cb, pims, dts, G, g)
     sfm_speed = max(np.linalg.norm(pc[-1] - pc[0]) / (dts.sum()), 1e-9)
-    scales = [s] if s > params.min_scale and speeds_m_s is None else []
+    measured = sfm_scale_fn(Tc) if sfm_scale_fn is not None and speeds_m_s is None else None
+    if measured is not None and not (np.isfinite(measured) and measured > 0):
+        measured = None
+    scales = [s] if s > params.min_scale and speeds_m_s is None and measured is None else []
+    if measured is not None:
+        scales, hypotheses = [float(measured)], 0
     if hypotheses:
         scales += list(
             np.geomspace(params.min_speed_m_s, params.max_speed_m_s, hypotheses) / sfm_speed
@@ -482,25 +495,38 @@ class DynamicInitializer:
         camera: PinholeCamera,
         T_imu_cam: NDArray,
         noise: ImuNoise,
+        ground: GroundParams | None = None,
     ) -> None:
         self.params = params
         self.estimator_params = estimator_params
         self.camera = camera
         self.T_imu_cam = T_imu_cam
         self.noise = noise
+        self.ground = ground if ground is not None and ground.enabled else None
+        self._road_normal = road_normal_from_mount(T_imu_cam)
         self._pim_params = make_params(noise)
         self.reset()
 
     def reset(self) -> None:
         self._frames: list[tuple[int, NDArray, NDArray, NDArray]] = []
+        self._grays: dict[int, NDArray] = {}  # stamp -> grey image (road scale only)
         self._history: list[tuple[int, NDArray, NDArray, NDArray]] = []  # since the window start
         self._cands: list[list] = []  # [estimator, accumulated IMU error, frames fed, speed]
 
     def add_frame(
-        self, t_ns: int, ids: NDArray, uv_px: NDArray, track_len: NDArray, imu: ImuSamples
+        self,
+        t_ns: int,
+        ids: NDArray,
+        uv_px: NDArray,
+        track_len: NDArray,
+        imu: ImuSamples,
+        gray: NDArray | None = None,
     ) -> VioEstimator | None:
-        """Add one frame (IMU time, tracks, undistorted pixels); the chosen estimator or None."""
+        """Add one frame (IMU time, tracks, undistorted pixels); the chosen estimator or None.
+        ``gray``: the frame's grey image, for the road scale when ``ground`` is on."""
         p = self.params
+        if self.ground is not None and gray is not None and not self._cands:
+            self._grays[t_ns] = gray
         if self._cands:
             self._history.append((t_ns, ids, uv_px, track_len))
             return self._advance((t_ns, ids, uv_px, track_len), imu)
@@ -510,6 +536,7 @@ class DynamicInitializer:
             return None
         frames = self._frames
         stamps = np.array([f[0] for f in frames], np.int64)
+        self._grays = {t: g for t, g in self._grays.items() if t >= stamps[0]}
         for res in dynamic_init(
             p,
             [(f[1], f[2]) for f in frames],
@@ -519,6 +546,7 @@ class DynamicInitializer:
             self.T_imu_cam,
             self._pim_params,
             hypotheses=p.dyn_hypotheses,
+            sfm_scale_fn=self._road_scale_fn(stamps),
         ):
             est = self._replay(frames, imu, res)
             if est is not None:
@@ -531,6 +559,20 @@ class DynamicInitializer:
         if len(self._cands) == 1 or p.dyn_select_frames == 0:
             return self._advance(None, imu)
         return None
+
+    def _road_scale_fn(self, stamps: NDArray) -> Callable[[NDArray], float | None] | None:
+        """The SfM window's metric scale from the road (every frame's grey image needed)."""
+        if self.ground is None or any(int(t) not in self._grays for t in stamps):
+            return None
+        grays = [self._grays[int(t)] for t in stamps]
+        # a guess of each step at a typical road speed; the road alignment searches 4x either way
+        steps = self.params.road_speed_guess_m_s * np.diff(stamps) * 1e-9
+        ground, K, n = self.ground, self.camera.K, self._road_normal
+
+        def fn(T_c0_ci: NDArray) -> float | None:
+            return road_scale_of_sfm(grays, T_c0_ci, K, n, ground, steps)
+
+        return fn
 
     def _replay(self, frames: list, imu: ImuSamples, res: InitResult) -> VioEstimator | None:
         params = replace(self.estimator_params, lm_iterations=self.params.dyn_lm_iterations)

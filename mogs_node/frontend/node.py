@@ -25,6 +25,7 @@ from mogs_node.errors import ConfigError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.estimator import EstimatorParams
 from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams, KeyframeOutput
+from mogs_node.frontend.ground import GroundParams
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
 from mogs_node.frontend.preintegration import ImuNoise
@@ -74,6 +75,8 @@ class FrontendNodeParams:
     keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
     init: dict[str, Any] = field(default_factory=dict)  # InitParams fields
     imu: dict[str, Any] = field(default_factory=dict)  # ImuNoise fields
+    ground: dict[str, Any] = field(default_factory=dict)  # GroundParams fields: camera_height_m
+    # (> 0 on a car with rectified images) adds the road-plane translation (docs/frontend.md)
     image_topic: str = "/camera/image"
     imu_topic: str = "/imu"
     odometry_topic: str = "/frontend/odometry"
@@ -92,6 +95,7 @@ class FrontendNodeParams:
             "keyframes": parse_params(KeyframeParams, self.keyframes, where=f"{where}.keyframes"),
             "init": parse_params(InitParams, self.init, where=f"{where}.init"),
             "imu": parse_params(ImuNoise, self.imu, where=f"{where}.imu"),
+            "ground": parse_params(GroundParams, self.ground, where=f"{where}.ground"),
         }
         params = FrontendParams(
             init_mode=self.init_mode, time_offset_ns=self.time_offset_ns, **groups
