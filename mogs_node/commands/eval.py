@@ -54,10 +54,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", default=None, metavar="DIR", help="write TUM/KITTI trajectories here"
     )
     traj.add_argument(
-        "--ground",
+        "--no-ground",
         action="store_true",
-        help="sim/oxts: also measure the translation on the road from the camera's calibrated "
-        "height (off by default; docs/frontend.md, round 5)",
+        help="sim/oxts: camera and IMU only, without the translation measured on the road at the "
+        "camera's calibrated height (docs/frontend.md, round 5)",
     )
     traj.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     traj.set_defaults(_eval="traj")

@@ -70,7 +70,8 @@ def evaluate(args: argparse.Namespace) -> dict:
 
     The sim drive starts with a standstill (``runs.SIM_STATIC_START_S``, overridable by an
     ``args.static_start_s`` attribute) so that the static initialisation fixes the metric scale; the
-    OXTS drive has none and uses the dynamic initialisation."""
+    OXTS drive has none and uses the dynamic initialisation. On both (a car with a calibrated
+    camera height) the road measures translations too, unless ``args.no_ground``."""
     from mogs_node.frontend.runs import run_dataset
 
     return run_dataset(
@@ -80,5 +81,5 @@ def evaluate(args: argparse.Namespace) -> dict:
         data=args.data,
         out_dir=args.out,
         static_start_s=getattr(args, "static_start_s", None),
-        ground=getattr(args, "ground", False),
+        ground=args.dataset in ("sim", "oxts") and not getattr(args, "no_ground", False),
     )
