@@ -11,6 +11,7 @@ import pytest
 from mogs_node import msgs
 from mogs_node.bus import Publisher, Subscriber
 from mogs_node.errors import ConfigError
+from mogs_node.frontend.frontend import Frontend
 from mogs_node.frontend.node import FrontendNode, FrontendNodeParams
 from mogs_node.sim import GRAVITY_WORLD_M_S2, SimConfig, make_sequence
 
@@ -26,6 +27,21 @@ def test_params_build_and_validation():
         FrontendNodeParams(T_imu_cam=(1.0,) * 16).build()
     with pytest.raises(ConfigError, match="T_imu_cam"):
         FrontendNodeParams(T_imu_cam=(1.0, 2.0))
+    fp, _, _ = FrontendNodeParams(ground={"camera_height_m": 1.65}).build()
+    assert fp.ground.enabled and fp.ground.camera_height_m == 1.65
+    assert not FrontendNodeParams().build()[0].ground.enabled  # off unless the height is given
+    with pytest.raises(ConfigError, match="ground"):
+        FrontendNodeParams(ground={"height": 1.65}).build()
+    with pytest.raises(ConfigError, match="camera_height_m"):
+        FrontendNodeParams(ground={"camera_height_m": -1.0}).build()
+    # the road needs rectified images: a distorted camera with the road on is refused
+    params, cam, T = FrontendNodeParams(
+        ground={"camera_height_m": 1.65},
+        distortion_model="radtan",
+        distortion_coeffs=(0.1, 0.0, 0.0, 0.0),
+    ).build()
+    with pytest.raises(ConfigError, match="rectified"):
+        Frontend(params, cam, T)
 
 
 def test_node_streams_odometry_and_keyframes(inproc_bus):
