@@ -6,7 +6,9 @@
 // d = mean - pixel; skip when opacity * exp(power) < alpha_min; alpha = min(alpha_max, ...);
 // stop (without this Gaussian) when T * (1 - alpha) < t_min; out += f * alpha * T.
 // The backward pass walks each pixel's list back to front (3DGS backward), recovering T by division.
-// Gradients are accumulated in per-thread buffers and summed at the end (no atomics on floats).
+// Gradients are accumulated in per-thread buffers and summed at the end (no atomics on floats);
+// the backward hands tiles to threads in a fixed round-robin order (schedule(static, 1)), so a
+// given thread count gives bitwise the same gradients on every run (dynamic scheduling did not).
 #include <torch/extension.h>
 
 #include <algorithm>
@@ -221,7 +223,7 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
         bg_dot(P);
     std::vector<int32_t> nc(P);
     scalar_t* g_thread = gb + static_cast<int64_t>(thread_id()) * N * S;
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(static, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
       const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
