@@ -164,7 +164,8 @@ def main() -> int:
             "## Rasterizer (CPU)" + (": the goal case" if args.quick else ""),
             "",
             f"`.venv/bin/python bench/rasterizer.py --threads {args.threads} "
-            f"--repeats {args.repeats}{' --quick' if args.quick else ''} --write-docs` on "
+            f"--repeats {args.repeats}{' --quick' if args.quick else ''}"
+            f"{' --mapper' if args.mapper else ''} --write-docs` on "
             f"{machine_line()}; best of {args.repeats} after a warm-up run. The machine's 2 cores "
             "are shared with other jobs: figures are upper bounds (1-min load average "
             f"{load_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end).",
