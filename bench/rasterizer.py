@@ -52,16 +52,7 @@ def time_render(
     that forward+backward run (less sensitive to other jobs on a shared machine)."""
     scene, K = make_scene(n, width, height)
     params = RasterParams(backend=backend)
-    leaves = [
-        t.requires_grad_()
-        for t in (
-            scene.means,
-            scene.quats_wxyz,
-            scene.log_scales,
-            scene.opacity_logit,
-            scene.colors,
-        )
-    ]
+    leaves = [t.requires_grad_() for t in scene.tensors()]
     T = torch.eye(4)
     fwd, both, cpu = [], [], []
     for _ in range(repeats + 1):

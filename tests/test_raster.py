@@ -100,18 +100,7 @@ def _tiny_inputs(seed: int):
     scene.log_scales = scene.log_scales * 0.5 + 0.4  # a few pixels wide at K_TINY
     xi = torch.zeros(6, dtype=torch.float64)
     bg = torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
-    return [
-        t.clone().requires_grad_()
-        for t in (
-            scene.means,
-            scene.quats_wxyz,
-            scene.log_scales,
-            scene.opacity_logit,
-            scene.colors,
-            xi,
-            bg,
-        )
-    ]
+    return [t.clone().requires_grad_() for t in (*scene.tensors(), xi, bg)]
 
 
 K_TINY = (12.0, 12.0, 9.5, 6.5)
@@ -145,16 +134,7 @@ def test_cpp_gradients_are_bitwise_repeatable_with_several_threads() -> None:
     run (the backward used to hand tiles to threads dynamically, and the per-thread partial sums
     then differed in the last bits, which densification and pruning amplify)."""
     scene = random_scene(3000, 5)
-    leaves = [
-        t.requires_grad_()
-        for t in (
-            scene.means,
-            scene.quats_wxyz,
-            scene.log_scales,
-            scene.opacity_logit,
-            scene.colors,
-        )
-    ]
+    leaves = [t.requires_grad_() for t in scene.tensors()]
     threads = torch.get_num_threads()
     torch.set_num_threads(4)
     try:
@@ -219,16 +199,7 @@ def _stress_scene() -> GaussianTensors:
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_numerical_stress_no_nan_or_inf(backend: str) -> None:
     scene = _stress_scene()
-    leaves = [
-        t.requires_grad_()
-        for t in (
-            scene.means,
-            scene.quats_wxyz,
-            scene.log_scales,
-            scene.opacity_logit,
-            scene.colors,
-        )
-    ]
+    leaves = [t.requires_grad_() for t in scene.tensors()]
     xi = torch.zeros(6, requires_grad=True)
     out = render(
         scene, torch.eye(4), K_SMALL, 40, 24, pose_tangent=xi, params=RasterParams(backend=backend)

@@ -67,6 +67,10 @@ class GaussianTensors:
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        """The five parameter tensors in field order (for gradients and optimisers)."""
+        return (self.means, self.quats_wxyz, self.log_scales, self.opacity_logit, self.colors)
+
 
 @dataclass
 class RenderOutput:
