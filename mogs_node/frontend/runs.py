@@ -203,6 +203,11 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
             "resets": int(
                 run.counters.get("divergence_resets", 0) + run.counters.get("imu_gap_resets", 0)
             ),
+            # road measurements used / without a result / left out by the tracking gate
+            **{
+                f"{k}_frames": int(run.counters.get(k, 0))
+                for k in ("ground_measurements", "ground_rejected", "ground_gated")
+            },
         }
     )
     return out
