@@ -212,6 +212,19 @@ class Keyframe(Message):
     feature_xyz_cam_m: np.ndarray
     feature_weight: np.ndarray
 
+    def result_header(self) -> dict[str, Any]:
+        """``stamp_ns``, ``frame_id`` and ``keyframe_id`` of this keyframe, as the per-keyframe
+        results (masks, depth maps, renders) carry them so the consumer can pair them."""
+        return {
+            "stamp_ns": self.stamp_ns,
+            "frame_id": self.frame_id,
+            "keyframe_id": self.keyframe_id,
+        }
+
+    def rgb(self) -> np.ndarray:
+        """The image as ``[H, W, 3]`` (a grey keyframe repeated into three channels)."""
+        return self.image if self.image.ndim == 3 else np.repeat(self.image[..., None], 3, axis=2)
+
 
 @dataclass(eq=False)
 class Masks(Message):

@@ -128,32 +128,20 @@ def test_keyframe_with_another_camera_is_rejected_and_counted(inproc_bus) -> Non
 
 
 def test_behind_the_input_every_keyframe_is_mapped_with_fewer_iterations_then_caught_up(
-    inproc_bus,
+    inproc_bus, wired_node
 ) -> None:
     """A live source does not wait: with ``iters_when_behind`` a keyframe that has more input
     queued behind it gets fewer iterations, and the ones saved are run once the queue is empty."""
     bus, ctx = inproc_bus
     params = {"iters_per_keyframe": 4, "iters_when_behind": 1, "idle_iters_per_tick": 2}
     node = MapperNode("mapper", {**params, "threads": 1}, bus, context=ctx, diagnostics_period_s=0)
-    watcher = Subscriber(bus, context=ctx)
-    watcher.subscribe("/mapper/stats")
-    pub = Publisher(bus, context=ctx)
-    assert pub.wait_for_subscriber("/frontend/keyframe", 5)
-    assert pub.wait_for_subscriber("/metrizer/depth", 5)
-    assert node._pub.wait_for_subscriber("/mapper/stats", 5)
+    w = wired_node(node, ("/frontend/keyframe", "/metrizer/depth"), "/mapper/stats")
     for kid in range(3):  # three keyframes arrive while the mapper is busy
         kf, d = messages(kid, 0.3 * kid)
-        pub.publish("/frontend/keyframe", kf)
-        pub.publish("/metrizer/depth", d)
+        w.pub.publish("/frontend/keyframe", kf)
+        w.pub.publish("/metrizer/depth", d)
     time.sleep(0.3)
-    stats: list[msgs.MapStats] = []
-    deadline = time.monotonic() + 60
-    while len(stats) < 3 and time.monotonic() < deadline:
-        node.spin_once(50)
-        env = watcher.receive(timeout_ms=20)
-        while env is not None:
-            stats.append(env.msg)
-            env = watcher.receive(timeout_ms=20)
+    stats = w.collect(3, timeout_s=60)
     # cumulative iterations: 1 and 1 while two and one keyframes waited, then the full 4
     assert [s.iterations for s in stats] == [1, 2, 6]
     assert node.counters["keyframes_behind"] == 2 and node.counters["keyframes_mapped"] == 3
@@ -162,7 +150,6 @@ def test_behind_the_input_every_keyframe_is_mapped_with_fewer_iterations_then_ca
     assert node.mapper is not None and node.mapper.iterations == 3 * 4  # same total as in step
     node._idle_optimize()  # nothing owed: nothing runs
     assert node.mapper.iterations == 12
-    node.close()
 
 
 def test_by_default_the_mapper_never_cuts_iterations(inproc_bus) -> None:

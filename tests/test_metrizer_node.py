@@ -141,10 +141,7 @@ def test_inputs_from_messages_with_resizing_and_missing_parts():
 # ------------------------------------------------------------------------------ node on a bus
 
 
-def test_node_matches_and_publishes_metric_depth(inproc_bus):
-    import time
-
-    from mogs_node.bus import Publisher, Subscriber
+def test_node_matches_and_publishes_metric_depth(inproc_bus, wired_node):
     from mogs_node.metrizer.node import MetrizerNode
 
     bus, ctx = inproc_bus
@@ -155,12 +152,8 @@ def test_node_matches_and_publishes_metric_depth(inproc_bus):
         context=ctx,
         diagnostics_period_s=0,
     )
-    watcher = Subscriber(bus, context=ctx)
-    watcher.subscribe("/metrizer/depth")
-    pub = Publisher(bus, context=ctx)
-    for topic in ("/frontend/keyframe", "/seg/masks", "/prior/depth"):
-        assert pub.wait_for_subscriber(topic, 5)
-    assert node._pub.wait_for_subscriber("/metrizer/depth", 5)
+    w = wired_node(node, ("/frontend/keyframe", "/seg/masks", "/prior/depth"), "/metrizer/depth")
+    pub = w.pub
     kf = _keyframe()
     H, W = kf.image.shape[:2]
     labels = np.zeros((H, W), np.int32)
@@ -183,13 +176,7 @@ def test_node_matches_and_publishes_metric_depth(inproc_bus):
     kf10 = _keyframe()
     kf10.keyframe_id = 10
     pub.publish("/frontend/keyframe", kf10)
-    got = []
-    deadline = time.monotonic() + 20
-    while len(got) < 2 and time.monotonic() < deadline:
-        node.spin_once(50)
-        env = watcher.receive(timeout_ms=20)
-        if env is not None:
-            got.append(env.msg)
+    got = w.collect(2, timeout_s=20)
     assert [m.keyframe_id for m in got] == [9, 10]
     for m in got:
         assert m.kind == "metric" and m.source == "metrizer:full"
@@ -197,6 +184,3 @@ def test_node_matches_and_publishes_metric_depth(inproc_bus):
         assert m.object_labels.shape == (H, W) and m.object_model.dtype == np.int8
     assert np.all(got[0].depth > 0)
     assert node.matcher.counters["complete"] == 1 and node.matcher.counters["partial"] == 1
-    node.close()
-    watcher.close()
-    pub.close()

@@ -125,6 +125,19 @@ def _kf(n: int = 3) -> msgs.Keyframe:
     )
 
 
+def test_keyframe_rgb_and_result_header() -> None:
+    kf = _kf()
+    kf.image = np.arange(24, dtype=np.uint8).reshape(4, 6)  # grey
+    rgb = kf.rgb()
+    assert rgb.shape == (4, 6, 3) and all(np.array_equal(rgb[..., c], kf.image) for c in range(3))
+    colour = np.arange(72, dtype=np.uint8).reshape(4, 6, 3)
+    kf.image = colour
+    assert kf.rgb() is colour  # a colour image is handed out as it is
+    masks = msgs.Masks(**kf.result_header(), labels=np.zeros((4, 6), np.int32), backend="graph")
+    assert (masks.stamp_ns, masks.frame_id, masks.keyframe_id) == (5, "cam", 1)
+    assert msgs.decode(msgs.encode("/seg/masks", masks)).msg == masks
+
+
 def _header(frames: list) -> dict:
     return msgpack.unpackb(bytes(frames[1]), raw=False)
 

@@ -86,7 +86,7 @@ class DepthPriorNode(Node):
                 self.history.append(_Past(kf.keyframe_id, grey, np.array(kf.T_world_cam)))
             return
         if self.net is not None:
-            rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
+            rgb = kf.rgb()
             out = self.net.infer(np.ascontiguousarray(rgb))
             depth, conf, kind, extra = out.value, out.confidence, out.kind, {}
         else:
@@ -94,9 +94,7 @@ class DepthPriorNode(Node):
         self.publish(
             self.params.out_topic,
             msgs.DepthMap(
-                stamp_ns=kf.stamp_ns,
-                frame_id=kf.frame_id,
-                keyframe_id=kf.keyframe_id,
+                **kf.result_header(),
                 kind=kind,
                 depth=np.ascontiguousarray(depth, np.float32),
                 confidence=np.ascontiguousarray(conf, np.float32),

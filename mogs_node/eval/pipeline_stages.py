@@ -243,7 +243,7 @@ def stage_inputs(
     masks: dict[str, list] = {"graph": [], "oracle": []}
     for s in kfs:
         kf = s.keyframe
-        rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
+        rgb = kf.rgb()
         for name, labels in (("graph", segment_graph(rgb, gp)), ("oracle", s.instance_id)):
             masks[name].append(
                 msgs.Masks(

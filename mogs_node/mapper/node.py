@@ -119,12 +119,6 @@ class KeyframeDepthPairs:
         return None
 
 
-def keyframe_rgb(kf: msgs.Keyframe) -> np.ndarray:
-    """The keyframe image as rgb uint8 [H, W, 3] (grey images are replicated)."""
-    img = np.asarray(kf.image)
-    return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
-
-
 def depth_for_keyframe(
     depth: msgs.DepthMap, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -233,7 +227,7 @@ class MapperNode(Node):
 
     def process(self, kf: msgs.Keyframe, depth: msgs.DepthMap) -> None:
         p: MapperNodeParams = self.params
-        rgb = keyframe_rgb(kf)
+        rgb = kf.rgb()
         H, W = rgb.shape[:2]
         if self.mapper is None:
             self.mapper = GaussianMapper(p.mapper_params(), kf.K, W, H)
@@ -271,9 +265,7 @@ class MapperNode(Node):
             self.publish(
                 p.render_topic,
                 msgs.Render(
-                    stamp_ns=kf.stamp_ns,
-                    frame_id=kf.frame_id,
-                    keyframe_id=kf.keyframe_id,
+                    **kf.result_header(),
                     image=(r.color.numpy() * 255 + 0.5).astype(np.uint8),
                     depth=np.nan_to_num(depth_m.numpy()).astype(np.float32),
                 ),

@@ -224,9 +224,7 @@ class MetrizerNode(Node):
             self.publish(
                 self.params.out_topic,
                 msgs.DepthMap(
-                    stamp_ns=kf.stamp_ns,
-                    frame_id=kf.frame_id,
-                    keyframe_id=kf.keyframe_id,
+                    **kf.result_header(),
                     kind="metric",
                     depth=out.depth_m,
                     confidence=out.confidence,

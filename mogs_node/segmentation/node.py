@@ -60,7 +60,7 @@ class SegmentationNode(Node):
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
         if self.already_published(self.params.out_topic, kf.keyframe_id):
             return  # segmented before this process restarted
-        rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
+        rgb = kf.rgb()
         if self.sam is not None:
             labels = self.sam.generate(np.ascontiguousarray(rgb)).labels
         else:
@@ -68,9 +68,7 @@ class SegmentationNode(Node):
         self.publish(
             self.params.out_topic,
             msgs.Masks(
-                stamp_ns=kf.stamp_ns,
-                frame_id=kf.frame_id,
-                keyframe_id=kf.keyframe_id,
+                **kf.result_header(),
                 labels=labels.astype(np.int32),
                 backend=self.params.backend,
             ),
