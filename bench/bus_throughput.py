@@ -11,8 +11,12 @@ they share whatever else the machine is doing.
   (``run_broker``: XSUB/XPUB ``zmq.proxy_steerable``, no Python per message). None of our codec
   or client code runs: this is what the extra process hop alone costs, i.e. an upper bound for
   any design that routes through a broker.
-- ``mogs``: ``Publisher.publish(topic, msg)`` (our msgpack header + zero-copy arrays) -> broker
-  -> ``Subscriber.receive`` (strict decode + gap accounting).
+- ``inline``: ``Publisher.publish(topic, msg)`` (our msgpack header + zero-copy arrays) -> broker
+  -> ``Subscriber.receive`` (strict decode + gap accounting), everything through the broker
+  (``bus.shm_min_bytes: 0``). Keyframes only: IMU messages have no arrays, so it is ``mogs``.
+- ``mogs``: the same with the bus's defaults: on ipc endpoints, arrays of 256 KiB and more go
+  through a shared-memory ring of the topic and only the header through the broker
+  (mogs_node/shm.py); a message whose slot a subscriber has not yet read goes inline.
 
 Besides rates, each process reports its CPU time (user + system, all threads) per message over
 the timed window: on a machine with few cores, throughput is bounded by total CPU per message.
@@ -47,7 +51,11 @@ from mogs_node.bus import (
 from mogs_node.demo_nodes import make_keyframe
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json
 
-CASES = ("bare", "hop", "mogs")
+CASES = ("bare", "hop", "inline", "mogs")
+
+
+def cases_for(kind: str) -> tuple[str, ...]:
+    return CASES if kind == "keyframe" else ("bare", "hop", "mogs")
 
 
 def imu_msg(k: int) -> msgs.Imu:
@@ -154,9 +162,10 @@ def mogs_pub(bus_d: dict, kind: str, n: int, ready: mp.Event, q: mp.Queue) -> No
     c0 = cpu_s()
     for k in range(n):
         pub.publish(topic, messages[k % 4])
+    dc = cpu_s() - c0
     pub.close(linger_ms=-1)
     zmq.Context.instance().term()  # blocks until every zero-copy frame has been sent
-    q.put(("pub", 0.0, cpu_s() - c0, 0, 0))
+    q.put(("pub", 0.0, max(dc, cpu_s() - c0), pub.shm_published, 0))
 
 
 def broker_proc(bus_d: dict, stop: mp.Event, up: mp.Event, q: mp.Queue) -> None:
@@ -203,6 +212,7 @@ def run_case(
             endpoint(transport, tmp, f"s-{case}-{kind}"),
             reliable_hwm=0,
             socket_buffer_bytes=sockbuf,  # the broker's, and our ends' (not the bare ends')
+            shm_min_bytes=0 if case == "inline" else BusConfig.shm_min_bytes,
         ).to_dict()
         stop, up = mp.Event(), mp.Event()
         broker = mp.Process(target=broker_proc, args=(bus, stop, up, q))
@@ -237,6 +247,7 @@ def run_case(
         "msgs_per_s": (n - 1) / dt,
         "mb_per_s": nbytes / dt / 1e6,
         "lost": lost,
+        "shm_share": res["pub"][2] / n,  # our publisher: messages that went by shared memory
     }
     for role in ("pub", "broker", "sub"):
         out[f"cpu_us_{role}"] = res[role][1] / n * 1e6 if role in res else 0.0
@@ -265,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
         default=0,
         help="bus.socket_buffer_bytes for the broker and the MOGS ends (0: OS default)",
     )
+    ap.add_argument("--only", choices=["keyframe", "imu"], default=None, help="one kind only")
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     args = ap.parse_args(argv)
@@ -273,15 +285,20 @@ def main(argv: list[str] | None = None) -> int:
     load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="mogs-bench-") as tmp:
         for kind, n in (("keyframe", args.keyframes), ("imu", args.imu)):
-            runs: dict[str, list[dict[str, float]]] = {c: [] for c in CASES}
+            if args.only and kind != args.only:
+                continue
+            cases = cases_for(kind)
+            runs: dict[str, list[dict[str, float]]] = {c: [] for c in cases}
             for _ in range(args.repeats):  # interleaved: the cases share the machine's state
-                for case in CASES:
+                for case in cases:
                     runs[case].append(
                         run_case(case, kind, n, args.transport, tmp, args.socket_buffer)
                     )
-            for case in CASES:
+            for case in cases:
                 best = max(runs[case], key=lambda r: r["msgs_per_s"])
-                for key in ("msgs_per_s", "mb_per_s", *(k for k in best if k.startswith("cpu"))):
+                keys = ("msgs_per_s", "mb_per_s", *(k for k in best if k.startswith("cpu")))
+                figures[f"{kind}_{case}_shm_share"] = round(best["shm_share"], 3)
+                for key in keys:
                     figures[f"{kind}_{case}_{key}"] = round(best[key], 1)
                 figures[f"{kind}_{case}_lost_msgs"] = sum(r["lost"] for r in runs[case])
                 print(
@@ -290,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"broker {best['cpu_us_broker']:.1f} sub {best['cpu_us_sub']:.1f}",
                     flush=True,
                 )
-            for case in ("mogs", "hop"):
+            for case in cases[1:]:
                 figures[f"{kind}_{case}_ratio_vs_bare_zmq"] = round(
                     figures[f"{kind}_{case}_msgs_per_s"] / figures[f"{kind}_bare_msgs_per_s"], 3
                 )
@@ -298,9 +315,11 @@ def main(argv: list[str] | None = None) -> int:
                 figures[f"{kind}_mogs_msgs_per_s"] / figures[f"{kind}_hop_msgs_per_s"], 3
             )
             print(
-                f"{kind:9s} ratio mogs/bare = {figures[f'{kind}_mogs_ratio_vs_bare_zmq']:.3f}, "
-                f"hop/bare = {figures[f'{kind}_hop_ratio_vs_bare_zmq']:.3f}, "
-                f"mogs/hop = {figures[f'{kind}_mogs_ratio_vs_hop']:.3f}",
+                f"{kind:9s} ratio "
+                + ", ".join(
+                    f"{c}/bare = {figures[f'{kind}_{c}_ratio_vs_bare_zmq']:.3f}" for c in cases[1:]
+                )
+                + f"; mogs via shared memory {figures[f'{kind}_mogs_shm_share']:.0%}",
                 flush=True,
             )
     figures["transport"] = args.transport
@@ -352,20 +371,29 @@ def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -
         *contention_note(f),
         "`bare`: plain pyzmq PUB -> SUB, pre-built frames (the baseline). `hop`: the same bare "
         "pyzmq ends through the MOGS broker process, no MOGS code in the ends (what the extra "
-        "process hop alone allows). `MOGS`: `Publisher.publish` -> broker -> `Subscriber.receive` "
-        "(encode, strict decode, sequence accounting).",
+        "process hop alone allows). `inline`: `Publisher.publish` -> broker -> "
+        "`Subscriber.receive` (encode, strict decode, sequence accounting), every byte through "
+        "the broker (`bus.shm_min_bytes: 0`). `MOGS`: the same with the bus's defaults, where "
+        "arrays of 256 KiB and more travel through a shared-memory ring of the topic and only "
+        "the header through the broker, unless a subscriber has not yet read the slot "
+        "(`mogs_node/shm.py`; the share that did is in the table). IMU messages have no arrays: "
+        "for them `inline` is `MOGS`.",
         "",
-        "| message | bare msg/s | bare MB/s | hop msg/s | MOGS msg/s | MOGS MB/s "
-        "| MOGS / bare | hop / bare | MOGS / hop | lost |",
+        "| message | bare msg/s | bare MB/s | hop / bare | inline / bare | MOGS msg/s "
+        "| MOGS MB/s | MOGS / bare | via shared memory | lost |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for kind, label in kinds:
+        if f"{kind}_mogs_msgs_per_s" not in f:
+            continue
+        inline = f.get(f"{kind}_inline_ratio_vs_bare_zmq")
         body.append(
             f"| {label} | {f[f'{kind}_bare_msgs_per_s']:.0f} | {f[f'{kind}_bare_mb_per_s']:.0f} "
-            f"| {f[f'{kind}_hop_msgs_per_s']:.0f} "
+            f"| {f[f'{kind}_hop_ratio_vs_bare_zmq']:.2f} "
+            f"| {'-' if inline is None else f'{inline:.2f}'} "
             f"| {f[f'{kind}_mogs_msgs_per_s']:.0f} | {f[f'{kind}_mogs_mb_per_s']:.0f} "
             f"| **{f[f'{kind}_mogs_ratio_vs_bare_zmq']:.2f}** "
-            f"| {f[f'{kind}_hop_ratio_vs_bare_zmq']:.2f} | {f[f'{kind}_mogs_ratio_vs_hop']:.2f} "
+            f"| {f[f'{kind}_mogs_shm_share']:.0%} "
             f"| {f[f'{kind}_mogs_lost_msgs']} |"
         )
     body += [
@@ -378,7 +406,9 @@ def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -
         "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     for kind, label in kinds:
-        for case in CASES:
+        if f"{kind}_mogs_msgs_per_s" not in f:
+            continue
+        for case in cases_for(kind):
             total = f[f"{kind}_{case}_cpu_us_total"]
             body.append(
                 f"| {label if case == 'bare' else ''} | {case} "

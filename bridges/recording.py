@@ -291,7 +291,9 @@ class BusRecorder:
                         break
                     if not sock.poll(100, zmq.POLLIN):
                         continue
-                    frames = sock.recv_multipart(copy=False)
+                    frames = self.sub.recv_frames()  # shared-memory arrays come inline here
+                    if frames is None:
+                        continue
                     t_ns = time.time_ns()
                     env = self.sub.decode_frames(frames)
                     if env is None:

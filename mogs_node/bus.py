@@ -30,11 +30,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from mogs_node import msgs
+from mogs_node import msgs, shm
 from mogs_node.errors import BusError, ConfigError, MessageError
 
 __all__ = [
@@ -51,6 +52,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 _SNDMORE = zmq.SNDMORE
+# Shared-memory references (mogs_node/shm.py) ride in the header as a seventh, last entry "m":
+# the header's first byte (a msgpack map of 6 or of 7 entries) tells the two forms apart.
+_HEADER_MAP6, _HEADER_MAP7 = b"\x86", b"\x87"
+_SHM_KEY = msgpack.packb("m")
+_packb = msgpack.packb
 
 
 @dataclass(frozen=True)
@@ -104,7 +110,22 @@ class BusConfig:
     # kernel socket buffers (SO_SNDBUF of senders, SO_RCVBUF of receivers, broker included);
     # 0 = the OS default. Capped by net.core.wmem_max / rmem_max. See docs/architecture.md.
     socket_buffer_bytes: int = 0
+    # messages with at least this many bytes of arrays go through shared memory, not the broker,
+    # when every peer is on this host (ipc:// endpoints, no CURVE); 0 = never (mogs_node/shm.py)
+    shm_min_bytes: int = 256 * 1024
+    shm_ring_bytes: int = 32 << 20  # shared memory per publisher and topic (a bounded history)
     curve: CurveConfig | None = None
+
+    @property
+    def uses_shm(self) -> bool:
+        """Whether large payloads bypass the broker through ``/dev/shm`` on this bus."""
+        return (
+            self.shm_min_bytes > 0
+            and self.curve is None
+            and self.pub_endpoint.startswith("ipc://")
+            and self.sub_endpoint.startswith("ipc://")
+            and shm.shm_available()
+        )
 
     def to_dict(self) -> dict[str, Any]:
         d = {
@@ -117,6 +138,8 @@ class BusConfig:
                 "max_message_bytes",
                 "linger_ms",
                 "socket_buffer_bytes",
+                "shm_min_bytes",
+                "shm_ring_bytes",
             )
         }
         if self.curve is not None:
@@ -141,6 +164,8 @@ class BusConfig:
             "max_message_bytes",
             "linger_ms",
             "socket_buffer_bytes",
+            "shm_min_bytes",
+            "shm_ring_bytes",
             "curve",
         }
         unknown = set(d) - allowed
@@ -162,6 +187,8 @@ class BusConfig:
             "max_message_bytes",
             "linger_ms",
             "socket_buffer_bytes",
+            "shm_min_bytes",
+            "shm_ring_bytes",
         ):
             if key in d:
                 v = d[key]
@@ -383,19 +410,28 @@ class Publisher:
             self._sock.connect(config.pub_endpoint)
         except zmq.ZMQError as err:
             raise BusError(f"cannot connect publisher to {config.pub_endpoint}: {err}") from err
+        self._shm_min = config.shm_min_bytes if config.uses_shm else 0
+        self._rings: dict[str, shm.ShmRing] = {}
+        self.shm_published = 0  # messages whose arrays went through shared memory
 
     def publish(self, topic: str, msg: msgs.Message) -> int:
         """Send ``msg`` on ``topic``; returns its sequence number."""
         seq = self._seq.get(topic, 0)
         frames = msgs.encode(topic, msg, seq=seq, src=self.src)
         self._seq[topic] = seq + 1
+        n = len(frames)
+        nbytes = len(frames[0]) + len(frames[1])
+        if n > 2 and self._shm_min:
+            sent = self._send_via_shm(topic, frames, self.src, seq)
+            if sent:
+                self.published[topic] = self.published.get(topic, 0) + 1
+                self.published_bytes += sent
+                return seq
         # frame by frame rather than send_multipart (which re-checks every frame in Python):
         # topic and header are small bytes, copied; array buffers go zero-copy (pyzmq still
         # copies those under its copy threshold, where a copy is cheaper than tracking)
         send = self._sock.send
         send(frames[0], _SNDMORE)
-        n = len(frames)
-        nbytes = len(frames[0]) + len(frames[1])
         if n == 2:
             send(frames[1])
         else:
@@ -409,8 +445,56 @@ class Publisher:
         return seq
 
     def publish_frames(self, frames: list[Any]) -> None:
-        """Forward already-encoded frames unchanged (bag replay of recorded bus traffic, fuzzing)."""
+        """Forward already-encoded frames (bag replay of recorded bus traffic, fuzzing).
+
+        A subscriber receives them byte for byte, also where large arrays go through shared
+        memory on the way.
+        """
+        if len(frames) > 2 and self._shm_min:
+            try:
+                topic = _frame_to_bytes(frames[0]).decode("utf-8")
+                header = msgpack.unpackb(_frame_to_bytes(frames[1]), max_bin_len=0)
+                src, seq = header["src"], header["seq"]
+            except Exception:  # not of our codec's form: it goes as it is
+                src = seq = None
+            if (
+                type(src) is int
+                and type(seq) is int
+                and self._send_via_shm(topic, frames, src, seq)
+            ):
+                return
         self._sock.send_multipart(frames, copy=False)
+
+    def _send_via_shm(self, topic: str, frames: list[Any], src: int, seq: int) -> int:
+        """Send ``[topic, header + reference]`` with the arrays in this topic's shared-memory
+        ring (mogs_node/shm.py); returns the message's bytes, or 0 where it must go inline
+        (small arrays, a header not of our codec's form, no shared memory to be had)."""
+        header = frames[1] if type(frames[1]) is bytes else _frame_to_bytes(frames[1])
+        if header[:1] != _HEADER_MAP6:
+            return 0
+        buffers = [f.buffer if isinstance(f, zmq.Frame) else f for f in frames[2:]]
+        sizes = [memoryview(b).nbytes for b in buffers]
+        total = sum(sizes)
+        if total < self._shm_min:
+            return 0
+        ring = self._rings.get(topic)
+        if ring is None:
+            ring = self._rings[topic] = shm.ShmRing(topic, self.src, self.config.shm_ring_bytes)
+        ref = ring.write(buffers, total, src, seq)
+        if ref is None:
+            if ring.failed and ring.failed & (ring.failed - 1) == 0:
+                log.warning(
+                    "%s: shared memory unavailable (%d times), sending inline: %s",
+                    topic,
+                    ring.failed,
+                    ring.last_error,
+                )
+            return 0
+        header = _HEADER_MAP7 + header[1:] + _SHM_KEY + _packb([ref[0], ref[1], sizes])
+        self._sock.send(frames[0], _SNDMORE)
+        self._sock.send(header)
+        self.shm_published += 1
+        return len(frames[0]) + len(frames[1]) + total
 
     def _drain_subscriptions(self) -> None:
         while True:
@@ -437,8 +521,19 @@ class Publisher:
             self._sock.poll(min(100, int(remaining * 1000) + 1), zmq.POLLIN)
         return True
 
+    def shm_counters(self) -> dict[str, dict[str, int]]:
+        """Per topic: messages sent through shared memory, and sent inline because the next
+        slot was still owed to a subscriber (busy) or no slot could be made (failed)."""
+        return {
+            topic: {"shm_published": r.ticket, "shm_busy": r.busy, "shm_failed": r.failed}
+            for topic, r in self._rings.items()
+        }
+
     def close(self, linger_ms: int | None = None) -> None:
         self._sock.close(linger=self.config.linger_ms if linger_ms is None else linger_ms)
+        for ring in self._rings.values():
+            ring.close()
+        self._rings.clear()
 
 
 # ---------------------------------------------------------------------------------------- sub
@@ -456,6 +551,8 @@ class TopicStats:
     dropped: int = 0  # dropped on purpose by a best-effort queue (latest wins)
     malformed: int = 0
     missed_before_join: int = 0  # first seq seen from a publisher session: what it sent earlier
+    shm_received: int = 0  # messages whose arrays came through shared memory
+    shm_missed: int = 0  # shared-memory payloads gone before read (also in ``lost`` once known)
     last_seq: dict[int, int] = field(default_factory=dict)  # src -> last seq
 
     def as_dict(self) -> dict[str, int]:
@@ -468,6 +565,8 @@ class TopicStats:
             "dropped": self.dropped,
             "malformed": self.malformed,
             "missed_before_join": self.missed_before_join,
+            "shm_received": self.shm_received,
+            "shm_missed": self.shm_missed,
         }
 
 
@@ -502,6 +601,10 @@ class Subscriber:
         self._topic_names: dict[bytes, str] = {}  # subscribed topic names as they arrive
         self._poller = zmq.Poller()  # one poller: Socket.poll would build a new one per call
         self._poller.register(self._sock, zmq.POLLIN)
+        self._shm: shm.ShmReader | None = None  # made at the first shared-memory payload
+        # what this subscriber takes and has taken, for publishers' shared-memory rings
+        self._cursor = shm.ShmCursor() if config.uses_shm else None
+        self._topic_keys: dict[str, int] = {}
 
     @property
     def socket(self) -> zmq.Socket:
@@ -509,8 +612,13 @@ class Subscriber:
 
     def subscribe(self, topic: str, *, reliable: bool = True) -> None:
         """Receive ``topic`` (exact name; ``"/"`` alone means every topic, for tools)."""
-        if not topic.startswith("/"):
-            raise ConfigError(f"topic {topic!r} must start with '/'")
+        if not topic.startswith("/") or len(topic) > msgs.MAX_TOPIC_CHARS:
+            raise ConfigError(
+                f"topic {topic[:64]!r} must start with '/' and have at most "
+                f"{msgs.MAX_TOPIC_CHARS} characters"
+            )
+        if self._cursor is not None:  # before the subscription: no message can come earlier
+            self._cursor.add_topic(topic)
         self.topics[topic] = reliable
         self._topic_names[topic.encode()] = topic
         if topic == "/":
@@ -529,23 +637,89 @@ class Subscriber:
         Topic and header frames are small and come as ``bytes`` (what ``msgs.decode`` reads
         fastest); array frames come zero-copy as ``zmq.Frame``.
         ZeroMQ delivers multipart messages atomically, so once the first frame is here, all are.
+        Arrays that came through shared memory are copied out here (as ``memoryview`` frames):
+        what this returns is the message as it would have travelled inline.
         """
         sock = self._sock
+        while True:
+            try:
+                first = sock.recv(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return None
+            # Frame.more is a plain read; getsockopt(RCVMORE) would build an enum per call
+            frames: list[Any] = [first.bytes]
+            if first.more:
+                header = sock.recv(copy=False)
+                frames.append(header.bytes)
+                more = header.more
+                while more:
+                    frame = sock.recv(copy=False)
+                    frames.append(frame)
+                    more = frame.more
+                if len(frames) == 2 and frames[1][:1] == _HEADER_MAP7:
+                    resolved = self._resolve_shm(frames[0], frames[1])
+                    if resolved is None:
+                        continue  # counted; take the next queued message
+                    return resolved
+            return frames
+
+    def _topic_of(self, topic_bytes: bytes) -> str | None:
+        """The name under which ``topic_bytes`` is counted here (None: not one of ours)."""
+        topic = self._topic_names.get(topic_bytes)
+        if topic is None and self.all_topics:
+            topic = topic_bytes.decode("utf-8", errors="replace")
+        return topic
+
+    def _resolve_shm(self, topic_bytes: bytes, header: bytes) -> list[Any] | None:
+        """``[topic, header, *buffers]`` of a message whose arrays are in shared memory; None
+        where the reference is malformed or the payload is gone (both counted on the topic)."""
+        topic = self._topic_of(topic_bytes)
+        if topic is None:
+            return None  # a prefix match of another topic: not ours, as in decode_frames
+        st = self.stats.get(topic) or self._stats(topic)
         try:
-            first = sock.recv(zmq.NOBLOCK, copy=False)
-        except zmq.Again:
+            fields = msgpack.unpackb(
+                header, max_bin_len=0, max_ext_len=0, max_array_len=4096, max_map_len=64
+            )
+            name, ticket, sizes = fields["m"]
+            seq, src = fields["seq"], fields["src"]
+            if not (
+                type(name) is str
+                and type(ticket) is int
+                and type(sizes) is list
+                and all(type(n) is int and n >= 0 for n in sizes)
+                and type(seq) is int
+                and type(src) is int
+            ):
+                raise MessageError("malformed shared-memory reference", field="m")
+            tail = _SHM_KEY + _packb([name, ticket, sizes])
+            if not header.endswith(tail):
+                raise MessageError("the shared-memory reference is not the header's last entry")
+            if sum(sizes) > self._max_bytes:
+                raise MessageError(
+                    f"message of {sum(sizes)} bytes exceeds the limit of {self._max_bytes}",
+                    field="size",
+                )
+        except Exception as err:  # msgpack raises several unrelated types on garbage
+            st.malformed += 1
+            self.last_error = f"{topic}: {err}"
             return None
-        # Frame.more is a plain read; getsockopt(RCVMORE) would build an enum per call
-        frames: list[Any] = [first.bytes]
-        if first.more:
-            header = sock.recv(copy=False)
-            frames.append(header.bytes)
-            more = header.more
-            while more:
-                frame = sock.recv(copy=False)
-                frames.append(frame)
-                more = frame.more
-        return frames
+        if self._shm is None:
+            self._shm = shm.ShmReader()
+        try:
+            buffers = self._shm.read(name, ticket, sizes)
+        except shm.ShmPayloadError as err:
+            # not received: the next message of this publisher shows the gap and counts it lost
+            st.shm_missed += 1
+            if src not in st.last_seq:
+                st.missed_before_join += seq
+                st.last_seq[src] = seq - 1
+            self.last_error = f"{topic}: {err}"
+            if st.shm_missed & (st.shm_missed - 1) == 0:
+                log.warning("%s: %d shared-memory payload(s) missed: %s", topic, st.shm_missed, err)
+            return None
+        st.shm_received += 1
+        return [topic_bytes, _HEADER_MAP6 + header[1 : -len(tail)], *buffers]
 
     def receive(self, timeout_ms: int | None = 0) -> msgs.Envelope | None:
         """The next valid message of a subscribed topic, or None if none arrives in time.
@@ -578,7 +752,7 @@ class Subscriber:
             return None
         t0 = frames[0]
         topic_bytes = t0 if type(t0) is bytes else _frame_to_bytes(t0)
-        topic = self._topic_names.get(topic_bytes)
+        topic = known = self._topic_names.get(topic_bytes)  # one of ours: a checked name
         if topic is None:  # not one of ours by exact name: a tool's "/" or a stranger
             try:
                 topic = topic_bytes.decode("utf-8")
@@ -591,7 +765,7 @@ class Subscriber:
                 return None
         st = self.stats.get(topic) or self._stats(topic)
         try:
-            env = msgs.decode(frames, max_bytes=self._max_bytes)
+            env = msgs.decode(frames, max_bytes=self._max_bytes, topic=known)
         except MessageError as err:
             st.malformed += 1
             self.last_error = f"{topic}: {err}"
@@ -600,6 +774,11 @@ class Subscriber:
         _, seq, src, _, nbytes = env
         st.received += 1
         st.received_bytes += nbytes
+        if self._cursor is not None and len(frames) > 2:  # a message that may use a ring
+            key = self._topic_keys.get(topic)
+            if key is None:
+                key = self._topic_keys[topic] = shm.topic_key(topic)
+            self._cursor.taken(src, key, seq)
         last_seq = st.last_seq
         last = last_seq.get(src)
         if last is not None and seq == last + 1:  # the common case: the next one in order
@@ -617,6 +796,11 @@ class Subscriber:
 
     def close(self) -> None:
         self._sock.close(linger=0)
+        if self._shm is not None:
+            self._shm.close()
+        if self._cursor is not None:
+            self._cursor.close()
+            self._cursor = None
 
 
 def _frame_to_bytes(frame: Any) -> bytes:

@@ -48,6 +48,7 @@ from typing import Any
 import yaml
 import zmq
 
+from mogs_node import shm
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.errors import ConfigError
 from mogs_node.node import CATCH_UP_ENV
@@ -467,4 +468,6 @@ class Launcher:
         for c in self.children:
             if c.reader is not None:
                 c.reader.join(timeout=1.0)
+        if self.launch.bus.uses_shm:  # what killed nodes left in /dev/shm
+            shm.sweep_stale()
         self._print("[launch] all processes stopped")

@@ -54,6 +54,7 @@ __all__ = [
 DEFAULT_MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 MAX_HEADER_BYTES = 64 * 1024
 MAX_DIM = 1 << 20  # no single dimension beyond 1M elements
+MAX_TOPIC_CHARS = 256
 # dtypes that may travel; everything is little-endian on the wire.
 _WIRE_DTYPES = {
     "|u1": np.dtype("u1"),
@@ -756,38 +757,52 @@ def _frame_bytes(frame: Any) -> memoryview:
     raise MessageError(f"frame of unsupported type {type(frame).__name__}", field="frame")
 
 
-def decode(frames: Sequence[Any], *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Envelope:
+def decode(
+    frames: Sequence[Any],
+    *,
+    max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    topic: str | None = None,
+) -> Envelope:
     """Decode multipart ``frames`` into an :class:`Envelope`; strict, see the module docstring.
 
     Frames may be ``bytes`` (what a copying receive gives for small frames), ``zmq.Frame`` (a
-    zero-copy receive) or any buffer. Arrays are read-only views of their frames.
+    zero-copy receive) or any buffer. Arrays are read-only views of their frames. ``topic``:
+    the first frame's text where the caller has already read and checked it (a subscriber that
+    matched it against its own topic names), which saves reading it again.
     """
     if not isinstance(frames, list | tuple) or len(frames) < 2:
         raise MessageError("expected at least [topic, header] frames", field="frames")
-    views: list[Any] = []
-    sizes: list[int] = []
-    total = 0
-    for f in frames:
-        if type(f) is bytes:
-            n = len(f)
-        else:
-            f = f.buffer if type(f) is _ZMQ_FRAME else _frame_bytes(f)
-            if f.ndim != 1 or f.itemsize != 1:
-                f = f.cast("B") if f.c_contiguous else memoryview(f.tobytes())
-            n = f.nbytes
-        views.append(f)
-        sizes.append(n)
-        total += n
+    f0, f1 = frames[0], frames[1]
+    if len(frames) == 2 and type(f0) is bytes and type(f1) is bytes:  # small, array-less
+        views: Sequence[Any] = frames
+        sizes = [len(f0), len(f1)]
+        total = sizes[0] + sizes[1]
+    else:
+        views = []
+        sizes = []
+        total = 0
+        for f in frames:
+            if type(f) is bytes:
+                n = len(f)
+            else:
+                f = f.buffer if type(f) is _ZMQ_FRAME else _frame_bytes(f)
+                if f.ndim != 1 or f.itemsize != 1:
+                    f = f.cast("B") if f.c_contiguous else memoryview(f.tobytes())
+                n = f.nbytes
+            views.append(f)
+            sizes.append(n)
+            total += n
     if total > max_bytes:
         raise MessageError(
             f"message of {total} bytes exceeds the limit of {max_bytes}", field="size"
         )
-    try:
-        topic = str(views[0], "utf-8")
-    except UnicodeDecodeError as err:
-        raise MessageError("topic is not UTF-8", field="topic") from err
-    if not topic.startswith("/") or len(topic) > 256:
-        raise MessageError(f"invalid topic name {topic[:64]!r}", field="topic")
+    if topic is None:
+        try:
+            topic = str(views[0], "utf-8")
+        except UnicodeDecodeError as err:
+            raise MessageError("topic is not UTF-8", field="topic") from err
+        if not topic.startswith("/") or len(topic) > MAX_TOPIC_CHARS:
+            raise MessageError(f"invalid topic name {topic[:64]!r}", field="topic")
     if sizes[1] > MAX_HEADER_BYTES:
         raise MessageError(f"header of {sizes[1]} bytes exceeds {MAX_HEADER_BYTES}", field="header")
     try:

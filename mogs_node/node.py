@@ -438,6 +438,8 @@ class Node:
                 out[topic] = st.as_dict()
         for topic, n in self._pub.published.items():
             out.setdefault(topic, {})["published"] = n
+        for topic, counters in self._pub.shm_counters().items():
+            out.setdefault(topic, {}).update(counters)
         return out
 
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:

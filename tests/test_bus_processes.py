@@ -11,16 +11,24 @@ import pytest
 from _reliability_harness import free_tcp_port, start_broker, start_node, stop_process
 
 from mogs_node.bus import BusConfig
+from mogs_node.shm import shm_available
 
 
-@pytest.mark.parametrize("transport", ["tcp", "ipc"])
+@pytest.mark.parametrize("transport", ["tcp", "ipc", "ipc+shm"])
 def test_500_large_keyframes_arrive_complete_and_in_order(
     transport: str, tmp_path: Path, ipc_endpoints
 ) -> None:
+    """Over tcp and ipc through the broker, and over ipc with the arrays in shared memory (the
+    default there) and only the headers through the broker."""
     if transport == "tcp":
         bus = BusConfig(f"tcp://127.0.0.1:{free_tcp_port()}", f"tcp://127.0.0.1:{free_tcp_port()}")
+    elif transport == "ipc":
+        bus = BusConfig(*ipc_endpoints, shm_min_bytes=0)
     else:
+        if not shm_available():
+            pytest.skip("no /dev/shm on this machine")
         bus = BusConfig(*ipc_endpoints)
+        assert bus.uses_shm
     broker = start_broker(bus)
     summary = tmp_path / "sub.json"
     n = 500
@@ -49,13 +57,22 @@ def test_500_large_keyframes_arrive_complete_and_in_order(
     st = data["topics"]["/frontend/keyframe"]
     assert st["received"] == n and st["lost"] == 0 and st["malformed"] == 0
     assert st["received_bytes"] > n * 1_500_000
+    if transport == "ipc+shm":  # a subscriber that keeps up takes most from shared memory
+        assert st["shm_received"] > n // 2 and st["shm_missed"] == 0
+    else:
+        assert st["shm_received"] == 0
 
 
+@pytest.mark.parametrize("shared_memory", [False, True])
 def test_overwhelmed_reliable_subscriber_reports_exact_gap_count(
-    tmp_path: Path, ipc_endpoints
+    shared_memory: bool, tmp_path: Path, ipc_endpoints
 ) -> None:
-    # tiny high-water marks everywhere so that a slow subscriber must lose messages
-    bus = BusConfig(*ipc_endpoints, reliable_hwm=4)
+    """Tiny high-water marks everywhere, so that a slow subscriber must lose messages; with the
+    arrays in shared memory too (a slot it has not taken sends the next message inline, which
+    the high-water mark then drops: lost exactly as without)."""
+    if shared_memory and not shm_available():
+        pytest.skip("no /dev/shm on this machine")
+    bus = BusConfig(*ipc_endpoints, reliable_hwm=4, shm_min_bytes=64 * 1024 if shared_memory else 0)
     broker = start_broker(bus)
     summary = tmp_path / "slow.json"
     n = 300
@@ -99,6 +116,8 @@ def test_overwhelmed_reliable_subscriber_reports_exact_gap_count(
     assert st["lost"] == missing
     holes = sum(1 for a, b in zip(ids, ids[1:]) if b != a + 1) + (ids[0] != 0)
     assert st["gaps"] == holes
+    assert st["shm_missed"] == 0
+    assert (st["shm_received"] > 0) == shared_memory
 
 
 # ------------------------------------------------------- receive path (in-process broker, fast)

@@ -121,11 +121,9 @@ class JournalNode(Node):
 
     def drain(self) -> None:
         """Store what the subscriber has received (raw frames, no re-encoding)."""
-        sock = self.jsub.socket
         for _ in range(self.params.drain_batch):
-            try:
-                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
+            frames = self.jsub.recv_frames()  # shared-memory arrays come inline here
+            if frames is None:
                 break
             env = self.jsub.decode_frames(frames)  # validates and counts (malformed, gaps)
             if env is None:
