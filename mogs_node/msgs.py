@@ -18,12 +18,14 @@ naming the field. Nothing is ever fixed silently and pickle is never used.
 from __future__ import annotations
 
 import math
+import sys
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar, NamedTuple
+from typing import Annotated, Any, ClassVar, NamedTuple, Union
 
 import msgpack
+import msgspec
 import numpy as np
 import zmq
 
@@ -690,6 +692,56 @@ _CODECS: dict[str, tuple[type[Message], tuple[tuple[str, str], ...], Any, bool, 
 }
 _unpackb = msgpack.unpackb
 
+# Typed headers (msgspec): for every type whose scalar fields are all of the kinds below, a
+# header struct that msgspec decodes *and checks* in C in one call (0.5 us for an IMU sample's
+# header, against 1.1 us for msgpack.unpackb alone plus ~1.6 us of checks in Python). Each kind
+# accepts a subset of what the reference _check_scalar accepts, with the same values (ints for
+# floats become floats, bools are no ints, floats are finite, ints are int64, strings at most
+# 4096 characters): whatever it refuses goes through the reference path, which converts or
+# raises naming the field (test_typed_header_agrees_with_the_reference).
+_FINITE = Annotated[float, msgspec.Meta(ge=-sys.float_info.max, le=sys.float_info.max)]
+_INT64 = Annotated[int, msgspec.Meta(ge=_INT_MIN, le=_INT_MAX)]
+_TYPED_KINDS: dict[str, Any] = {
+    "int": _INT64,
+    "float": _FINITE,
+    "str": Annotated[str, msgspec.Meta(max_length=4096)],
+    "bool": bool,
+    "vec3": tuple[_FINITE, _FINITE, _FINITE],
+}
+
+
+def _typed_header(cls: type[Message]) -> tuple[type, type] | None:
+    """The (header, fields) msgspec structs of ``cls``, or None if a field's kind has none."""
+    table = _SCALAR_TABLES[cls]
+    if any(kind not in _TYPED_KINDS for _, kind in table):
+        return None
+    fields_struct = msgspec.defstruct(
+        f"{cls.TYPE}Fields",
+        [(name, _TYPED_KINDS[kind]) for name, kind in table],
+        forbid_unknown_fields=True,
+        gc=False,
+    )
+    header = msgspec.defstruct(
+        f"{cls.TYPE}Header",
+        [("v", int), ("seq", _INT64), ("src", _INT64), ("f", fields_struct), ("a", list)],
+        tag=cls.TYPE,
+        tag_field="t",  # first on the wire, as in the packer's map
+        forbid_unknown_fields=True,
+    )
+    return header, fields_struct
+
+
+_TYPED: dict[type, tuple[type, type]] = {
+    cls: typed for cls in MESSAGE_TYPES.values() if (typed := _typed_header(cls)) is not None
+}
+# header struct -> what decode needs of the type
+_TYPED_CODECS: dict[type, tuple[type[Message], bool, bool]] = {
+    header: (cls, bool(cls.ARRAYS), cls in _CROSS_CHECKED) for cls, (header, _) in _TYPED.items()
+}
+_typed_decode = msgspec.msgpack.Decoder(Union[tuple(h for h, _ in _TYPED.values())]).decode  # noqa: UP007
+_typed_encode = msgspec.msgpack.Encoder().encode
+_struct_fields = msgspec.structs.asdict
+
 # ---------------------------------------------------------------------------------------- codec
 
 
@@ -722,6 +774,13 @@ def encode(topic: str, msg: Message, *, seq: int = 0, src: int = 0) -> list[byte
             frames.append(memoryview(a).cast("B") if a.size else memoryview(b""))
     elif cls in _CROSS_CHECKED:
         _check_enums(cls, scalars)
+    typed = _TYPED.get(cls)
+    if typed is not None:  # the same bytes as the packer's map, 2x faster
+        header, fields_struct = typed
+        frames[1] = _typed_encode(
+            header(cls.VERSION, int(seq), int(src), fields_struct(**scalars), descs)
+        )
+        return frames
     frames[1] = _packer().pack(
         {
             "t": cls.TYPE,
@@ -805,54 +864,19 @@ def decode(
             raise MessageError(f"invalid topic name {topic[:64]!r}", field="topic")
     if sizes[1] > MAX_HEADER_BYTES:
         raise MessageError(f"header of {sizes[1]} bytes exceeds {MAX_HEADER_BYTES}", field="header")
-    try:
-        header = _unpackb(
-            views[1],
-            # raw=False, strict_map_key=True, use_list=True: msgpack's defaults
-            max_str_len=MAX_HEADER_BYTES,
-            max_bin_len=0,
-            max_array_len=4096,
-            max_map_len=4096,
-            max_ext_len=0,
-        )
-    except Exception as err:  # msgpack raises several unrelated types on garbage
-        raise MessageError(
-            f"header is not valid msgpack ({type(err).__name__}: {err})", field="header"
-        ) from err
-    if type(header) is not dict:
-        raise MessageError("header is not a map", field="header")
-    if header.keys() != _HEADER_KEYS:
-        missing, extra = _HEADER_KEYS - set(header), set(header) - _HEADER_KEYS
-        raise MessageError(
-            f"header keys: missing {sorted(missing)}, unexpected {sorted(map(str, extra))}",
-            field="header",
-        )
-    type_name = header["t"]
-    codec = _CODECS.get(type_name) if type(type_name) is str else None
-    if codec is None:
-        raise MessageError(f"unknown message type {type_name!r}", field="t")
-    cls, table, fast, has_arrays, cross_checked = codec
-    version = header["v"]
-    if type(version) is not int or version != cls.VERSION:  # type(): True == 1 is no version
-        raise MessageError(f"{cls.TYPE} schema version {version!r} != {cls.VERSION}", field="v")
-    seq, src = header["seq"], header["src"]
-    if not (type(seq) is int and _INT_MIN <= seq <= _INT_MAX):
-        seq = _check_scalar("int", "seq", seq)
-    if not (type(src) is int and _INT_MIN <= src <= _INT_MAX):
-        src = _check_scalar("int", "src", src)
-    scalars = header["f"]
-    if type(scalars) is not dict:
-        raise MessageError("scalar fields are not a map", field="f")
-    if len(scalars) != len(table):  # equal sizes with a stranger mean a missing field: found below
-        extra = scalars.keys() - _SCALAR_SETS[cls]
-        if extra:
-            raise MessageError(
-                f"unexpected field(s) {sorted(map(str, extra))} for {cls.TYPE}",
-                field=str(sorted(map(str, extra))[0]),
-            )
-    descs = header["a"]
-    if type(descs) is not list:
-        raise MessageError("array descriptors are not a list", field="a")
+    try:  # the common, valid case: header and scalar fields decoded and checked in C
+        typed = _typed_decode(views[1])
+    except Exception:  # anything else: the reference path below, which names what is wrong
+        typed = None
+    if typed is not None:
+        cls, has_arrays, cross_checked = _TYPED_CODECS[type(typed)]
+        if typed.v != cls.VERSION:
+            raise MessageError(f"{cls.TYPE} schema version {typed.v!r} != {cls.VERSION}", field="v")
+        seq, src, descs = typed.seq, typed.src, typed.a
+        out: dict[str, Any] | None = _struct_fields(typed.f)
+    else:
+        cls, has_arrays, cross_checked, seq, src, descs, scalars = _reference_header(views[1])
+        out = None
     if len(descs) != len(views) - 2:
         raise MessageError(
             f"{len(descs)} array descriptors but {len(views) - 2} buffers", field="a"
@@ -882,9 +906,10 @@ def decode(
                     field=name,
                 )
             arrays[name] = np.frombuffer(view, dtype=dtype).reshape(shape)
-    out = fast(scalars)
     if out is None:
-        out = _check_scalars(table, scalars)
+        out = _FAST_SCALARS[cls](scalars)
+        if out is None:
+            out = _check_scalars(_SCALAR_TABLES[cls], scalars)
     if has_arrays:
         _check_arrays(cls, arrays, out)
     if cross_checked:
@@ -892,3 +917,58 @@ def decode(
     msg = object.__new__(cls)  # the dataclass __init__ would only assign what is validated here
     msg.__dict__.update(out)
     return _new_envelope(Envelope, (topic, seq, src, msg, total))
+
+
+def _reference_header(
+    header_bytes: Any,
+) -> tuple[type[Message], bool, bool, int, int, list[Any], dict[str, Any]]:
+    """The header checked in Python, for what the typed decoder refuses: it names the field."""
+    try:
+        header = _unpackb(
+            header_bytes,
+            # raw=False, strict_map_key=True, use_list=True: msgpack's defaults
+            max_str_len=MAX_HEADER_BYTES,
+            max_bin_len=0,
+            max_array_len=4096,
+            max_map_len=4096,
+            max_ext_len=0,
+        )
+    except Exception as err:  # msgpack raises several unrelated types on garbage
+        raise MessageError(
+            f"header is not valid msgpack ({type(err).__name__}: {err})", field="header"
+        ) from err
+    if type(header) is not dict:
+        raise MessageError("header is not a map", field="header")
+    if header.keys() != _HEADER_KEYS:
+        missing, extra = _HEADER_KEYS - set(header), set(header) - _HEADER_KEYS
+        raise MessageError(
+            f"header keys: missing {sorted(missing)}, unexpected {sorted(map(str, extra))}",
+            field="header",
+        )
+    type_name = header["t"]
+    codec = _CODECS.get(type_name) if type(type_name) is str else None
+    if codec is None:
+        raise MessageError(f"unknown message type {type_name!r}", field="t")
+    cls, table, _, has_arrays, cross_checked = codec
+    version = header["v"]
+    if type(version) is not int or version != cls.VERSION:  # type(): True == 1 is no version
+        raise MessageError(f"{cls.TYPE} schema version {version!r} != {cls.VERSION}", field="v")
+    seq, src = header["seq"], header["src"]
+    if not (type(seq) is int and _INT_MIN <= seq <= _INT_MAX):
+        seq = _check_scalar("int", "seq", seq)
+    if not (type(src) is int and _INT_MIN <= src <= _INT_MAX):
+        src = _check_scalar("int", "src", src)
+    scalars = header["f"]
+    if type(scalars) is not dict:
+        raise MessageError("scalar fields are not a map", field="f")
+    if len(scalars) != len(table):  # equal sizes with a stranger mean a missing field: found below
+        extra = scalars.keys() - _SCALAR_SETS[cls]
+        if extra:
+            raise MessageError(
+                f"unexpected field(s) {sorted(map(str, extra))} for {cls.TYPE}",
+                field=str(sorted(map(str, extra))[0]),
+            )
+    descs = header["a"]
+    if type(descs) is not list:
+        raise MessageError("array descriptors are not a list", field="a")
+    return cls, has_arrays, cross_checked, seq, src, descs, scalars

@@ -8,7 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
-from hypothesis import given, settings
+from hypothesis import event, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -385,6 +385,89 @@ def test_generated_fast_scalar_checker_agrees_with_the_reference(
     assert ref[0] == "ok"
     assert fast == ref[1]
     assert [type(v) for v in fast.values()] == [type(v) for v in ref[1].values()]
+
+
+TYPED = [cls for cls in msgs.MESSAGE_TYPES.values() if cls in msgs._TYPED]
+
+
+def _reference_header(raw: bytes) -> tuple[str, object]:
+    try:
+        cls, _, _, seq, src, descs, scalars = msgs._reference_header(raw)
+        return "ok", (cls, seq, src, descs, msgs._check_scalars(msgs._SCALAR_TABLES[cls], scalars))
+    except MessageError as err:
+        return "error", err.field
+
+
+def test_typed_headers_cover_the_frequent_types() -> None:
+    # the high-rate and the large types; MapStats and Diagnostics (dict fields) use the reference
+    assert {msgs.Imu, msgs.Image, msgs.Odometry, msgs.Keyframe, msgs.DepthMap} <= set(TYPED)
+
+
+@pytest.mark.parametrize("cls", TYPED, ids=[c.TYPE for c in TYPED])
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_typed_header_agrees_with_the_reference(
+    cls: type[msgs.Message], data: st.DataObject
+) -> None:
+    """What the C-level typed decoder accepts, the reference accepts too, with equal values of
+    equal types; what it refuses goes to the reference, which decides (decode never trusts it
+    for a rejection)."""
+    edge = data.draw(st.integers(0, 2)) == 0  # a third of the examples mix in edge values
+    values = {
+        name: data.draw(st.one_of(_scalar(kind), EDGE_VALUES) if edge else _scalar(kind))
+        for name, kind in cls.SCALARS.items()
+    }
+    if data.draw(st.integers(0, 9)) == 0 and values:
+        values.pop(data.draw(st.sampled_from(sorted(values))))
+    if data.draw(st.integers(0, 9)) == 0:
+        values["extra"] = 1
+    header = {
+        "t": cls.TYPE,
+        "v": data.draw(st.sampled_from([cls.VERSION] * 7 + [True, 2, 1.0])),
+        "seq": data.draw(st.one_of(INT64, EDGE_VALUES) if edge else INT64),
+        "src": data.draw(st.one_of(INT64, EDGE_VALUES) if edge else INT64),
+        "f": values,
+        "a": data.draw(st.sampled_from([[]] * 7 + [[["x", "<f4", [1]]], {}, None])),
+    }
+    if data.draw(st.integers(0, 9)) == 0:
+        header.pop(data.draw(st.sampled_from(sorted(header))))
+    try:
+        raw = msgpack.packb(header, use_bin_type=True)
+    except (TypeError, ValueError, OverflowError):
+        return  # not representable in msgpack (numpy scalars, ints beyond 64 bits)
+    try:
+        typed = msgs._typed_decode(raw)
+    except Exception:
+        event("typed decoder refused")
+        return  # refused: the reference decides
+    event("typed decoder accepted")
+    ref = _reference_header(raw)
+    if typed.v != cls.VERSION:  # decode raises on it as the reference does
+        assert ref == ("error", "v")
+        return
+    assert ref[0] == "ok", ref
+    ref_cls, seq, src, descs, out = ref[1]
+    assert ref_cls is cls and (typed.seq, typed.src, typed.a) == (seq, src, descs)
+    fast = msgs._struct_fields(typed.f)
+    assert fast == out
+    assert [type(v) for v in fast.values()] == [type(v) for v in out.values()]
+
+
+@pytest.mark.parametrize("cls", TYPED, ids=[c.TYPE for c in TYPED])
+@settings(max_examples=20, deadline=None)
+@given(data=st.data())
+def test_typed_encode_writes_the_packers_bytes(
+    cls: type[msgs.Message], data: st.DataObject
+) -> None:
+    msg = data.draw(messages(cls))
+    frames = msgs.encode("/t", msg, seq=7, src=(1 << 62) + 3)
+    scalars = msgs._scalars_of(cls, msg.__dict__)
+    descs = msgpack.unpackb(frames[1])["a"]
+    packed = msgpack.packb(
+        {"t": cls.TYPE, "v": cls.VERSION, "seq": 7, "src": (1 << 62) + 3, "f": scalars, "a": descs},
+        use_bin_type=True,
+    )
+    assert bytes(frames[1]) == packed
 
 
 def test_fast_path_defers_non_canonical_values_to_the_reference() -> None:
