@@ -17,6 +17,7 @@ naming the field. Nothing is ever fixed silently and pickle is never used.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import threading
@@ -740,6 +741,7 @@ _TYPED_CODECS: dict[type, tuple[type[Message], bool, bool]] = {
 }
 _typed_decode = msgspec.msgpack.Decoder(Union[tuple(h for h, _ in _TYPED.values())]).decode  # noqa: UP007
 _typed_encode = msgspec.msgpack.Encoder().encode
+_typed_convert = msgspec.convert
 _struct_fields = msgspec.structs.asdict
 
 # ---------------------------------------------------------------------------------------- codec
@@ -755,7 +757,21 @@ def encode(topic: str, msg: Message, *, seq: int = 0, src: int = 0) -> list[byte
     if cls.TYPE not in MESSAGE_TYPES:
         raise MessageError(f"unknown message type {cls.__name__}", field="t")
     values = msg.__dict__
-    scalars = _scalars_of(cls, values)
+    typed = _TYPED.get(cls)
+    fields_value = None
+    if typed is not None:  # checked in C; what it refuses, the reference converts or names
+        with contextlib.suppress(Exception):
+            fields_value = (
+                _typed_convert(msg, typed[1], from_attributes=True)
+                if cls.ARRAYS
+                else _typed_convert(values, typed[1])
+            )
+    if fields_value is None:
+        scalars = _scalars_of(cls, values)
+        if typed is not None:
+            fields_value = typed[1](**scalars)
+    elif cls in _CROSS_CHECKED:
+        scalars = _struct_fields(fields_value)
     descs: list[list[Any]] = []
     frames: list[bytes | memoryview] = [topic.encode("utf-8"), b""]
     if cls.ARRAYS:
@@ -774,12 +790,8 @@ def encode(topic: str, msg: Message, *, seq: int = 0, src: int = 0) -> list[byte
             frames.append(memoryview(a).cast("B") if a.size else memoryview(b""))
     elif cls in _CROSS_CHECKED:
         _check_enums(cls, scalars)
-    typed = _TYPED.get(cls)
     if typed is not None:  # the same bytes as the packer's map, 2x faster
-        header, fields_struct = typed
-        frames[1] = _typed_encode(
-            header(cls.VERSION, int(seq), int(src), fields_struct(**scalars), descs)
-        )
+        frames[1] = _typed_encode(typed[0](cls.VERSION, int(seq), int(src), fields_value, descs))
         return frames
     frames[1] = _packer().pack(
         {
