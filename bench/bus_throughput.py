@@ -23,7 +23,8 @@ the timed window: on a machine with few cores, throughput is bounded by total CP
 
 Usage::
 
-    python bench/bus_throughput.py [--transport ipc|tcp] [--keyframes 300] [--imu 100000] [--json PATH]
+    python bench/bus_throughput.py [--transport ipc|tcp|both] [--keyframes 300] [--imu 100000]
+        [--json PATH]
 """
 
 from __future__ import annotations
@@ -262,11 +263,61 @@ def load_average() -> str:
         return "n/a"
 
 
+def measure(
+    figures: dict, transport: str, kind: str, n: int, args: argparse.Namespace, tmp: str
+) -> None:
+    """Run every case of ``kind`` on ``transport``; the best of the repeats into ``figures``."""
+    cases = cases_for(kind)
+    runs: dict[str, list[dict[str, float]]] = {c: [] for c in cases}
+    for _ in range(args.repeats):  # interleaved: the cases share the machine's state
+        for case in cases:
+            runs[case].append(run_case(case, kind, n, transport, tmp, args.socket_buffer))
+    for case in cases:
+        best = max(runs[case], key=lambda r: r["msgs_per_s"])
+        keys = ("msgs_per_s", "mb_per_s", *(k for k in best if k.startswith("cpu")))
+        figures[f"{transport}_{kind}_{case}_shm_share"] = round(best["shm_share"], 3)
+        for key in keys:
+            figures[f"{transport}_{kind}_{case}_{key}"] = round(best[key], 1)
+        figures[f"{transport}_{kind}_{case}_lost_msgs"] = sum(r["lost"] for r in runs[case])
+        print(
+            f"{transport} {kind:9s} {case:6s} {best['msgs_per_s']:10.1f} msg/s "
+            f"{best['mb_per_s']:9.1f} MB/s  CPU us/msg pub {best['cpu_us_pub']:.1f} "
+            f"broker {best['cpu_us_broker']:.1f} sub {best['cpu_us_sub']:.1f}",
+            flush=True,
+        )
+    for case in cases[1:]:
+        figures[f"{transport}_{kind}_{case}_ratio_vs_bare_zmq"] = round(
+            figures[f"{transport}_{kind}_{case}_msgs_per_s"]
+            / figures[f"{transport}_{kind}_bare_msgs_per_s"],
+            3,
+        )
+    figures[f"{transport}_{kind}_mogs_ratio_vs_hop"] = round(
+        figures[f"{transport}_{kind}_mogs_msgs_per_s"]
+        / figures[f"{transport}_{kind}_hop_msgs_per_s"],
+        3,
+    )
+    print(
+        f"{transport} {kind:9s} ratio "
+        + ", ".join(
+            f"{c}/bare = {figures[f'{transport}_{kind}_{c}_ratio_vs_bare_zmq']:.3f}"
+            for c in cases[1:]
+        )
+        + f"; mogs via shared memory {figures[f'{transport}_{kind}_mogs_shm_share']:.0%}",
+        flush=True,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--transport", choices=["ipc", "tcp"], default="ipc")
+    ap.add_argument(
+        "--transport",
+        choices=["ipc", "tcp", "both"],
+        default="both",
+        help="ipc: one host, the default bus (shared memory for large arrays); tcp: what "
+        "containers and several hosts use (everything through the broker)",
+    )
     ap.add_argument("--keyframes", type=int, default=300, help="1.5 MB keyframes per case")
     ap.add_argument("--imu", type=int, default=100_000, help="IMU messages per case")
     ap.add_argument("--repeats", type=int, default=3, help="best of N runs per case")
@@ -283,46 +334,13 @@ def main(argv: list[str] | None = None) -> int:
     mp.set_start_method("spawn", force=True)
     figures: dict[str, float | str] = {}
     load_before = load_average()
+    transports = ("ipc", "tcp") if args.transport == "both" else (args.transport,)
     with tempfile.TemporaryDirectory(prefix="mogs-bench-") as tmp:
-        for kind, n in (("keyframe", args.keyframes), ("imu", args.imu)):
-            if args.only and kind != args.only:
-                continue
-            cases = cases_for(kind)
-            runs: dict[str, list[dict[str, float]]] = {c: [] for c in cases}
-            for _ in range(args.repeats):  # interleaved: the cases share the machine's state
-                for case in cases:
-                    runs[case].append(
-                        run_case(case, kind, n, args.transport, tmp, args.socket_buffer)
-                    )
-            for case in cases:
-                best = max(runs[case], key=lambda r: r["msgs_per_s"])
-                keys = ("msgs_per_s", "mb_per_s", *(k for k in best if k.startswith("cpu")))
-                figures[f"{kind}_{case}_shm_share"] = round(best["shm_share"], 3)
-                for key in keys:
-                    figures[f"{kind}_{case}_{key}"] = round(best[key], 1)
-                figures[f"{kind}_{case}_lost_msgs"] = sum(r["lost"] for r in runs[case])
-                print(
-                    f"{kind:9s} {case:5s} {best['msgs_per_s']:10.1f} msg/s "
-                    f"{best['mb_per_s']:9.1f} MB/s  CPU us/msg pub {best['cpu_us_pub']:.1f} "
-                    f"broker {best['cpu_us_broker']:.1f} sub {best['cpu_us_sub']:.1f}",
-                    flush=True,
-                )
-            for case in cases[1:]:
-                figures[f"{kind}_{case}_ratio_vs_bare_zmq"] = round(
-                    figures[f"{kind}_{case}_msgs_per_s"] / figures[f"{kind}_bare_msgs_per_s"], 3
-                )
-            figures[f"{kind}_mogs_ratio_vs_hop"] = round(
-                figures[f"{kind}_mogs_msgs_per_s"] / figures[f"{kind}_hop_msgs_per_s"], 3
-            )
-            print(
-                f"{kind:9s} ratio "
-                + ", ".join(
-                    f"{c}/bare = {figures[f'{kind}_{c}_ratio_vs_bare_zmq']:.3f}" for c in cases[1:]
-                )
-                + f"; mogs via shared memory {figures[f'{kind}_mogs_shm_share']:.0%}",
-                flush=True,
-            )
-    figures["transport"] = args.transport
+        for transport in transports:
+            for kind, n in (("keyframe", args.keyframes), ("imu", args.imu)):
+                if not args.only or kind == args.only:
+                    measure(figures, transport, kind, n, args, tmp)
+    figures["transports"] = ",".join(transports)
     figures["socket_buffer_bytes"] = args.socket_buffer
     figures["load_average_before"] = load_before
     figures["load_average_after"] = load_average()
@@ -358,11 +376,12 @@ def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -
         ("imu", "Imu (small)"),
     )
     f = figures
+    transports = f["transports"].split(",")
     body = [
         "## Bus throughput (issue 2)",
         "",
         f"Command: `{cmd.strip()}`  ",
-        f"Machine: {machine_line()}; {os.cpu_count()} cores; transport {args.transport}; "
+        f"Machine: {machine_line()}; {os.cpu_count()} cores; transports {', '.join(transports)}; "
         f"socket buffers {args.socket_buffer or 'OS default'}; best of "
         f"{args.repeats} interleaved runs; publisher, broker and subscriber are separate "
         f"processes. Load average (1/5/15 min) before {f['load_average_before']}, after "
@@ -373,49 +392,54 @@ def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -
         "pyzmq ends through the MOGS broker process, no MOGS code in the ends (what the extra "
         "process hop alone allows). `inline`: `Publisher.publish` -> broker -> "
         "`Subscriber.receive` (encode, strict decode, sequence accounting), every byte through "
-        "the broker (`bus.shm_min_bytes: 0`). `MOGS`: the same with the bus's defaults, where "
-        "arrays of 256 KiB and more travel through a shared-memory ring of the topic and only "
-        "the header through the broker, unless a subscriber has not yet read the slot "
-        "(`mogs_node/shm.py`; the share that did is in the table). IMU messages have no arrays: "
-        "for them `inline` is `MOGS`.",
+        "the broker (`bus.shm_min_bytes: 0`). `MOGS`: the same with the bus's defaults: on ipc "
+        "(one host, the default bus) arrays of 256 KiB and more travel through a shared-memory "
+        "ring of the topic and only the header through the broker, unless a subscriber has not "
+        "yet read the slot (`mogs_node/shm.py`; the share that did is in the table); on tcp "
+        "(containers, several hosts) everything goes through the broker. IMU messages have no "
+        "arrays: for them `inline` is `MOGS`.",
         "",
-        "| message | bare msg/s | bare MB/s | hop / bare | inline / bare | MOGS msg/s "
-        "| MOGS MB/s | MOGS / bare | via shared memory | lost |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| transport | message | bare msg/s | bare MB/s | hop / bare | inline / bare "
+        "| MOGS msg/s | MOGS MB/s | MOGS / bare | via shared memory | lost |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for kind, label in kinds:
-        if f"{kind}_mogs_msgs_per_s" not in f:
-            continue
-        inline = f.get(f"{kind}_inline_ratio_vs_bare_zmq")
-        body.append(
-            f"| {label} | {f[f'{kind}_bare_msgs_per_s']:.0f} | {f[f'{kind}_bare_mb_per_s']:.0f} "
-            f"| {f[f'{kind}_hop_ratio_vs_bare_zmq']:.2f} "
-            f"| {'-' if inline is None else f'{inline:.2f}'} "
-            f"| {f[f'{kind}_mogs_msgs_per_s']:.0f} | {f[f'{kind}_mogs_mb_per_s']:.0f} "
-            f"| **{f[f'{kind}_mogs_ratio_vs_bare_zmq']:.2f}** "
-            f"| {f[f'{kind}_mogs_shm_share']:.0%} "
-            f"| {f[f'{kind}_mogs_lost_msgs']} |"
-        )
+    for t in transports:
+        for kind, label in kinds:
+            k = f"{t}_{kind}"
+            if f"{k}_mogs_msgs_per_s" not in f:
+                continue
+            inline = f.get(f"{k}_inline_ratio_vs_bare_zmq")
+            body.append(
+                f"| {t} | {label} | {f[f'{k}_bare_msgs_per_s']:.0f} "
+                f"| {f[f'{k}_bare_mb_per_s']:.0f} | {f[f'{k}_hop_ratio_vs_bare_zmq']:.2f} "
+                f"| {'-' if inline is None else f'{inline:.2f}'} "
+                f"| {f[f'{k}_mogs_msgs_per_s']:.0f} | {f[f'{k}_mogs_mb_per_s']:.0f} "
+                f"| **{f[f'{k}_mogs_ratio_vs_bare_zmq']:.2f}** "
+                f"| {f[f'{k}_mogs_shm_share']:.0%} | {f[f'{k}_mogs_lost_msgs']} |"
+            )
     body += [
         "",
         "CPU time per message [us] (user + system, all threads of the process, over the timed "
         "window of the best run); with two cores, throughput cannot exceed "
         "2 / total CPU per message:",
         "",
-        "| message | case | publisher | broker | subscriber | total | total / bare |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+        "| transport | message | case | publisher | broker | subscriber | total | total / bare |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for kind, label in kinds:
-        if f"{kind}_mogs_msgs_per_s" not in f:
-            continue
-        for case in cases_for(kind):
-            total = f[f"{kind}_{case}_cpu_us_total"]
-            body.append(
-                f"| {label if case == 'bare' else ''} | {case} "
-                f"| {f[f'{kind}_{case}_cpu_us_pub']:.1f} "
-                f"| {f[f'{kind}_{case}_cpu_us_broker']:.1f} | {f[f'{kind}_{case}_cpu_us_sub']:.1f} "
-                f"| {total:.1f} | {total / max(f[f'{kind}_bare_cpu_us_total'], 1e-9):.2f} |"
-            )
+    for t in transports:
+        for kind, label in kinds:
+            k = f"{t}_{kind}"
+            if f"{k}_mogs_msgs_per_s" not in f:
+                continue
+            for case in cases_for(kind):
+                total = f[f"{k}_{case}_cpu_us_total"]
+                first = case == "bare"
+                body.append(
+                    f"| {t if first else ''} | {label if first else ''} | {case} "
+                    f"| {f[f'{k}_{case}_cpu_us_pub']:.1f} "
+                    f"| {f[f'{k}_{case}_cpu_us_broker']:.1f} | {f[f'{k}_{case}_cpu_us_sub']:.1f} "
+                    f"| {total:.1f} | {total / max(f[f'{k}_bare_cpu_us_total'], 1e-9):.2f} |"
+                )
     return "\n".join(body)
 
 
