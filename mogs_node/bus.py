@@ -522,10 +522,16 @@ class Publisher:
         return True
 
     def shm_counters(self) -> dict[str, dict[str, int]]:
-        """Per topic: messages sent through shared memory, and sent inline because the next
-        slot was still owed to a subscriber (busy) or no slot could be made (failed)."""
+        """Per topic: messages sent through shared memory, and sent inline because no
+        subscriber of the topic reads slots on this host (unseen), the next slot was still owed
+        to a subscriber (busy) or no slot could be made (failed)."""
         return {
-            topic: {"shm_published": r.ticket, "shm_busy": r.busy, "shm_failed": r.failed}
+            topic: {
+                "shm_published": r.ticket,
+                "shm_unseen": r.unseen,
+                "shm_busy": r.busy,
+                "shm_failed": r.failed,
+            }
             for topic, r in self._rings.items()
         }
 

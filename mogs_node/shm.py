@@ -273,24 +273,34 @@ class _Cursors:
                 out.append(words)
         return out
 
-    def all_taken(self, key: int, src: int, seq: int, written_ns: int) -> bool:
-        """Whether every live subscriber of topic ``key`` that subscribed before ``written_ns``
-        has taken message ``seq`` of session ``src``."""
+    def check(self, key: int, held: tuple[int, int, int] | None) -> str:
+        """Whether a slot of topic ``key`` may be written now: ``""`` if so, ``"unseen"`` if no
+        live subscriber of the topic keeps a cursor here (none at all, or none that shares this
+        ``/dev/shm``: it could not read the slot), ``"busy"`` if the slot still holds message
+        ``held`` = (src, seq, written_ns) and a subscriber of the topic since before it was
+        written has not taken it."""
+        seen = False
         for w in self.current():
             since_all = int(w[1])
             n_topics = min(int(w[2]), MAX_TOPICS)
             topics = w[_TOPICS : _TOPICS + 2 * n_topics].reshape(-1, 2)
-            takes = 0 < since_all <= written_ns or bool(
-                np.any((topics[:, 0] == key) & (topics[:, 1] <= written_ns))
-            )
-            if not takes:
+            of_topic = topics[:, 0] == key
+            if not (since_all > 0 or of_topic.any()):
                 continue
+            seen = True
+            if held is None:
+                continue
+            src, seq, written_ns = held
+            if not (
+                0 < since_all <= written_ns or bool(np.any(of_topic & (topics[:, 1] <= written_ns)))
+            ):
+                continue  # subscribed after the slot's message was written: not its own
             n = min(int(w[3]), MAX_ENTRIES)
             entries = w[_ENTRIES : _ENTRIES + 3 * n].reshape(-1, 3)
             mine = entries[(entries[:, 0] == src) & (entries[:, 1] == key), 2]
             if mine.size == 0 or int(mine.max()) < seq:
-                return False
-        return True
+                return "busy"
+        return "" if seen else "unseen"
 
     def close(self) -> None:
         self._maps.clear()
@@ -302,9 +312,11 @@ class ShmRing:
     All slots are made at the first write (their number follows that message's size), so that a
     subscriber can map the whole ring when it first sees it: then the ring's files may go away
     (the publisher closes or dies) with messages still queued for it, and it reads them all.
-    ``write`` returns None where the message must go inline instead: the next slot is still
-    owed to a subscriber (``busy``), or no slot could be made (``failed``: ``/dev/shm`` full or
-    missing). Nothing is lost either way.
+    ``write`` returns None where the message must go inline instead: no subscriber of the topic
+    keeps a cursor in this ``/dev/shm`` (``unseen``: none, or only ones in another container or
+    on another host, which could not read a slot), the next slot is still owed to a subscriber
+    (``busy``), or no slot could be made (``failed``: ``/dev/shm`` full or missing). Nothing is
+    lost either way.
     """
 
     def __init__(self, topic: str, src: int, ring_bytes: int, *, directory: Path = SHM_DIR) -> None:
@@ -319,6 +331,7 @@ class ShmRing:
         self._gen = 0
         self.ticket = 0  # writes so far: a slot's stamp says which write it holds
         self.busy = 0  # writes sent inline because the next slot was not yet read by all
+        self.unseen = 0  # writes sent inline because no subscriber of the topic reads slots here
         self.failed = 0  # writes sent inline because no slot could be made
         self.last_error = ""
 
@@ -368,10 +381,13 @@ class ShmRing:
         index = ticket % len(self._slots)
         slot = self._slots[index]
         header = slot.header
-        if header[1] != WRITING and not self._cursors.all_taken(
-            self.key, int(header[3]), int(header[4]), int(header[5])
-        ):
-            self.busy += 1
+        held = None if header[1] == WRITING else (int(header[3]), int(header[4]), int(header[5]))
+        refusal = self._cursors.check(self.key, held)
+        if refusal:
+            if refusal == "busy":
+                self.busy += 1
+            else:
+                self.unseen += 1
             return None
         if slot.capacity < nbytes:
             try:
