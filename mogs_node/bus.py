@@ -479,7 +479,9 @@ class Publisher:
             return 0
         ring = self._rings.get(topic)
         if ring is None:
-            ring = self._rings[topic] = shm.ShmRing(topic, self.src, self.config.shm_ring_bytes)
+            ring = self._rings[topic] = shm.ShmRing(
+                topic, self.src, self.config.shm_ring_bytes, bus=self.config.sub_endpoint
+            )
         ref = ring.write(buffers, total, src, seq)
         if ref is None:
             if ring.failed and ring.failed & (ring.failed - 1) == 0:
@@ -609,7 +611,7 @@ class Subscriber:
         self._poller.register(self._sock, zmq.POLLIN)
         self._shm: shm.ShmReader | None = None  # made at the first shared-memory payload
         # what this subscriber takes and has taken, for publishers' shared-memory rings
-        self._cursor = shm.ShmCursor() if config.uses_shm else None
+        self._cursor = shm.ShmCursor(bus=config.sub_endpoint) if config.uses_shm else None
         self._topic_keys: dict[str, int] = {}
 
     @property

@@ -6,27 +6,31 @@ masks those copies are most of the bus's CPU time (docs/benchmarks.md, "Bus thro
 the bus's endpoints are ``ipc://`` (so every peer runs on this host), a publisher instead copies
 a large message's array buffers once into a ring of shared-memory slots of its topic and sends
 only ``[topic, header]`` through the broker, the header carrying a reference ``"m": [slot name,
-ticket, [buffer sizes]]`` (the ticket counts the ring's writes). The subscriber copies the buffers out of the slot as it takes the
-message from its socket, so what it hands on is an ordinary ``[topic, header, *buffers]``
-message, byte for byte the one that would have travelled inline.
+ticket, [buffer sizes]]`` (the ticket counts the ring's writes). The subscriber copies the
+buffers out of the slot as it takes the message from its socket, so what it hands on is an
+ordinary ``[topic, header, *buffers]`` message, byte for byte the one that would have travelled
+inline.
 
 Lifetime, without loss: every subscriber on such a bus keeps a *cursor* file in
-``/dev/shm/mogs-<uid>-<ns>-cursors/``: the topics it takes (with the time it subscribed) and, per
-publisher session and topic, the sequence number of the last message with arrays it has taken.
-Before a publisher reuses a slot it reads the cursors: if some live subscriber of the topic,
-subscribed before the slot's message was written, has not yet taken that message, the slot is
-busy and the new message goes inline through the broker as before. So shared memory is used
-while subscribers keep up, and a slow one falls back to ZeroMQ's queues, losing nothing it would
-not have lost there. A slot also carries a stamp (a seqlock: ``-1`` while written, then the
-write's ticket) that the subscriber checks before and after its copy, so a slot overwritten all
-the same (a cursor misjudged) is detected, never read as another message; such a message is
-counted on its topic (``shm_missed``, then ``lost``). The ordering of these plain stores and
-loads relies on numpy releasing and re-taking the GIL around copies of this size (a lock release
-and acquire, i.e. a memory barrier, on every architecture).
+``/dev/shm/mogs-<uid>-<ns>-cursors-<bus>/``: the topics it takes (with the time it subscribed)
+and, per publisher session and topic, the sequence number of the last message with arrays it has
+taken. A publisher writes a slot only if some live subscriber of the topic keeps a cursor there
+(else the message goes inline: nobody listens, or only processes that could not read the slot),
+and reuses a slot only if every live subscriber of the topic, subscribed before the slot's message
+was written, has taken that message; otherwise the slot is busy and the new message goes inline
+through the broker as before. So shared memory is used while subscribers keep up, and a slow one
+falls back to ZeroMQ's queues, losing nothing it would not have lost there. A slot also carries a
+stamp (a seqlock: ``-1`` while written, then the write's ticket) that the subscriber checks
+before and after its copy, so a slot overwritten all the same (a cursor misjudged) is detected,
+never read as another message; such a message is counted on its topic (``shm_missed``, then
+``lost``). The ordering of these plain stores and loads relies on numpy releasing and re-taking
+the GIL around copies of this size (a lock release and acquire, i.e. a memory barrier, on every
+architecture).
 
 Files live in ``/dev/shm`` with mode 0600, named ``mogs-<uid>-<pid namespace>-<pid>-...``; a
-publisher removes its own at ``close``, and every new ring removes those of dead processes of
-the same user and pid namespace (a crashed node's).
+publisher removes its own at ``close`` (or at exit), a subscriber its cursor; every new ring, and
+the launcher at shutdown, removes those of dead processes of the same user and pid namespace (a
+killed node's).
 """
 
 from __future__ import annotations
@@ -85,8 +89,11 @@ def topic_key(topic: str) -> int:
     return zlib.crc32(topic.encode("utf-8"))
 
 
-def cursor_dir(directory: Path = SHM_DIR) -> Path:
-    return directory / f"{_own_prefix()}cursors"
+def cursor_dir(directory: Path = SHM_DIR, bus: str = "") -> Path:
+    """The folder of the cursors of one bus (``bus``: its subscriber endpoint), so that two
+    MOGS systems on one machine never wait for each other's subscribers."""
+    suffix = f"-{zlib.crc32(bus.encode('utf-8')):08x}" if bus else ""
+    return directory / f"{_own_prefix()}cursors{suffix}"
 
 
 def shm_available(directory: Path = SHM_DIR) -> bool:
@@ -121,14 +128,17 @@ def sweep_stale(directory: Path = SHM_DIR) -> int:
             with contextlib.suppress(OSError):
                 os.unlink(directory / name)
                 removed += 1
-    folder = cursor_dir(directory)
-    with contextlib.suppress(OSError):
-        for name in os.listdir(folder):
-            pid = name.split("-")[1] if name.startswith("sub-") else ""
-            if pid.isdigit() and not _pid_alive(int(pid)):
-                with contextlib.suppress(OSError):
-                    os.unlink(folder / name)
-                    removed += 1
+    for folder_name in names:
+        if not folder_name.startswith(f"{prefix}cursors"):
+            continue
+        folder = directory / folder_name
+        with contextlib.suppress(OSError):
+            for name in os.listdir(folder):
+                pid = name.split("-")[1] if name.startswith("sub-") else ""
+                if pid.isdigit() and not _pid_alive(int(pid)):
+                    with contextlib.suppress(OSError):
+                        os.unlink(folder / name)
+                        removed += 1
     return removed
 
 
@@ -174,8 +184,8 @@ class ShmCursor:
     wait for.
     """
 
-    def __init__(self, *, directory: Path = SHM_DIR) -> None:
-        folder = cursor_dir(directory)
+    def __init__(self, *, directory: Path = SHM_DIR, bus: str = "") -> None:
+        folder = cursor_dir(directory, bus)
         folder.mkdir(mode=0o700, exist_ok=True)
         self.path = folder / f"sub-{os.getpid()}-{os.urandom(6).hex()}"
         fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_RDWR | os.O_NOFOLLOW, 0o600)
@@ -233,8 +243,8 @@ class ShmCursor:
 class _Cursors:
     """The publisher's view of every live subscriber's cursor file (re-listed at each look)."""
 
-    def __init__(self, directory: Path) -> None:
-        self.folder = cursor_dir(directory)
+    def __init__(self, directory: Path, bus: str) -> None:
+        self.folder = cursor_dir(directory, bus)
         self._maps: dict[str, tuple[mmap.mmap, np.ndarray]] = {}
 
     def current(self) -> list[np.ndarray]:
@@ -319,7 +329,15 @@ class ShmRing:
     lost either way.
     """
 
-    def __init__(self, topic: str, src: int, ring_bytes: int, *, directory: Path = SHM_DIR) -> None:
+    def __init__(
+        self,
+        topic: str,
+        src: int,
+        ring_bytes: int,
+        *,
+        directory: Path = SHM_DIR,
+        bus: str = "",
+    ) -> None:
         self.directory = directory
         self.ring_bytes = ring_bytes
         self.key = topic_key(topic)
@@ -327,7 +345,7 @@ class ShmRing:
         self._slots: list[_Slot] = []
         self._names: set[str] = set()  # of the slot files now: removed at close or exit
         self._finalizer = weakref.finalize(self, _unlink_all, directory, self._names)
-        self._cursors = _Cursors(directory)
+        self._cursors = _Cursors(directory, bus)  # the subscribers of this bus only
         self._gen = 0
         self.ticket = 0  # writes so far: a slot's stamp says which write it holds
         self.busy = 0  # writes sent inline because the next slot was not yet read by all

@@ -231,6 +231,23 @@ def test_files_of_a_process_that_exits_without_closing_are_removed(tmp_path: Pat
     assert not os.listdir(shm.cursor_dir(tmp_path))
 
 
+def test_subscribers_of_another_bus_are_neither_takers_nor_waited_for(tmp_path: Path) -> None:
+    """Two MOGS systems on one machine: same topic names, different buses."""
+    r = shm.ShmRing(TOPIC, 77, ring_bytes=4 * 100_000, directory=tmp_path, bus="ipc:///a/sub")
+    theirs = shm.ShmCursor(directory=tmp_path, bus="ipc:///b/sub")
+    theirs.add_topic(TOPIC)  # never takes anything of ours
+    try:
+        assert _fill(r, 1) == [None] and r.unseen == 1  # not a reader of our slots
+        ours = shm.ShmCursor(directory=tmp_path, bus="ipc:///a/sub")
+        ours.add_topic(TOPIC)
+        ours.taken(77, KEY, 1 << 62)
+        assert all(x is not None for x in _fill(r, 12, first_seq=1))  # theirs is not waited for
+        ours.close()
+    finally:
+        theirs.close()
+        r.close()
+
+
 def test_full_cursor_tables_make_publishers_wait_not_race(ring, tmp_path: Path) -> None:
     cursor = shm.ShmCursor(directory=tmp_path)
     try:
