@@ -261,3 +261,18 @@ def test_small_arrays_and_array_less_messages_stay_inline(ipc_bus) -> None:
     finally:
         pub.close(0)
         sub.close()
+
+
+def test_a_launch_file_turns_shared_memory_off_keeping_the_default_endpoints(tmp_path) -> None:
+    from mogs_node.launch import load_launch_file
+
+    path = tmp_path / "x.yaml"
+    path.write_text(
+        "name: x\nbus: {shm_min_bytes: 0}\n"
+        "nodes: [{name: a, class: 'mogs_node.demo_nodes:SyntheticSource'}]\n"
+    )
+    bus = load_launch_file(path).bus
+    assert bus.pub_endpoint.startswith("ipc://") and not bus.uses_shm
+    path.write_text(path.read_text().replace("shm_min_bytes: 0", "shm_ring_bytes: 1048576"))
+    bus = load_launch_file(path).bus
+    assert bus.shm_ring_bytes == 1 << 20 and bus.uses_shm
