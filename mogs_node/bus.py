@@ -611,7 +611,12 @@ class Subscriber:
         self._poller.register(self._sock, zmq.POLLIN)
         self._shm: shm.ShmReader | None = None  # made at the first shared-memory payload
         # what this subscriber takes and has taken, for publishers' shared-memory rings
-        self._cursor = shm.ShmCursor(bus=config.sub_endpoint) if config.uses_shm else None
+        self._cursor: shm.ShmCursor | None = None
+        if config.uses_shm:
+            try:
+                self._cursor = shm.ShmCursor(bus=config.sub_endpoint)
+            except OSError as err:  # e.g. /dev/shm full: still reads slots, only not waited for
+                log.warning("no shared-memory cursor (%s): large messages may be missed", err)
         self._topic_keys: dict[str, int] = {}
 
     @property

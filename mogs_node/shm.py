@@ -139,12 +139,19 @@ def sweep_stale(directory: Path = SHM_DIR) -> int:
                     with contextlib.suppress(OSError):
                         os.unlink(folder / name)
                         removed += 1
+            os.rmdir(folder)  # only if empty (else OSError, suppressed)
     return removed
 
 
 def _unlink_quietly(path: Path) -> None:
     with contextlib.suppress(OSError):
         os.unlink(path)
+
+
+def _remove_cursor(path: Path) -> None:
+    _unlink_quietly(path)
+    with contextlib.suppress(OSError):  # the bus's last cursor: no empty folder left behind
+        os.rmdir(path.parent)
 
 
 def _unlink_all(directory: Path, names: set[str]) -> None:
@@ -186,9 +193,15 @@ class ShmCursor:
 
     def __init__(self, *, directory: Path = SHM_DIR, bus: str = "") -> None:
         folder = cursor_dir(directory, bus)
-        folder.mkdir(mode=0o700, exist_ok=True)
         self.path = folder / f"sub-{os.getpid()}-{os.urandom(6).hex()}"
-        fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_RDWR | os.O_NOFOLLOW, 0o600)
+        for attempt in range(3):  # the last cursor of the bus may remove the folder meanwhile
+            folder.mkdir(mode=0o700, exist_ok=True)
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_RDWR | os.O_NOFOLLOW, 0o600)
+                break
+            except FileNotFoundError:
+                if attempt == 2:
+                    raise
         try:
             os.posix_fallocate(fd, 0, _CURSOR_WORDS * 8)
             self._mm = mmap.mmap(fd, _CURSOR_WORDS * 8, mmap.MAP_SHARED)
@@ -197,7 +210,7 @@ class ShmCursor:
         self.words = np.frombuffer(self._mm, dtype="<i8")
         self.words[0] = CURSOR_MAGIC
         # a subscriber never closed still leaves no file at a normal exit
-        self._finalizer = weakref.finalize(self, _unlink_quietly, self.path)
+        self._finalizer = weakref.finalize(self, _remove_cursor, self.path)
         self._topics: set[int] = set()
         self._entries: dict[tuple[int, int], int] = {}  # (src, key) -> word of its seq
 
