@@ -403,20 +403,22 @@ def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -
         "| MOGS msg/s | MOGS MB/s | MOGS / bare | via shared memory | lost |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for t in transports:
-        for kind, label in kinds:
-            k = f"{t}_{kind}"
-            if f"{k}_mogs_msgs_per_s" not in f:
-                continue
-            inline = f.get(f"{k}_inline_ratio_vs_bare_zmq")
-            body.append(
-                f"| {t} | {label} | {f[f'{k}_bare_msgs_per_s']:.0f} "
-                f"| {f[f'{k}_bare_mb_per_s']:.0f} | {f[f'{k}_hop_ratio_vs_bare_zmq']:.2f} "
-                f"| {'-' if inline is None else f'{inline:.2f}'} "
-                f"| {f[f'{k}_mogs_msgs_per_s']:.0f} | {f[f'{k}_mogs_mb_per_s']:.0f} "
-                f"| **{f[f'{k}_mogs_ratio_vs_bare_zmq']:.2f}** "
-                f"| {f[f'{k}_mogs_shm_share']:.0%} | {f[f'{k}_mogs_lost_msgs']} |"
-            )
+    measured = [
+        (t, kind, label, f"{t}_{kind}")
+        for t in transports
+        for kind, label in kinds
+        if f"{t}_{kind}_mogs_msgs_per_s" in f
+    ]
+    for t, _, label, k in measured:
+        inline = f.get(f"{k}_inline_ratio_vs_bare_zmq")
+        body.append(
+            f"| {t} | {label} | {f[f'{k}_bare_msgs_per_s']:.0f} "
+            f"| {f[f'{k}_bare_mb_per_s']:.0f} | {f[f'{k}_hop_ratio_vs_bare_zmq']:.2f} "
+            f"| {'-' if inline is None else f'{inline:.2f}'} "
+            f"| {f[f'{k}_mogs_msgs_per_s']:.0f} | {f[f'{k}_mogs_mb_per_s']:.0f} "
+            f"| **{f[f'{k}_mogs_ratio_vs_bare_zmq']:.2f}** "
+            f"| {f[f'{k}_mogs_shm_share']:.0%} | {f[f'{k}_mogs_lost_msgs']} |"
+        )
     body += [
         "",
         "CPU time per message [us] (user + system, all threads of the process, over the timed "
@@ -426,20 +428,16 @@ def report_md(figures: dict, args: argparse.Namespace, argv: list[str] | None) -
         "| transport | message | case | publisher | broker | subscriber | total | total / bare |",
         "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for t in transports:
-        for kind, label in kinds:
-            k = f"{t}_{kind}"
-            if f"{k}_mogs_msgs_per_s" not in f:
-                continue
-            for case in cases_for(kind):
-                total = f[f"{k}_{case}_cpu_us_total"]
-                first = case == "bare"
-                body.append(
-                    f"| {t if first else ''} | {label if first else ''} | {case} "
-                    f"| {f[f'{k}_{case}_cpu_us_pub']:.1f} "
-                    f"| {f[f'{k}_{case}_cpu_us_broker']:.1f} | {f[f'{k}_{case}_cpu_us_sub']:.1f} "
-                    f"| {total:.1f} | {total / max(f[f'{k}_bare_cpu_us_total'], 1e-9):.2f} |"
-                )
+    for t, kind, label, k in measured:
+        for case in cases_for(kind):
+            total = f[f"{k}_{case}_cpu_us_total"]
+            first = case == "bare"
+            body.append(
+                f"| {t if first else ''} | {label if first else ''} | {case} "
+                f"| {f[f'{k}_{case}_cpu_us_pub']:.1f} "
+                f"| {f[f'{k}_{case}_cpu_us_broker']:.1f} | {f[f'{k}_{case}_cpu_us_sub']:.1f} "
+                f"| {total:.1f} | {total / max(f[f'{k}_bare_cpu_us_total'], 1e-9):.2f} |"
+            )
     return "\n".join(body)
 
 
