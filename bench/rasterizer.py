@@ -51,19 +51,25 @@ def time_render(
     """Best wall time of forward and of forward+backward, and the CPU time (all threads) of
     that forward+backward run (less sensitive to other jobs on a shared machine)."""
     scene, K = make_scene(n, width, height)
+    device = "cuda" if backend == "gsplat" else "cpu"  # gsplat renders CUDA tensors only
+    scene = GaussianTensors(*(t.to(device) for t in scene.tensors()))
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     params = RasterParams(backend=backend)
     leaves = [t.requires_grad_() for t in scene.tensors()]
-    T = torch.eye(4)
+    T = torch.eye(4, device=device)
     fwd, both, cpu = [], [], []
     for _ in range(repeats + 1):
+        sync()
         t0 = time.perf_counter()
         with torch.no_grad():
             render(scene, T, K, width, height, params=params)
+        sync()
         t1 = time.perf_counter()
         c1 = time.process_time()
         out = render(scene, T, K, width, height, params=params)
         loss = out.color.sum() + 0.1 * out.depth.sum()
         torch.autograd.grad(loss, leaves)
+        sync()
         t2 = time.perf_counter()
         cpu.append(time.process_time() - c1)
         fwd.append(t1 - t0)
@@ -121,7 +127,8 @@ def main() -> int:
         for n, w, h in cases:
             if backend == "torch" and (n, w, h) not in TORCH_CASES:
                 continue  # the pure-PyTorch fallback is only timed for reference
-            f, b, c = time_render(n, w, h, backend, args.repeats if backend == "cpp" else 1)
+            repeats = args.repeats if backend in ("cpp", "gsplat") else 1
+            f, b, c = time_render(n, w, h, backend, repeats)
             key = f"{backend}_{n // 1000}k_{w}x{h}"
             figures[f"{key}_forward_ms"] = 1000 * f
             figures[f"{key}_fwd_bwd_ms"] = 1000 * b

@@ -47,10 +47,13 @@ def render_gsplat(
     g = gaussians
     dev, dt = g.means.device, torch.float32
     fx, fy, cx, cy = (float(v) for v in K)
+    # our pixel centres lie at integer coordinates, gsplat's at +0.5: shift the principal point
+    cx, cy = cx + 0.5, cy + 0.5
     Ks = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], device=dev, dtype=dt)[None]
     viewmat = T_cam_world.to(device=dev, dtype=dt)[None]
     scales = torch.exp(g.log_scales.clamp(params.log_scale_min, params.log_scale_max)).to(dt)
-    bg = torch.cat([background.to(device=dev, dtype=dt), torch.zeros(1, device=dev, dtype=dt)])
+    # rgb only: with render_mode "RGB+D" gsplat appends the depth channel's zero background itself
+    bg = background.to(device=dev, dtype=dt)
     img, alpha, meta = rasterization(
         means=g.means.to(dt),
         quats=g.quats_wxyz.to(dt),
