@@ -28,6 +28,7 @@ import zmq
 
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
+from mogs_node.commands.launch import parse_overrides
 from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
 
@@ -40,6 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=60, help="frames of the synthetic drive")
     ap.add_argument("--timeout", type=float, default=1500.0)
     ap.add_argument("--json", default=None)
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="e.g. mapper.device=cuda",
+    )
     ap.add_argument("--no-docs", action="store_true")
     args = ap.parse_args(argv)
 
@@ -47,14 +55,14 @@ def main(argv: list[str] | None = None) -> int:
     base = load_launch_file(args.launch)
     sim = dict(next(n for n in base.nodes if n.name == "player").params.get("sim", {}))
     sim["n_frames"] = args.frames
-    launch = load_launch_file(
-        args.launch,
-        overrides={
-            "player": {"sim": sim},
-            "report": {"out_dir": str(out)},
-            "mapper": {"ply_path": str(out / "map.ply")},
-        },
-    )
+    overrides = {
+        "player": {"sim": sim},
+        "report": {"out_dir": str(out)},
+        "mapper": {"ply_path": str(out / "map.ply")},
+    }
+    for node, params in parse_overrides(args.set).items():
+        overrides.setdefault(node, {}).update(params)
+    launch = load_launch_file(args.launch, overrides=overrides)
     frame_rate_hz = float(sim.get("frame_rate_hz", 10.0))
 
     ctx = zmq.Context()

@@ -13,6 +13,7 @@ import json
 import time
 from pathlib import Path
 
+from mogs_node.commands.launch import parse_overrides
 from mogs_node.eval.report import REPO_ROOT
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
@@ -26,6 +27,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--timeout", type=float, default=1200.0, help="give up after this many seconds"
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="override a node parameter (value parsed as YAML), e.g. mapper.device=cuda",
+    )
 
 
 def command(args: argparse.Namespace) -> int:
@@ -38,6 +46,8 @@ def command(args: argparse.Namespace) -> int:
         sim = dict(next(n for n in base.nodes if n.name == "player").params.get("sim", {}))
         sim["n_frames"] = args.frames
         overrides["player"] = {"sim": sim}
+    for node, params in parse_overrides(args.set).items():  # --set wins
+        overrides.setdefault(node, {}).update(params)
     launch = load_launch_file(args.launch, overrides=overrides)
     t0 = time.monotonic()
     code = Launcher(launch).run(timeout_s=args.timeout)
