@@ -263,3 +263,23 @@ def test_triangulation_is_finite_or_omitted_at_the_edges(n_views, depth_m, step_
         assert not keep.any()
     flags = depth_edge_flags(uv_kf[keep], pts.xyz_ref_m[keep, 2], radius_px=8.0, rel_jump=0.1)
     assert flags.shape == (keep.sum(),)
+
+
+def test_dense_tracker_options_are_validated_and_track_without_the_backward_pass():
+    from mogs_node.frontend.tracker import TrackerParams
+    from mogs_node.sim import SimConfig, make_sequence
+
+    for bad in ({"bucket_cap": -1}, {"klt_max_iter": 0}, {"top_up_every": 0}, {"top_up_below": 0}):
+        with pytest.raises(ConfigError):
+            TrackerParams(**bad)
+    seq = make_sequence(SimConfig(seed=0, n_frames=3, width=621, height=188))
+    tr = FeatureTracker(TrackPointsParams().tracker(), CameraModel(seq.camera))
+    first = tr.track(seq.render(0).rgb)
+    second = tr.track(seq.render(1).rgb)
+    assert second.n_tracked >= 0.7 * len(first.ids)  # 1 m of driving between the frames
+    kept = np.isin(first.ids, second.ids)
+    assert np.all(np.isfinite(second.uv_px)) and kept.sum() == len(second.ids) <= second.n_tracked
+    # new corners come every 2nd frame only: frame 1 has none, frame 2 has some
+    assert second.ids.max() <= first.ids.max()
+    third = tr.track(seq.render(2).rgb)
+    assert third.ids.max() > first.ids.max()
