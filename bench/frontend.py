@@ -184,8 +184,8 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
         "depth jump > 10 % within 2 px, sky included; docs/frontend.md round 6):",
         "",
         "| points | per moving keyframe (median) | rel. depth error (median) | on depth edges "
-        "| keyframes without points |",
-        "| --- | ---: | ---: | ---: | ---: |",
+        "| on depth edges, by omega | keyframes without points |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     for tag, name in (
         ("landmarks_", "estimator window's landmarks (before)"),
@@ -195,6 +195,7 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
             f"| {name} | {out[tag + 'points_per_keyframe_median']:.0f} | "
             f"{100 * out[tag + 'points_rel_err_median']:.2f} % | "
             f"{100 * out[tag + 'points_on_edges_share']:.1f} % | "
+            f"{100 * out[tag + 'points_on_edges_weight_share']:.1f} % | "
             f"{out[tag + 'keyframes_without_points']:.0f} of {out[tag + 'keyframes']:.0f} |"
         )
     lines += [

@@ -231,6 +231,9 @@ def test_a_keyframe_with_too_few_fresh_points_carries_the_previous_ones():
     pts = fe._keyframe_points(T_now)
     assert pts.carried and len(pts) > 50
     np.testing.assert_allclose(pts.xyz_cam_m[:, 2], X[pts.ids, 2] - 0.1, atol=1e-5)
+    # moving on (1 m): occluders may have moved over the old points, nothing is carried
+    fe._last_points = (T_prev, prev)
+    assert len(fe._keyframe_points(make_T(np.eye(3), np.array([1.0, 2.0, 4.0])))) == 0
 
 
 finite = st.floats(-1e6, 1e6, allow_nan=False)

@@ -539,7 +539,8 @@ class Frontend:
 
     def _keyframe_points(self, T_world_cam: NDArray) -> KeyframePoints:
         """The keyframe's sparse points: every well-triangulated dense track (with the window's
-        latest poses), or the previous keyframe's points moved over when too few are fresh."""
+        latest poses), or at standstill, when too few are fresh, the previous keyframe's points
+        moved over."""
         if self.point_tracker is None:  # the estimator window's landmarks, as before round 6
             lm = self.estimator.newest_landmarks()
             w = omega_weight(lm.track_len, lm.reproj_err_px, self.params.keyframes)
@@ -550,11 +551,11 @@ class Frontend:
         pts = keyframe_points(self._history, self.camera.pinhole, pp)
         if len(pts) < pp.carry_min_points and self._last_points is not None:
             T_world_prev, prev = self._last_points
-            moved = carry_forward(
-                prev, se3_inverse(T_world_cam) @ T_world_prev, self.camera.pinhole
-            )
-            if len(moved) > len(pts):
-                pts = moved
+            T_cur_prev = se3_inverse(T_world_cam) @ T_world_prev
+            if np.linalg.norm(T_cur_prev[:3, 3]) < pp.carry_max_motion_m:  # standstill
+                moved = carry_forward(prev, T_cur_prev, self.camera.pinhole)
+                if len(moved) > len(pts):
+                    pts = moved
         self._last_points = (T_world_cam.copy(), pts)
         return pts
 

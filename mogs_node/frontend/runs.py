@@ -237,10 +237,10 @@ def keyframe_point_figures(
     ``speed_m_s_of(stamp_ns)``: the vehicle's speed, a keyframe faster than ``min_speed_m_s`` is
     a moving one. Figures: the median point count per moving keyframe, the median relative depth
     error at the points' pixels (pixels with a finite truth), and the share of points on a depth
-    edge (:data:`EDGE_JUMP` within :data:`EDGE_RADIUS_PX`)."""
+    edge (:data:`EDGE_JUMP` within :data:`EDGE_RADIUS_PX`), also weighted by omega."""
     from mogs_node.eval.depth_sim import _depth_edge_free
 
-    counts, errors, on_edge, n_kf, n_empty = [], [], [], 0, 0
+    counts, errors, on_edge, weights, n_kf, n_empty = [], [], [], [], 0, 0
     for o in outputs:
         kf = o.keyframe
         if kf is None:
@@ -258,12 +258,16 @@ def keyframe_point_figures(
         errors.append(np.abs(z[finite] - truth[finite]) / truth[finite])
         edge_free = _depth_edge_free(depth, EDGE_JUMP, EDGE_RADIUS_PX)
         on_edge.append(~edge_free[uv[:, 1], uv[:, 0]])
+        weights.append(kf.feature_weight.astype(np.float64))
     err = np.concatenate(errors) if errors else np.zeros(0)
     edge = np.concatenate(on_edge) if on_edge else np.zeros(0, bool)
+    w = np.concatenate(weights) if weights else np.zeros(0)
     return {
         "points_per_keyframe_median": float(np.median(counts)) if counts else 0.0,
         "points_rel_err_median": float(np.median(err)) if len(err) else float("nan"),
         "points_on_edges_share": float(np.mean(edge)) if len(edge) else 0.0,
+        # the same share counted by omega: what a weighted consumer (the metrizer) sees
+        "points_on_edges_weight_share": float(w[edge].sum() / w.sum()) if w.sum() > 0 else 0.0,
         "points_total": float(len(edge)),
         "keyframes": float(n_kf),
         "keyframes_moving": float(len(counts)),

@@ -80,7 +80,12 @@ class TrackPointsParams:
     patch_radius_px: int = 3  # photometric check: (2r+1)^2 patch around the point in the
     min_patch_zncc: float = 0.8  # keyframe against its oldest view, moved by the point's own
     # depth: a patch straddling a depth edge does not match (ZNCC below this: dropped)
-    carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward
+    suspect_zncc: float = 0.95  # a point with a lower ZNCC ...
+    suspect_reproj_px: float = 0.3  # ... or a larger reprojection error ...
+    suspect_weight: float = 0.25  # ... keeps this share of its omega
+    carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward,
+    carry_max_motion_m: float = 0.25  # if the camera moved less than this since (standstill:
+    # moving on, occluders move over the old points and they no longer hold)
 
     def __post_init__(self) -> None:
         if self.max_tracks < 8 or self.history_frames < 2 or self.min_views < 2:
@@ -89,6 +94,8 @@ class TrackPointsParams:
             raise ConfigError("points: 0 < min_depth_m < max_depth_m")
         if min(self.max_reproj_px, self.pixel_sigma_px, self.omega_rel_sigma) <= 0:
             raise ConfigError("points: max_reproj_px, pixel_sigma_px, omega_rel_sigma > 0")
+        if not 0 < self.suspect_weight <= 1:
+            raise ConfigError("points: 0 < suspect_weight <= 1")
         if self.bucket_cols < 0 or self.bucket_rows < 0 or self.gn_iterations < 0:
             raise ConfigError("points: bucket_cols, bucket_rows, gn_iterations >= 0")
 
@@ -444,18 +451,19 @@ class TrackHistory:
         return TrackViews(ids, uv, T, [fr[3] for fr in frames], frames[-1][0])
 
 
-def _photometric_ok(
+def _patch_scores(
     views: TrackViews,
     uv: NDArray,
     xyz_ref_m: NDArray,
     T_ref_cams: NDArray,
     params: TrackPointsParams,
-) -> NDArray[np.bool_]:
-    """Points [N] whose keyframe patch matches their oldest view's (see :func:`patch_zncc`)."""
-    ok = np.ones(len(uv), bool)
+) -> NDArray[np.float64]:
+    """ZNCC [N] of each point's keyframe patch with its oldest view's (:func:`patch_zncc`);
+    1 where there is no image to compare."""
+    score = np.ones(len(uv))
     img_ref = views.images[-1]
-    if img_ref is None or params.min_patch_zncc <= -1:
-        return ok
+    if img_ref is None:
+        return score
     oldest = np.argmax(np.isfinite(uv[..., 0]), axis=1)  # first view that saw each point
     T_cam_ref = se3_inverse(T_ref_cams)
     for f in np.unique(oldest).tolist():  # over <= history_frames views
@@ -465,9 +473,10 @@ def _photometric_ok(
             continue
         z_view = transform_points(T_cam_ref[f], xyz_ref_m[sel])[:, 2]
         scale = xyz_ref_m[sel, 2] / np.maximum(z_view, 1e-9)
-        zncc = patch_zncc(img_ref, uv[sel, -1], img, uv[sel, f], scale, params.patch_radius_px)
-        ok[sel] = zncc >= params.min_patch_zncc
-    return ok
+        score[sel] = patch_zncc(
+            img_ref, uv[sel, -1], img, uv[sel, f], scale, params.patch_radius_px
+        )
+    return score
 
 
 def keyframe_points(
@@ -493,7 +502,12 @@ def keyframe_points(
     )
     keep, omega = gate_points(pts, params)
     idx = np.flatnonzero(keep)
-    keep[idx] = _photometric_ok(views, uv[idx], pts.xyz_ref_m[idx], T_ref_cams, params)
+    zncc = np.ones(len(ids))
+    zncc[idx] = _patch_scores(views, uv[idx], pts.xyz_ref_m[idx], T_ref_cams, params)
+    keep &= zncc >= params.min_patch_zncc
+    # close to the gates: kept, but weighed down (a point by a depth edge often lands here)
+    suspect = (zncc < params.suspect_zncc) | (pts.reproj_max_px > params.suspect_reproj_px)
+    omega = np.where(suspect, params.suspect_weight * omega, omega).astype(np.float32)
     idx = np.flatnonzero(keep)
     keep[idx] = ~depth_edge_flags(
         uv[idx, -1],
