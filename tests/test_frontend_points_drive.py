@@ -78,7 +78,7 @@ def test_the_estimator_is_unchanged_by_the_points(short_runs):
 @pytest.mark.slow
 def test_demo_drive_points_against_ground_truth(demo_runs):
     """Measured on this drive (docs/frontend.md, round 6): median 115 points per moving keyframe
-    (the estimator's landmarks: 54), 1.3 % median relative depth error, 12 % of the points on a
+    (the estimator's landmarks: 28), 1.2 % median relative depth error, 12 % of the points on a
     depth edge (the landmarks: 35 %). The issue's goals (300 points, 2 % on edges) are not met
     on this drive: the bounds below hold the measured figures with a margin."""
     _, fig = demo_runs
