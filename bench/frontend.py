@@ -1,7 +1,9 @@
 """Frontend benchmark: per-frame latency and throughput on one core, split into tracking and
-estimation, at 1242x375 and 621x188, and run time against trajectory error over the main knobs.
+estimation, at 1242x375 and 621x188, and run time against trajectory error over the main knobs;
+the keyframes' sparse points against ground truth on the demo drive, and CPU time per frame with
+and without them.
 
-    .venv/bin/python bench/frontend.py [--frames 100] [--json PATH] [--no-markdown]
+    .venv/bin/python bench/frontend.py [--frames 100] [--json PATH] [--no-markdown] [--points-only]
 
 Images are rendered by the simulator before timing starts (rendering is not part of the
 frontend). The process is pinned to one CPU core and OpenCV to one thread. Frames processed while
@@ -27,8 +29,14 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.frontend.camera import CameraModel  # noqa: E402
 from mogs_node.frontend.frontend import FrontendParams  # noqa: E402
-from mogs_node.frontend.runs import load_dataset, run_dataset_frames, score_run  # noqa: E402
+from mogs_node.frontend.runs import (  # noqa: E402
+    keyframe_point_figures,
+    load_dataset,
+    run_dataset_frames,
+    score_run,
+)
 
 
 def pin_one_core() -> None:
@@ -114,6 +122,94 @@ def timing_figures(run) -> dict:
     }
 
 
+def cpu_run(d: dict, params: FrontendParams) -> tuple[list, list[float]]:
+    """Stream a prerendered dataset; CPU time (``time.process_time``) of each image's call."""
+    from mogs_node.frontend.frontend import Frontend
+
+    fe = Frontend(params, d["camera"], d["T_imu_cam"])
+    imu_t, gyro, accel = d["imu"]
+    outs, cpu_s, k = [], [], 0
+    for i, t in enumerate(d["stamps_ns"].tolist()):
+        while k < len(imu_t) and imu_t[k] <= t + params.time_offset_ns:
+            outs += fe.add_imu(int(imu_t[k]), gyro[k], accel[k])
+            k += 1
+        c0 = time.process_time()
+        res = fe.add_image(int(t), d["image"](i))
+        dt = time.process_time() - c0
+        outs += res
+        if res and all(o.status == "tracking" for o in res):
+            cpu_s.append(dt)
+    return outs, cpu_s
+
+
+def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
+    """Sparse points on the demo drive (launch/demo.yaml: parked 2 s, keyframes every 20 px /
+    1 s) against ground truth, with the estimator window's landmarks as before for reference;
+    CPU time per tracking frame at 621x188 with and without the points (moving start)."""
+    from mogs_node.frontend.keyframes import KeyframeParams
+    from mogs_node.sim import SimConfig, make_sequence
+
+    cfg = SimConfig(seed=seed, n_frames=60, width=621, height=188, static_start_s=2.0)
+    seq = make_sequence(cfg)
+    sim_frames = [seq.render(i) for i in range(cfg.n_frames)]
+    index = {int(t): i for i, t in enumerate(seq.stamps_ns)}
+    speed = np.linalg.norm(seq.velocity_world_m_s, axis=1)
+    d = {
+        "stamps_ns": seq.stamps_ns,
+        "image": lambda i: sim_frames[i].rgb,
+        "imu": (seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2),
+        "camera": CameraModel(seq.camera),
+        "T_imu_cam": seq.T_imu_cam,
+    }
+    base = FrontendParams(keyframes=KeyframeParams(min_parallax_px=20.0, max_interval_s=1.0))
+    out: dict[str, float] = {}
+    for tag, enabled in (("", True), ("landmarks_", False)):
+        params = with_knob(base, "points", "enabled", enabled)
+        outs, _ = cpu_run(d, params)
+        fig = keyframe_point_figures(
+            outs, lambda t: sim_frames[index[t]].depth_m, lambda t: float(speed[index[t]])
+        )
+        out.update({f"{tag}{k}": v for k, v in fig.items()})
+    moving = prerender((frames - 1) / 10.0, (621, 188), seed)
+    for tag, enabled in (("", True), ("_no_points", False)):
+        _, cpu_s = cpu_run(moving, with_knob(FrontendParams(), "points", "enabled", enabled))
+        ms = 1e3 * float(np.mean(cpu_s))
+        out[f"cpu_ms_per_frame_621x188{tag}"] = ms
+        out[f"cpu_frames_per_s_621x188{tag}"] = 1e3 / ms
+    lines = [
+        "",
+        "Sparse points per keyframe (demo drive: sim seed "
+        f"{seed}, parked 2 s then ~4 s of driving, 621x188, launch/demo.yaml's keyframe policy; "
+        'against ground truth at the points\' pixels; "on a depth edge": a 4-neighbour '
+        "depth jump > 10 % within 2 px, sky included; docs/frontend.md round 6):",
+        "",
+        "| points | per moving keyframe (median) | rel. depth error (median) | on depth edges "
+        "| on depth edges, by omega | keyframes without points |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for tag, name in (
+        ("landmarks_", "estimator window's landmarks (before)"),
+        ("", "dense tracks"),
+    ):
+        lines.append(
+            f"| {name} | {out[tag + 'points_per_keyframe_median']:.0f} | "
+            f"{100 * out[tag + 'points_rel_err_median']:.2f} % | "
+            f"{100 * out[tag + 'points_on_edges_share']:.1f} % | "
+            f"{100 * out[tag + 'points_on_edges_weight_share']:.1f} % | "
+            f"{out[tag + 'keyframes_without_points']:.0f} of {out[tag + 'keyframes']:.0f} |"
+        )
+    lines += [
+        "",
+        f"CPU time per tracking frame at 621x188 ({frames} frames, moving start, one core, "
+        "`time.process_time`): "
+        f"{out['cpu_ms_per_frame_621x188_no_points']:.1f} ms without the dense points "
+        f"({out['cpu_frames_per_s_621x188_no_points']:.1f} frames/s), "
+        f"{out['cpu_ms_per_frame_621x188']:.1f} ms with them "
+        f"({out['cpu_frames_per_s_621x188']:.1f} frames/s).",
+    ]
+    return out, lines
+
+
 def traj_lines(paths: list[str]) -> list[str]:
     """Accuracy table from ``mogs eval traj --json`` files (goals of issue 6)."""
     if not paths:
@@ -154,6 +250,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-markdown", action="store_true", help="do not update docs/benchmarks.md")
     ap.add_argument("--no-sweep", action="store_true", help="skip the knob sweep")
     ap.add_argument(
+        "--points-only",
+        action="store_true",
+        help="only the sparse points and the CPU time with / without them (no docs update)",
+    )
+    ap.add_argument(
         "--traj-json",
         nargs="*",
         default=[],
@@ -162,6 +263,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     pin_one_core()
+    points, point_lines = points_figures(args.seed, args.frames)
+    print("\n".join(point_lines), flush=True)
+    if args.points_only:
+        figures = {**points, "load_average_1min": float(os.getloadavg()[0])}
+        write_json(args.json, figures)
+        print(json.dumps(figures, indent=1, default=float))
+        return 0
     seconds = (args.frames - 1) / 10.0
     base = FrontendParams()
     figures: dict[str, float] = {}
@@ -215,6 +323,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{t['frames_per_s']:.1f} frames/s, ATE {ate:.3f} m ({pct:.2f} %)",
                 flush=True,
             )
+    figures.update(points)
     figures["load_average_1min"] = float(os.getloadavg()[0])
     write_json(args.json, figures)
     if not args.no_markdown:
@@ -254,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"| {n} | {v} | {ms:.1f} | {fps:.1f} | {a:.3f} | {p:.2f} |"
                 for n, v, ms, fps, a, p in sweep
             ]
+        lines += point_lines
         lines += traj_lines(args.traj_json)
         update_markdown_section("frontend", "\n".join(lines))
     print(json.dumps(figures, indent=1, default=float))

@@ -33,6 +33,13 @@ from mogs_node.frontend.initialization import (
 )
 from mogs_node.frontend.keyframes import KeyframeParams, is_keyframe, omega_weight
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
+from mogs_node.frontend.track_points import (
+    KeyframePoints,
+    TrackHistory,
+    TrackPointsParams,
+    carry_forward,
+    keyframe_points,
+)
 from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
 from mogs_node.geometry import check_array, se3_inverse, so3_exp
 
@@ -50,6 +57,8 @@ class FrontendParams:
     tracker: TrackerParams = field(default_factory=TrackerParams)  # feature tracking
     estimator: EstimatorParams = field(default_factory=EstimatorParams)  # sliding window
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)  # keyframe policy, omega
+    points: TrackPointsParams = field(default_factory=TrackPointsParams)  # keyframes' sparse
+    # points from a second, denser tracker (the estimator's tracks are unchanged)
     init: InitParams = field(default_factory=InitParams)  # static / dynamic initialisation
     imu: ImuNoise = field(default_factory=ImuNoise)  # IMU noise densities and gravity
     ground: GroundParams = field(default_factory=GroundParams)  # road-plane distance (off unless
@@ -155,6 +164,13 @@ class Frontend:
             float
         )
         self.tracker = FeatureTracker(params.tracker, camera)
+        # the keyframes' sparse points come from their own, denser tracks: the estimator's
+        # tracker and window stay exactly as they are (docs/frontend.md, round 6)
+        self.point_tracker = (
+            FeatureTracker(params.points.tracker(), camera) if params.points.enabled else None
+        )
+        self._history = TrackHistory(params.points.history_frames)
+        self._last_points: tuple[NDArray, KeyframePoints] | None = None  # (T_world_cam, points)
         self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
         self._pim_params = make_params(params.imu)
         self.imu = _ImuBuffer()
@@ -298,6 +314,10 @@ class Frontend:
         R_pred = self._predicted_rotation(t_ns)
         tr = self.tracker.track(image, R_pred)
         t1 = time.perf_counter()
+        if self.point_tracker is not None:
+            dense = self.point_tracker.track(image, R_pred)
+            self._history.add(t_ns, dense.ids, dense.uv_px, self._undistorted_gray(image))
+        points_s = time.perf_counter() - t1  # dense tracks and the keyframe's points
         self.counters["frames"] += 1
         idx = self._frame_index
         self._frame_index += 1
@@ -355,9 +375,12 @@ class Frontend:
                 stats.update(st.stats)
                 stats["landmarks"] = float(st.n_landmarks)
                 T_wc, v = st.T_world_imu @ self.T_imu_cam, st.velocity_world_m_s
+                self._history.set_pose(t_ns, T_wc)
                 if make_kf:
                     self._last_kf = (t_ns, tr.ids, tr.uv_px)
+                    tk = time.perf_counter()
                     kf = self._make_keyframe(stamp_ns, image, T_wc)
+                    points_s += time.perf_counter() - tk
                 if p.ground.enabled:
                     tg = time.perf_counter()
                     self._measure_ground(image)
@@ -376,8 +399,9 @@ class Frontend:
             keyframe=kf,
             timings_ms={
                 "tracking": 1e3 * (t1 - t0),
-                "estimation": 1e3 * (t2 - t1 - ground_s),
+                "estimation": 1e3 * (t2 - t1 - ground_s - points_s),
                 "ground": 1e3 * ground_s,
+                "points": 1e3 * points_s,
             },
             stats=stats,
         )
@@ -387,6 +411,8 @@ class Frontend:
         self._dyn_init.reset()
         self._last_kf = None
         self._prev_gray = None
+        self._history.reset()  # the next initialisation starts a new world frame
+        self._last_points = None
         self._ground_ratios.clear()
 
     def _measure_ground(self, image: NDArray) -> None:
@@ -504,9 +530,37 @@ class Frontend:
                 float(np.linalg.norm(est.state().velocity_world_m_s)),
             )
 
+    def _undistorted_gray(self, image: NDArray) -> NDArray[np.uint8]:
+        """Grey image in the undistorted pinhole camera (the dense tracks' photometric check)."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        if self._undistort_maps is not None:
+            gray = cv2.remap(gray, *self._undistort_maps, cv2.INTER_LINEAR)
+        return gray
+
+    def _keyframe_points(self, T_world_cam: NDArray) -> KeyframePoints:
+        """The keyframe's sparse points: every well-triangulated dense track (with the window's
+        latest poses), or at standstill, when too few are fresh, the previous keyframe's points
+        moved over."""
+        if self.point_tracker is None:  # the estimator window's landmarks, as before round 6
+            lm = self.estimator.newest_landmarks()
+            w = omega_weight(lm.track_len, lm.reproj_err_px, self.params.keyframes)
+            return KeyframePoints(lm.track_ids, lm.uv_px, lm.xyz_cam_m, lm.cov_cam_m2, w)
+        for f in self.estimator.frames:
+            self._history.set_pose(f.t_ns, self.estimator.pose(f.seq) @ self.T_imu_cam)
+        pp = self.params.points
+        pts = keyframe_points(self._history, self.camera.pinhole, pp)
+        if len(pts) < pp.carry_min_points and self._last_points is not None:
+            T_world_prev, prev = self._last_points
+            T_cur_prev = se3_inverse(T_world_cam) @ T_world_prev
+            if np.linalg.norm(T_cur_prev[:3, 3]) < pp.carry_max_motion_m:  # standstill
+                moved = carry_forward(prev, T_cur_prev, self.camera.pinhole)
+                if len(moved) > len(pts):
+                    pts = moved
+        self._last_points = (T_world_cam.copy(), pts)
+        return pts
+
     def _make_keyframe(self, stamp_ns: int, image: NDArray, T_world_cam: NDArray) -> KeyframeOutput:
-        lm = self.estimator.newest_landmarks()
-        w = omega_weight(lm.track_len, lm.reproj_err_px, self.params.keyframes)
+        pts = self._keyframe_points(T_world_cam)
         img = np.asarray(image)
         if self._undistort_maps is not None:
             img = cv2.remap(img, *self._undistort_maps, cv2.INTER_LINEAR)
@@ -516,11 +570,11 @@ class Frontend:
             image=img,
             K=self.camera.K.copy(),
             T_world_cam=T_world_cam.copy(),
-            feature_ids=lm.track_ids,
-            feature_uv_px=lm.uv_px,
-            feature_xyz_cam_m=lm.xyz_cam_m,
-            feature_cov_cam_m2=lm.cov_cam_m2,
-            feature_weight=w,
+            feature_ids=pts.ids,
+            feature_uv_px=pts.uv_px,
+            feature_xyz_cam_m=pts.xyz_cam_m,
+            feature_cov_cam_m2=pts.cov_cam_m2,
+            feature_weight=pts.weight,
         )
         self._keyframe_id += 1
         self.counters["keyframes"] += 1

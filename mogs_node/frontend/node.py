@@ -29,6 +29,7 @@ from mogs_node.frontend.ground import GroundParams
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
 from mogs_node.frontend.preintegration import ImuNoise
+from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.frontend.tracker import TrackerParams
 from mogs_node.geometry import PinholeCamera
 from mogs_node.node import Node, parse_params
@@ -73,6 +74,8 @@ class FrontendNodeParams:
     tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
     estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
     keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
+    points: dict[str, Any] = field(default_factory=dict)  # TrackPointsParams fields: the
+    # keyframes' sparse points from the dense tracks (docs/frontend.md, round 6)
     init: dict[str, Any] = field(default_factory=dict)  # InitParams fields
     imu: dict[str, Any] = field(default_factory=dict)  # ImuNoise fields
     ground: dict[str, Any] = field(default_factory=dict)  # GroundParams fields: camera_height_m
@@ -93,6 +96,7 @@ class FrontendNodeParams:
             "tracker": parse_params(TrackerParams, self.tracker, where=f"{where}.tracker"),
             "estimator": parse_params(EstimatorParams, self.estimator, where=f"{where}.estimator"),
             "keyframes": parse_params(KeyframeParams, self.keyframes, where=f"{where}.keyframes"),
+            "points": parse_params(TrackPointsParams, self.points, where=f"{where}.points"),
             "init": parse_params(InitParams, self.init, where=f"{where}.init"),
             "imu": parse_params(ImuNoise, self.imu, where=f"{where}.imu"),
             "ground": parse_params(GroundParams, self.ground, where=f"{where}.ground"),

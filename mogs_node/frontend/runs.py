@@ -18,7 +18,14 @@ from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams
 from mogs_node.frontend.trajectory_io import write_kitti, write_tum
 from mogs_node.geometry import se3_inverse
 
-__all__ = ["RunResult", "load_dataset", "run_dataset", "run_frontend", "score_run"]
+__all__ = [
+    "RunResult",
+    "keyframe_point_figures",
+    "load_dataset",
+    "run_dataset",
+    "run_frontend",
+    "score_run",
+]
 
 log = logging.getLogger(__name__)
 
@@ -211,6 +218,61 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
         }
     )
     return out
+
+
+EDGE_JUMP = 0.10  # "on a depth edge": a 4-neighbour ground-truth depth jump above 10 % ...
+EDGE_RADIUS_PX = 2  # ... within 2 px of the point's pixel (sky counts as a jump)
+
+
+def keyframe_point_figures(
+    outputs: Iterable[FrameOutput],
+    depth_m_of: Callable[[int], NDArray],
+    speed_m_s_of: Callable[[int], float],
+    *,
+    min_speed_m_s: float = 0.5,
+) -> dict[str, float]:
+    """The keyframes' sparse points against ground truth (docs/frontend.md, round 6).
+
+    ``depth_m_of(stamp_ns)``: the true z-depth [H, W] of the frame (inf on sky);
+    ``speed_m_s_of(stamp_ns)``: the vehicle's speed, a keyframe faster than ``min_speed_m_s`` is
+    a moving one. Figures: the median point count per moving keyframe, the median relative depth
+    error at the points' pixels (pixels with a finite truth), and the share of points on a depth
+    edge (:data:`EDGE_JUMP` within :data:`EDGE_RADIUS_PX`), also weighted by omega."""
+    from mogs_node.eval.depth_sim import _depth_edge_free
+
+    counts, errors, on_edge, weights, n_kf, n_empty = [], [], [], [], 0, 0
+    for o in outputs:
+        kf = o.keyframe
+        if kf is None:
+            continue
+        n_kf += 1
+        n_empty += len(kf.feature_ids) == 0
+        depth = depth_m_of(kf.stamp_ns)
+        H, W = depth.shape
+        if speed_m_s_of(kf.stamp_ns) > min_speed_m_s:
+            counts.append(len(kf.feature_ids))
+        uv = np.clip(np.round(kf.feature_uv_px).astype(np.int64), 0, [W - 1, H - 1])
+        truth = depth[uv[:, 1], uv[:, 0]]
+        finite = np.isfinite(truth) & (truth > 0)
+        z = kf.feature_xyz_cam_m[:, 2].astype(np.float64)
+        errors.append(np.abs(z[finite] - truth[finite]) / truth[finite])
+        edge_free = _depth_edge_free(depth, EDGE_JUMP, EDGE_RADIUS_PX)
+        on_edge.append(~edge_free[uv[:, 1], uv[:, 0]])
+        weights.append(kf.feature_weight.astype(np.float64))
+    err = np.concatenate(errors) if errors else np.zeros(0)
+    edge = np.concatenate(on_edge) if on_edge else np.zeros(0, bool)
+    w = np.concatenate(weights) if weights else np.zeros(0)
+    return {
+        "points_per_keyframe_median": float(np.median(counts)) if counts else 0.0,
+        "points_rel_err_median": float(np.median(err)) if len(err) else float("nan"),
+        "points_on_edges_share": float(np.mean(edge)) if len(edge) else 0.0,
+        # the same share counted by omega: what a weighted consumer (the metrizer) sees
+        "points_on_edges_weight_share": float(w[edge].sum() / w.sum()) if w.sum() > 0 else 0.0,
+        "points_total": float(len(edge)),
+        "keyframes": float(n_kf),
+        "keyframes_moving": float(len(counts)),
+        "keyframes_without_points": float(n_empty),
+    }
 
 
 def run_dataset(

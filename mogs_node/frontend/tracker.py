@@ -33,17 +33,32 @@ class TrackerParams:
     win_size_px: int = 21  # KLT window side
     pyr_levels: int = 3  # KLT pyramid levels above the base image
     fb_max_err_px: float = 0.5  # forward-backward round trip error bound
+    fb_check: bool = True  # track back and check the round trip (False: half the KLT cost)
+    klt_max_iter: int = 30  # KLT iterations per pyramid level (also stops at 0.01 px steps)
+    top_up_below: float = 1.0  # new corners only when fewer than this share of max_features
+    top_up_every: int = 1  # look for new corners every this many frames
+    square_spacing: bool = False  # keep new corners out of squares (not discs) around tracks:
+    # one dilation instead of a disc per track (for many tracks)
     ransac_thresh_px: float = 1.0  # fundamental-matrix RANSAC threshold (undistorted px)
     ransac_min_flow_px: float = 0.5  # skip F-RANSAC when the median flow is below this (standstill)
     clahe: bool = False  # equalise contrast with CLAHE before tracking
     clahe_clip: float = 3.0  # CLAHE clip limit
     border_px: int = 2  # tracks closer than this to the border are dropped
+    bucket_cols: int = 0  # bucketing grid for new corners (0: none): a cell takes new corners
+    bucket_rows: int = 0  # only while it holds fewer than bucket_cap tracks, so that corners
+    bucket_cap: int = 0  # spread over the image instead of piling up on the strongest texture
 
     def __post_init__(self) -> None:
         if self.max_features < 8:
             raise ConfigError("tracker.max_features: must be >= 8")
         if self.min_distance_px < 1 or self.win_size_px < 5 or self.pyr_levels < 0:
             raise ConfigError("tracker: min_distance_px >= 1, win_size_px >= 5, pyr_levels >= 0")
+        if self.klt_max_iter < 1 or not 0 < self.top_up_below <= 1 or self.top_up_every < 1:
+            raise ConfigError(
+                "tracker: klt_max_iter >= 1, 0 < top_up_below <= 1, top_up_every >= 1"
+            )
+        if min(self.bucket_cols, self.bucket_rows, self.bucket_cap) < 0:
+            raise ConfigError("tracker: bucket_cols, bucket_rows, bucket_cap >= 0")
 
 
 @dataclass
@@ -76,11 +91,12 @@ class FeatureTracker:
         self._uv = np.zeros((0, 2), np.float32)
         self._len = np.zeros(0, np.int32)
         self._next_id = 0
+        self._frames = 0
         w = params.win_size_px
         self._lk = dict(
             winSize=(w, w),
             maxLevel=params.pyr_levels,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.klt_max_iter, 0.01),
         )
 
     def reset(self) -> None:
@@ -139,11 +155,19 @@ class FeatureTracker:
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                 **self._lk,
             )
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
-                img, self._prev_img, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
-            )
             p1 = p1.reshape(-1, 2)
-            fb = np.linalg.norm(p0b.reshape(-1, 2) - self._uv, axis=1)
+            if p.fb_check:
+                p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+                    img,
+                    self._prev_img,
+                    p1,
+                    p0.copy(),
+                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                    **self._lk,
+                )
+                fb = np.linalg.norm(p0b.reshape(-1, 2) - self._uv, axis=1)
+            else:
+                st2, fb = st1, np.zeros(len(p1))
             b = p.border_px
             inside = (p1[:, 0] >= b) & (p1[:, 0] < W - b) & (p1[:, 1] >= b) & (p1[:, 1] < H - b)
             keep = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_err_px) & inside
@@ -192,18 +216,29 @@ class FeatureTracker:
             sel = np.sort(first)
             ids, uv, tl = ids[sel], uv[sel], tl[sel]
         need = p.max_features - len(ids)
-        if need <= 0:
+        self._frames += 1
+        if (
+            need <= 0
+            or len(ids) >= p.top_up_below * p.max_features
+            or (self._frames - 1) % p.top_up_every
+        ):
             return ids, uv, tl
         mask = np.full((H, W), 255, np.uint8)
-        # Discs of radius d around the kept features (a few hundred small fills: much cheaper
-        # than dilating a full-size occupancy image with a (2d+1)^2 kernel).
-        for x, y in np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1]).tolist():
-            cv2.circle(mask, (x, y), d, 0, -1)
+        xy = np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1])
+        if p.square_spacing:
+            mask[xy[:, 1], xy[:, 0]] = 0
+            mask = cv2.erode(mask, np.ones((2 * d + 1, 2 * d + 1), np.uint8))
+        else:
+            # Discs of radius d around the kept features (a few hundred small fills: much
+            # cheaper than dilating a full-size occupancy image with a (2d+1)^2 disc kernel).
+            for x, y in xy.tolist():
+                cv2.circle(mask, (x, y), d, 0, -1)
         b = max(p.border_px, 1)
         mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = 0, 0, 0, 0
+        bucketed = p.bucket_cols > 0 and p.bucket_rows > 0 and p.bucket_cap > 0
         pts = cv2.goodFeaturesToTrack(
             img,
-            maxCorners=need,
+            maxCorners=3 * need if bucketed else need,
             qualityLevel=p.quality_level,
             minDistance=d,
             mask=mask,
@@ -212,6 +247,8 @@ class FeatureTracker:
         if pts is None:
             return ids, uv, tl
         pts = pts.reshape(-1, 2).astype(np.float32)
+        if bucketed:
+            pts = self._bucket(pts, uv, (H, W))[:need]
         new_ids = np.arange(self._next_id, self._next_id + len(pts), dtype=np.int64)
         self._next_id += len(pts)
         return (
@@ -219,3 +256,25 @@ class FeatureTracker:
             np.concatenate([uv, pts]),
             np.concatenate([tl, np.ones(len(pts), np.int32)]),
         )
+
+    def _bucket(
+        self, cand_px: NDArray, tracked_px: NDArray, shape: tuple[int, int]
+    ) -> NDArray[np.float32]:
+        """New corners ``cand_px`` [M, 2] (strongest first) that a grid cell accepts while it
+        holds fewer than ``bucket_cap`` tracks (``tracked_px`` [K, 2] counted), in their order."""
+        p = self.params
+        H, W = shape
+        n_cells = p.bucket_cols * p.bucket_rows
+
+        def cell(uv: NDArray) -> NDArray[np.int64]:
+            cx = np.clip((uv[:, 0] * p.bucket_cols / W).astype(np.int64), 0, p.bucket_cols - 1)
+            cy = np.clip((uv[:, 1] * p.bucket_rows / H).astype(np.int64), 0, p.bucket_rows - 1)
+            return cy * p.bucket_cols + cx
+
+        held = np.bincount(cell(tracked_px), minlength=n_cells)
+        c = cell(cand_px)
+        order = np.argsort(c, kind="stable")
+        first = np.searchsorted(c[order], c[order])  # start of each candidate's cell group
+        rank = np.empty(len(c), np.int64)
+        rank[order] = np.arange(len(c)) - first
+        return cand_px[rank + held[c] < p.bucket_cap]

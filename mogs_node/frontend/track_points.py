@@ -1,0 +1,524 @@
+"""Sparse metric points of a keyframe from the frontend's dense feature tracks (pure).
+
+Paper section IV-A: the sparse points are triangulated from several views by the linear (SVD)
+method and then refined by nonlinear least squares. Here every track of the dense tracker that is
+alive in the keyframe is triangulated from the frames it was seen in, with the frontend's own
+poses:
+
+1. :func:`triangulate_dlt`: the homogeneous linear system of all views (DLT), solved by SVD.
+2. :func:`refine_points`: Gauss-Newton on the reprojection error, in the keyframe's camera frame,
+   parametrised by inverse depth along the keyframe ray (well conditioned for far points),
+   vectorised over points. It returns the covariance from the Jacobian (poses held fixed).
+3. :func:`gate_points`: parallax angle, reprojection error, depth range, relative depth sigma;
+   the weight omega from the relative depth sigma.
+4. :func:`depth_edge_flags`: points that disagree with their image-space neighbours (a depth jump
+   between close pixels) are dropped: a point near a depth edge carries the wrong side's depth.
+5. :func:`carry_forward`: a keyframe with too few fresh points (standstill) takes the previous
+   keyframe's points moved into its camera frame.
+
+:class:`TrackHistory` keeps the observations and poses of the last frames. No I/O, no bus.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.tracker import TrackerParams
+from mogs_node.geometry import PinholeCamera, check_array, se3_inverse, transform_points
+
+__all__ = [
+    "KeyframePoints",
+    "RefinedPoints",
+    "TrackHistory",
+    "TrackPointsParams",
+    "TrackViews",
+    "carry_forward",
+    "depth_edge_flags",
+    "gate_points",
+    "keyframe_points",
+    "patch_zncc",
+    "refine_points",
+    "triangulate_dlt",
+]
+
+
+@dataclass(frozen=True)
+class TrackPointsParams:
+    """Dense tracks and the sparse points triangulated from them (docs/frontend.md, round 6)."""
+
+    enabled: bool = True  # publish the dense tracks' points (False: the estimator's landmarks)
+    max_tracks: int = 900  # dense tracks kept per frame (the estimator's tracker is separate)
+    min_distance_px: int = 5  # minimum distance between dense tracks (a square, not a disc)
+    quality_level: float = 0.001  # Shi-Tomasi quality relative to the best corner
+    win_size_px: int = 9  # KLT window of the dense tracker (small: cheap, local motion)
+    pyr_levels: int = 3  # KLT pyramid levels
+    fb_check: bool = False  # forward-backward check (True: twice the KLT cost; the multi-view
+    # reprojection gate catches the same drifting tracks)
+    klt_max_iter: int = 10  # KLT iterations per pyramid level
+    top_up_every: int = 2  # new corners every this many frames (corner search is half the cost)
+    bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
+    bucket_rows: int = 5
+    history_frames: int = 10  # frames of observations (and poses) a track is triangulated from
+    min_views: int = 3  # observations needed (the keyframe's included)
+    min_parallax_deg: float = 1.0  # largest ray angle between the keyframe and another view
+    max_reproj_px: float = 0.6  # largest reprojection error over the views after refinement
+    min_depth_m: float = 0.5  # depth range in the keyframe
+    max_depth_m: float = 100.0
+    pixel_sigma_px: float = 0.5  # KLT noise assumed for the covariance (at least the residual)
+    max_depth_rel_sigma: float = 0.05  # 1-sigma depth / depth above this: dropped
+    omega_rel_sigma: float = 0.02  # omega = 1 / (1 + (sigma_z / z / this)^2)
+    gn_iterations: int = 4  # Gauss-Newton iterations of the refinement
+    edge_radius_px: float = 8.0  # neighbours this close in the image are compared ...
+    edge_rel_jump: float = 0.1  # ... and a relative depth jump larger than this marks an edge
+    patch_radius_px: int = 3  # photometric check: (2r+1)^2 patch around the point in the
+    min_patch_zncc: float = 0.8  # keyframe against its oldest view, moved by the point's own
+    # depth: a patch straddling a depth edge does not match (ZNCC below this: dropped)
+    suspect_zncc: float = 0.95  # a point with a lower ZNCC ...
+    suspect_reproj_px: float = 0.3  # ... or a larger reprojection error ...
+    suspect_weight: float = 0.25  # ... keeps this share of its omega
+    carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward,
+    carry_max_motion_m: float = 0.25  # if the camera moved less than this since (standstill:
+    # moving on, occluders move over the old points and they no longer hold)
+
+    def __post_init__(self) -> None:
+        if self.max_tracks < 8 or self.history_frames < 2 or self.min_views < 2:
+            raise ConfigError("points: max_tracks >= 8, history_frames >= 2, min_views >= 2")
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise ConfigError("points: 0 < min_depth_m < max_depth_m")
+        if min(self.max_reproj_px, self.pixel_sigma_px, self.omega_rel_sigma) <= 0:
+            raise ConfigError("points: max_reproj_px, pixel_sigma_px, omega_rel_sigma > 0")
+        if not 0 < self.suspect_weight <= 1:
+            raise ConfigError("points: 0 < suspect_weight <= 1")
+        if self.bucket_cols < 0 or self.bucket_rows < 0 or self.gn_iterations < 0:
+            raise ConfigError("points: bucket_cols, bucket_rows, gn_iterations >= 0")
+
+    def tracker(self) -> TrackerParams:
+        """Parameters of the dense :class:`~mogs_node.frontend.tracker.FeatureTracker`."""
+        n_cells = max(self.bucket_cols * self.bucket_rows, 1)
+        return TrackerParams(
+            max_features=self.max_tracks,
+            min_distance_px=self.min_distance_px,
+            quality_level=self.quality_level,
+            win_size_px=self.win_size_px,
+            pyr_levels=self.pyr_levels,
+            fb_check=self.fb_check,
+            klt_max_iter=self.klt_max_iter,
+            top_up_every=self.top_up_every,
+            square_spacing=True,
+            bucket_cols=self.bucket_cols,
+            bucket_rows=self.bucket_rows,
+            bucket_cap=int(np.ceil(2.0 * self.max_tracks / n_cells)),
+        )
+
+
+@dataclass
+class RefinedPoints:
+    """Result of :func:`refine_points`; arrays share length ``N``."""
+
+    xyz_ref_m: NDArray[np.float64]  # [N, 3] point in the reference (keyframe) camera frame
+    cov_ref_m2: NDArray[np.float64]  # [N, 3, 3] its covariance (poses fixed)
+    depth_sigma_m: NDArray[np.float64]  # [N] 1-sigma of the depth z
+    reproj_max_px: NDArray[np.float64]  # [N] largest reprojection error over the views
+    reproj_rms_px: NDArray[np.float64]  # [N]
+    parallax_deg: NDArray[np.float64]  # [N] largest angle between the reference ray and another
+    n_views: NDArray[np.int64]  # [N] observations used
+    in_front: NDArray[np.bool_]  # [N] in front of every camera that saw it
+
+
+@dataclass
+class KeyframePoints:
+    """Sparse points of one keyframe in its camera frame; arrays share length ``N``."""
+
+    ids: NDArray[np.int64]  # [N] dense track ids
+    uv_px: NDArray[np.float32]  # [N, 2] undistorted pixel in the keyframe
+    xyz_cam_m: NDArray[np.float32]  # [N, 3]
+    cov_cam_m2: NDArray[np.float32]  # [N, 3, 3]
+    weight: NDArray[np.float32]  # [N] omega in (0, 1]
+    carried: bool = False  # True: moved over from the previous keyframe (standstill)
+
+    @classmethod
+    def empty(cls) -> KeyframePoints:
+        return cls(
+            np.zeros(0, np.int64),
+            np.zeros((0, 2), np.float32),
+            np.zeros((0, 3), np.float32),
+            np.zeros((0, 3, 3), np.float32),
+            np.zeros(0, np.float32),
+        )
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def _check_views(uv_px: NDArray, T_ref_cams: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    uv = check_array("uv_px", uv_px, shape=(None, None, 2), dtype=np.number).astype(np.float64)
+    T = check_array("T_ref_cams", T_ref_cams, shape=(uv.shape[1], 4, 4), finite=True)
+    valid = np.all(np.isfinite(uv), axis=2)  # [N, F]
+    return uv, se3_inverse(T.astype(np.float64)), valid
+
+
+def triangulate_dlt(
+    uv_px: NDArray, T_ref_cams: NDArray, camera: PinholeCamera
+) -> NDArray[np.float64]:
+    """Linear multi-view triangulation (DLT, solved by SVD; paper IV-A), vectorised over points.
+
+    ``uv_px`` [N, F, 2]: undistorted pixels of N tracks in F views, NaN where a view did not see
+    the track; ``T_ref_cams`` [F, 4, 4]: each view's camera pose in the reference frame. Returns the
+    points [N, 3] in the reference frame; NaN for tracks with fewer than 2 views or at infinity.
+    """
+    uv, T_cam_ref, valid = _check_views(uv_px, T_ref_cams)
+    N, F = valid.shape
+    x = (np.nan_to_num(uv[..., 0]) - camera.cx_px) / camera.fx_px  # [N, F]
+    y = (np.nan_to_num(uv[..., 1]) - camera.cy_px) / camera.fy_px
+    P = T_cam_ref[:, :3, :]  # [F, 3, 4]
+    rows = np.stack(
+        [
+            x[..., None] * P[None, :, 2] - P[None, :, 0],
+            y[..., None] * P[None, :, 2] - P[None, :, 1],
+        ],
+        axis=2,
+    )  # [N, F, 2, 4]
+    rows *= valid[..., None, None]
+    norms = np.linalg.norm(rows, axis=-1, keepdims=True)
+    rows = rows / np.where(norms > 0, norms, 1.0)
+    A = rows.reshape(N, 2 * F, 4)
+    out = np.full((N, 3), np.nan)
+    ok = valid.sum(axis=1) >= 2
+    if not np.any(ok):
+        return out
+    _, _, Vt = np.linalg.svd(A[ok])
+    Xh = Vt[:, -1, :]  # [M, 4]
+    w = Xh[:, 3]
+    finite = np.abs(w) > 1e-9 * np.linalg.norm(Xh, axis=1)
+    pts = np.full((len(Xh), 3), np.nan)
+    pts[finite] = Xh[finite, :3] / w[finite, None]
+    out[ok] = pts
+    return out
+
+
+def refine_points(
+    uv_px: NDArray,
+    T_ref_cams: NDArray,
+    camera: PinholeCamera,
+    xyz_ref_init_m: NDArray,
+    *,
+    iterations: int = 4,
+    pixel_sigma_px: float = 0.5,
+) -> RefinedPoints:
+    """Gauss-Newton refinement of the reprojection error (paper IV-A), vectorised over points.
+
+    Parameters per point: ``(a, b, rho)`` with the point ``(a, b, 1) / rho`` in the reference
+    frame (inverse depth along a ray), so that a view's projection is that of
+    ``R_cam_ref (a, b, 1) + t_cam_ref rho``: finite as ``rho -> 0``. ``uv_px`` [N, F, 2] (NaN:
+    unseen) and ``T_ref_cams`` [F, 4, 4] as in :func:`triangulate_dlt`; ``xyz_ref_init_m`` [N, 3]
+    the start (NaN or ``z <= 0``: the point comes back NaN). The covariance is
+    ``s^2 (J^T J)^-1`` with ``s = max(pixel_sigma_px, RMS residual)``, mapped to ``xyz``.
+    """
+    uv, T_cam_ref, valid = _check_views(uv_px, T_ref_cams)
+    X0 = check_array("xyz_ref_init_m", xyz_ref_init_m, shape=(len(uv), 3)).astype(np.float64)
+    N, n_f = uv.shape[:2]
+    usable = np.all(np.isfinite(X0), axis=1) & (X0[:, 2] > 0) & (valid.sum(axis=1) >= 2)
+    z0 = np.where(usable, X0[:, 2], 1.0)
+    theta = np.stack([X0[:, 0] / z0, X0[:, 1] / z0, 1.0 / z0], axis=1)  # [N, 3]
+    theta[~usable] = (0.0, 0.0, 1.0)
+    R, t = T_cam_ref[:, :3, :3], T_cam_ref[:, :3, 3]  # [F, 3, 3], [F, 3]
+    obs = np.where(valid[..., None], uv, 0.0)
+    f = np.array([camera.fx_px, camera.fy_px])
+    c = np.array([camera.cx_px, camera.cy_px])
+    W = valid.astype(np.float64)
+
+    M = np.concatenate([R[:, :, :2], t[:, :, None]], axis=2)  # [F, 3, 3]: dq / d(a, b, rho)
+    q0 = R[:, :, 2][None]  # [1, F, 3]
+
+    def linearise(th: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        q = np.einsum("fij,nj->nfi", M, th) + q0  # [N, F, 3]
+        qz = np.where(np.abs(q[..., 2]) > 1e-12, q[..., 2], 1e-12)
+        xy = q[..., :2] / qz[..., None]  # [N, F, 2]
+        r = (f * xy + c - obs) * W[..., None]  # [N, F, 2]
+        J = (f[:, None] * (W / qz)[..., None, None]) * (
+            M[None, :, :2, :] - xy[..., None] * M[None, :, 2:3, :]
+        )  # [N, F, 2, 3]
+        return r.reshape(N, 2 * n_f), J.reshape(N, 2 * n_f, 3), q[..., 2]
+
+    for _ in range(iterations):
+        r, J, _ = linearise(theta)
+        Jt = np.swapaxes(J, 1, 2)
+        H = Jt @ J
+        g = (Jt @ r[..., None])[..., 0]
+        H += np.eye(3) * (1e-9 + 1e-6 * np.trace(H, axis1=1, axis2=2))[:, None, None]
+        step = -np.linalg.solve(H, g[..., None])[..., 0]
+        theta = theta + np.where(np.all(np.isfinite(step), axis=1, keepdims=True), step, 0.0)
+    r, J, qz = linearise(theta)
+    err = np.linalg.norm(r.reshape(N, n_f, 2), axis=2)  # [N, F]
+    n_views = valid.sum(axis=1)
+    rms = np.sqrt((err**2).sum(axis=1) / np.maximum(n_views, 1))
+    H = np.swapaxes(J, 1, 2) @ J
+    H += np.eye(3) * (1e-12 + 1e-9 * np.trace(H, axis1=1, axis2=2))[:, None, None]
+    s = np.maximum(pixel_sigma_px, rms)
+    cov_theta = np.linalg.inv(H) * (s**2)[:, None, None]
+    a, b, rho = theta.T
+    rho_ok = rho > 1e-12
+    rs = np.where(rho_ok, rho, 1.0)
+    xyz = np.stack([a / rs, b / rs, 1.0 / rs], axis=1)
+    D = np.zeros((N, 3, 3))  # d xyz / d (a, b, rho)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0 / rs
+    D[:, :, 2] = -xyz / rs[:, None]
+    cov = D @ cov_theta @ np.swapaxes(D, 1, 2)
+    centres = se3_inverse(T_cam_ref)[:, :3, 3]  # [F, 3] view centres in the reference frame
+    rays = xyz[:, None, :] - centres[None]  # [N, F, 3]
+    cosang = np.einsum("nfi,ni->nf", rays, xyz) / np.maximum(
+        np.linalg.norm(rays, axis=2) * np.linalg.norm(xyz, axis=1)[:, None], 1e-300
+    )
+    parallax = np.degrees(np.arccos(np.clip(np.where(valid, cosang, 1.0), -1.0, 1.0))).max(axis=1)
+    in_front = np.all((qz > 0) | ~valid, axis=1) & rho_ok
+    bad = ~usable | ~np.all(np.isfinite(xyz), axis=1)
+    xyz[bad] = np.nan
+    cov[bad] = np.nan
+    return RefinedPoints(
+        xyz_ref_m=xyz,
+        cov_ref_m2=cov,
+        depth_sigma_m=np.sqrt(np.maximum(cov[:, 2, 2], 0.0)),
+        reproj_max_px=np.where(bad, np.inf, np.where(valid, err, 0.0).max(axis=1)),
+        reproj_rms_px=np.where(bad, np.inf, rms),
+        parallax_deg=np.where(bad, 0.0, parallax),
+        n_views=n_views.astype(np.int64),
+        in_front=in_front & ~bad,
+    )
+
+
+def gate_points(
+    pts: RefinedPoints, params: TrackPointsParams
+) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
+    """Well-triangulated points: enough views, parallax, reprojection error, depth range, relative
+    depth sigma. Returns the mask [N] and omega [N] ``= 1 / (1 + (sigma_z / z / s0)^2)``."""
+    z = pts.xyz_ref_m[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = pts.depth_sigma_m / z
+        keep = (
+            pts.in_front
+            & (pts.n_views >= params.min_views)
+            & (pts.parallax_deg >= params.min_parallax_deg)
+            & (pts.reproj_max_px <= params.max_reproj_px)
+            & (z >= params.min_depth_m)
+            & (z <= params.max_depth_m)
+            & (rel <= params.max_depth_rel_sigma)
+        )
+        omega = 1.0 / (1.0 + (rel / params.omega_rel_sigma) ** 2)
+    keep &= np.isfinite(omega)
+    return keep, np.where(keep, omega, 0.0).astype(np.float32)
+
+
+def depth_edge_flags(
+    uv_px: NDArray, depth_m: NDArray, *, radius_px: float, rel_jump: float
+) -> NDArray[np.bool_]:
+    """Points [N] with an image-space neighbour within ``radius_px`` whose depth differs by more
+    than ``rel_jump`` (relative): the two sides of a depth edge, where a corner's depth is
+    ambiguous. ``uv_px`` [N, 2], ``depth_m`` [N] (> 0)."""
+    uv = check_array("uv_px", uv_px, shape=(None, 2), dtype=np.number)
+    z = check_array("depth_m", depth_m, shape=(len(uv),), dtype=np.number)
+    flags = np.zeros(len(uv), bool)
+    if len(uv) < 2:
+        return flags
+    pairs = cKDTree(uv).query_pairs(radius_px, output_type="ndarray")
+    if len(pairs) == 0:
+        return flags
+    za, zb = z[pairs[:, 0]], z[pairs[:, 1]]
+    jump = np.abs(np.log(za / zb)) > np.log1p(rel_jump)
+    flags[pairs[jump, 0]] = True
+    flags[pairs[jump, 1]] = True
+    return flags
+
+
+def patch_zncc(
+    image_ref: NDArray,
+    uv_ref_px: NDArray,
+    image_view: NDArray,
+    uv_view_px: NDArray,
+    scale: NDArray,
+    radius_px: int,
+) -> NDArray[np.float64]:
+    """Zero-mean normalised cross-correlation [N] of a ``(2r+1)^2`` patch around each point in
+    the reference image with the patch around its observation in another view, sampled at
+    ``scale`` [N] times the offsets (a fronto-parallel patch at the point's depth: ``z_ref /
+    z_view``). Images are [H, W] grey; pixels [N, 2]. A patch with no texture gives 0."""
+    uv_r = check_array("uv_ref_px", uv_ref_px, shape=(None, 2)).astype(np.float32)
+    uv_v = check_array("uv_view_px", uv_view_px, shape=(len(uv_r), 2)).astype(np.float32)
+    s = check_array("scale", scale, shape=(len(uv_r),)).astype(np.float32)
+    if len(uv_r) == 0:
+        return np.zeros(0)
+    o = np.arange(-radius_px, radius_px + 1, dtype=np.float32)
+    ox, oy = np.meshgrid(o, o)
+    ox, oy = ox.ravel()[None], oy.ravel()[None]  # [1, P]
+
+    def sample(img: NDArray, uv: NDArray, k: NDArray) -> NDArray:
+        mx = (uv[:, :1] + k[:, None] * ox).astype(np.float32)
+        my = (uv[:, 1:] + k[:, None] * oy).astype(np.float32)
+        return cv2.remap(
+            img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        ).astype(np.float64)
+
+    a = sample(image_ref, uv_r, np.ones_like(s))
+    b = sample(image_view, uv_v, np.where(np.isfinite(s), s, 1.0))
+    a -= a.mean(axis=1, keepdims=True)
+    b -= b.mean(axis=1, keepdims=True)
+    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    return np.where(den > 1e-6, (a * b).sum(axis=1) / np.maximum(den, 1e-6), 0.0)
+
+
+def carry_forward(
+    prev: KeyframePoints, T_cur_prev: NDArray, camera: PinholeCamera
+) -> KeyframePoints:
+    """The previous keyframe's points moved into the current camera (standstill keyframes).
+
+    ``T_cur_prev`` [4, 4]: the previous camera's pose in the current camera frame. Points that
+    leave the image or fall behind the camera are dropped; covariances are rotated.
+    """
+    T = check_array("T_cur_prev", T_cur_prev, shape=(4, 4), finite=True).astype(np.float64)
+    xyz = transform_points(T, prev.xyz_cam_m.astype(np.float64))
+    uv, front = camera.project(xyz)
+    keep = front & camera.in_image(uv)
+    R = T[:3, :3]
+    cov = R[None] @ prev.cov_cam_m2[keep].astype(np.float64) @ R.T[None]
+    return KeyframePoints(
+        ids=prev.ids[keep],
+        uv_px=uv[keep].astype(np.float32),
+        xyz_cam_m=xyz[keep].astype(np.float32),
+        cov_cam_m2=cov.astype(np.float32),
+        weight=prev.weight[keep],
+        carried=True,
+    )
+
+
+@dataclass
+class TrackViews:
+    """The newest frame's tracks over the kept frames with a pose (the newest frame last)."""
+
+    ids: NDArray[np.int64]  # [N] track ids
+    uv_px: NDArray[np.float64]  # [N, F, 2] undistorted pixels, NaN where not seen
+    T_world_cams: NDArray[np.float64]  # [F, 4, 4]
+    images: list[NDArray[np.uint8] | None]  # [F] grey images ([H, W]) where kept
+    t_ns: int  # stamp of the newest frame
+
+
+class TrackHistory:
+    """Dense-track observations, grey images and camera poses of the last ``max_frames`` frames."""
+
+    def __init__(self, max_frames: int) -> None:
+        self._frames: deque[tuple[int, NDArray, NDArray, NDArray | None]] = deque(maxlen=max_frames)
+        self._poses: dict[int, NDArray] = {}
+
+    def reset(self) -> None:
+        self._frames.clear()
+        self._poses.clear()
+
+    def add(
+        self, t_ns: int, ids: NDArray, uv_px: NDArray, image: NDArray[np.uint8] | None = None
+    ) -> None:
+        """Observations of frame ``t_ns``: track ids [M], undistorted pixels [M, 2] and the
+        (undistorted) grey image [H, W] for the photometric check (None: no check)."""
+        order = np.argsort(ids, kind="stable")
+        self._frames.append((int(t_ns), np.asarray(ids)[order], np.asarray(uv_px)[order], image))
+        kept = {fr[0] for fr in self._frames}
+        self._poses = {t: T for t, T in self._poses.items() if t in kept}
+
+    def set_pose(self, t_ns: int, T_world_cam: NDArray) -> None:
+        """Latest estimate of the camera pose [4, 4] of frame ``t_ns`` (ignored if not kept)."""
+        if any(fr[0] == t_ns for fr in self._frames):
+            self._poses[int(t_ns)] = np.asarray(T_world_cam, np.float64)
+
+    def views(self) -> TrackViews | None:
+        """The newest frame's tracks in every kept frame with a pose (None: the newest frame
+        has no pose yet)."""
+        if not self._frames or self._frames[-1][0] not in self._poses:
+            return None
+        frames = [fr for fr in self._frames if fr[0] in self._poses]
+        ids = frames[-1][1]
+        uv = np.full((len(ids), len(frames), 2), np.nan)
+        for f, (_, fids, fuv, _) in enumerate(frames):  # over <= max_frames frames
+            if len(fids) == 0:
+                continue
+            pos = np.clip(np.searchsorted(fids, ids), 0, len(fids) - 1)
+            hit = fids[pos] == ids
+            uv[hit, f] = fuv[pos[hit]]
+        T = np.stack([self._poses[fr[0]] for fr in frames])
+        return TrackViews(ids, uv, T, [fr[3] for fr in frames], frames[-1][0])
+
+
+def _patch_scores(
+    views: TrackViews,
+    uv: NDArray,
+    xyz_ref_m: NDArray,
+    T_ref_cams: NDArray,
+    params: TrackPointsParams,
+) -> NDArray[np.float64]:
+    """ZNCC [N] of each point's keyframe patch with its oldest view's (:func:`patch_zncc`);
+    1 where there is no image to compare."""
+    score = np.ones(len(uv))
+    img_ref = views.images[-1]
+    if img_ref is None:
+        return score
+    oldest = np.argmax(np.isfinite(uv[..., 0]), axis=1)  # first view that saw each point
+    T_cam_ref = se3_inverse(T_ref_cams)
+    for f in np.unique(oldest).tolist():  # over <= history_frames views
+        img = views.images[f]
+        sel = np.flatnonzero(oldest == f)
+        if img is None or f == len(views.images) - 1:
+            continue
+        z_view = transform_points(T_cam_ref[f], xyz_ref_m[sel])[:, 2]
+        scale = xyz_ref_m[sel, 2] / np.maximum(z_view, 1e-9)
+        score[sel] = patch_zncc(
+            img_ref, uv[sel, -1], img, uv[sel, f], scale, params.patch_radius_px
+        )
+    return score
+
+
+def keyframe_points(
+    history: TrackHistory, camera: PinholeCamera, params: TrackPointsParams
+) -> KeyframePoints:
+    """Every well-triangulated dense track of the newest frame (the keyframe), in its camera:
+    DLT + Gauss-Newton (paper IV-A), the gates of :func:`gate_points`, then the depth-edge tests
+    (photometric patch check, neighbour depth jumps)."""
+    views = history.views()
+    if views is None or views.uv_px.shape[1] < 2:
+        return KeyframePoints.empty()
+    T_ref_cams = se3_inverse(views.T_world_cams[-1])[None] @ views.T_world_cams  # [F, 4, 4]
+    enough = np.isfinite(views.uv_px[..., 0]).sum(axis=1) >= params.min_views
+    ids, uv = views.ids[enough], views.uv_px[enough]
+    X0 = triangulate_dlt(uv, T_ref_cams, camera)
+    pts = refine_points(
+        uv,
+        T_ref_cams,
+        camera,
+        X0,
+        iterations=params.gn_iterations,
+        pixel_sigma_px=params.pixel_sigma_px,
+    )
+    keep, omega = gate_points(pts, params)
+    idx = np.flatnonzero(keep)
+    zncc = np.ones(len(ids))
+    zncc[idx] = _patch_scores(views, uv[idx], pts.xyz_ref_m[idx], T_ref_cams, params)
+    keep &= zncc >= params.min_patch_zncc
+    # close to the gates: kept, but weighed down (a point by a depth edge often lands here)
+    suspect = (zncc < params.suspect_zncc) | (pts.reproj_max_px > params.suspect_reproj_px)
+    omega = np.where(suspect, params.suspect_weight * omega, omega).astype(np.float32)
+    idx = np.flatnonzero(keep)
+    keep[idx] = ~depth_edge_flags(
+        uv[idx, -1],
+        pts.xyz_ref_m[idx, 2],
+        radius_px=params.edge_radius_px,
+        rel_jump=params.edge_rel_jump,
+    )
+    return KeyframePoints(
+        ids=ids[keep].astype(np.int64),
+        uv_px=uv[keep, -1].astype(np.float32),
+        xyz_cam_m=pts.xyz_ref_m[keep].astype(np.float32),
+        cov_cam_m2=pts.cov_ref_m2[keep].astype(np.float32),
+        weight=omega[keep],
+    )

@@ -1,0 +1,105 @@
+"""The keyframes' sparse points on the demo's sim drive, against ground truth (docs/frontend.md,
+round 6), and the estimator unchanged by them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.keyframes import KeyframeParams
+from mogs_node.frontend.runs import keyframe_point_figures, run_frontend
+from mogs_node.sim import SimConfig, make_sequence
+
+# launch/demo.yaml's drive and keyframe policy
+DEMO = SimConfig(seed=0, n_frames=60, width=621, height=188, static_start_s=2.0)
+DEMO_KEYFRAMES = KeyframeParams(min_parallax_px=20.0, max_interval_s=1.0)
+SHORT = dataclasses.replace(DEMO, n_frames=36, static_start_s=1.2)  # the default suite's drive
+
+
+def _runs(config: SimConfig):
+    """The frontend with and without the dense points on ``config``'s drive, and the points'
+    figures against ground truth."""
+    seq = make_sequence(config)
+    frames = [seq.render(i) for i in range(config.n_frames)]
+    runs = {}
+    for enabled in (True, False):
+        base = FrontendParams(keyframes=DEMO_KEYFRAMES)
+        params = dataclasses.replace(base, points=dataclasses.replace(base.points, enabled=enabled))
+        fe = Frontend(params, CameraModel(seq.camera), seq.T_imu_cam)
+        runs[enabled] = run_frontend(
+            fe,
+            seq.stamps_ns,
+            [f.rgb for f in frames],
+            seq.imu_stamps_ns,
+            seq.imu_gyro_rad_s,
+            seq.imu_accel_m_s2,
+        )
+    index = {int(t): i for i, t in enumerate(seq.stamps_ns)}
+    speed = np.linalg.norm(seq.velocity_world_m_s, axis=1)
+    figures = {
+        k: keyframe_point_figures(
+            outs, lambda t: frames[index[t]].depth_m, lambda t: float(speed[index[t]])
+        )
+        for k, outs in runs.items()
+    }
+    return runs, figures
+
+
+@pytest.fixture(scope="module")
+def short_runs():
+    return _runs(SHORT)
+
+
+@pytest.fixture(scope="module")
+def demo_runs():
+    return _runs(DEMO)
+
+
+def test_the_estimator_is_unchanged_by_the_points(short_runs):
+    runs, fig = short_runs
+    with_points, without = runs[True], runs[False]
+    assert [o.stamp_ns for o in with_points] == [o.stamp_ns for o in without]
+    assert [o.status for o in with_points] == [o.status for o in without]
+    for a, b in zip(with_points, without, strict=True):
+        if a.T_world_cam is None:
+            assert b.T_world_cam is None
+        else:
+            np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+    kf_a = [o.stamp_ns for o in with_points if o.keyframe is not None]
+    assert kf_a == [o.stamp_ns for o in without if o.keyframe is not None]
+    assert fig[True]["points_rel_err_median"] <= 0.03
+    assert fig[True]["points_per_keyframe_median"] > fig[False]["points_per_keyframe_median"]
+
+
+@pytest.mark.slow
+def test_demo_drive_points_against_ground_truth(demo_runs):
+    """Measured on this drive (docs/frontend.md, round 6): median 115 points per moving keyframe
+    (the estimator's landmarks: 28), 1.2 % median relative depth error, 12 % of the points on a
+    depth edge (the landmarks: 35 %). The issue's goals (300 points, 2 % on edges) are not met
+    on this drive: the bounds below hold the measured figures with a margin."""
+    _, fig = demo_runs
+    new, old = fig[True], fig[False]
+    assert new["points_rel_err_median"] <= 0.03
+    assert new["points_per_keyframe_median"] >= 100
+    assert new["points_per_keyframe_median"] >= 1.8 * old["points_per_keyframe_median"]
+    assert new["points_on_edges_share"] <= 0.15
+    assert new["points_on_edges_share"] <= 0.5 * old["points_on_edges_share"]
+
+
+def test_no_keyframe_is_empty_once_the_vehicle_has_moved(short_runs):
+    runs, _ = short_runs
+    counts = [len(o.keyframe.feature_ids) for o in runs[True] if o.keyframe is not None]
+    first = next(i for i, n in enumerate(counts) if n > 0)
+    assert all(n > 0 for n in counts[first:])
+    for o in runs[True]:
+        kf = o.keyframe
+        if kf is not None and len(kf.feature_ids):
+            assert np.all(np.isfinite(kf.feature_xyz_cam_m)) and np.all(
+                kf.feature_xyz_cam_m[:, 2] > 0
+            )
+            assert np.all((kf.feature_weight > 0) & (kf.feature_weight <= 1))
+            assert len(np.unique(kf.feature_ids)) == len(kf.feature_ids)

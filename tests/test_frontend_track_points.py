@@ -1,0 +1,288 @@
+"""Sparse keyframe points from the dense tracks: triangulation (DLT + Gauss-Newton), gates,
+depth-edge tests, carry-forward at standstill (mogs_node/frontend/track_points.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mogs_node.errors import ConfigError, ShapeError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.track_points import (
+    KeyframePoints,
+    TrackHistory,
+    TrackPointsParams,
+    carry_forward,
+    depth_edge_flags,
+    gate_points,
+    keyframe_points,
+    patch_zncc,
+    refine_points,
+    triangulate_dlt,
+)
+from mogs_node.frontend.tracker import FeatureTracker
+from mogs_node.geometry import PinholeCamera, make_T, se3_inverse, so3_exp, transform_points
+
+CAM = PinholeCamera(360.77, 361.73, 304.53, 86.41, 621, 188)
+
+
+def _poses(n_views: int, step_m: float = 1.0, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Camera poses in the reference (last view) frame: driving forward with a little sway."""
+    rng = rng or np.random.default_rng(0)
+    T = []
+    for k in range(n_views):
+        back = n_views - 1 - k
+        R = so3_exp(rng.normal(0, 0.01, 3)) if k < n_views - 1 else np.eye(3)
+        t = step_m * np.array([0.2 * np.sin(back), 0.05 * back, -back])
+        T.append(make_T(R, t))
+    return np.stack(T)
+
+
+def _project(points_ref: np.ndarray, T_ref_cams: np.ndarray) -> np.ndarray:
+    uv = np.full((len(points_ref), len(T_ref_cams), 2), np.nan)
+    for f, T in enumerate(T_ref_cams):
+        pc = transform_points(se3_inverse(T), points_ref)
+        uv[:, f], front = CAM.project(pc)
+        uv[~front, f] = np.nan
+    return uv
+
+
+def _scene(n: int, rng: np.random.Generator, z_range=(4.0, 40.0)) -> np.ndarray:
+    z = rng.uniform(*z_range, n)
+    uv = np.stack([rng.uniform(20, 600, n), rng.uniform(10, 178, n)], 1)
+    return CAM.backproject(uv, z)
+
+
+def test_noise_free_multi_view_points_are_recovered_exactly():
+    rng = np.random.default_rng(1)
+    X = _scene(200, rng)
+    T = _poses(6, rng=rng)
+    uv = _project(X, T)
+    X0 = triangulate_dlt(uv, T, CAM)
+    np.testing.assert_allclose(X0, X, rtol=1e-7)
+    pts = refine_points(uv, T, CAM, X0 * 1.05)  # refinement from a 5 % wrong start
+    np.testing.assert_allclose(pts.xyz_ref_m, X, rtol=1e-7)
+    assert np.all(pts.reproj_max_px < 1e-6)
+    assert np.all(pts.n_views == 6) and np.all(pts.in_front)
+    params = TrackPointsParams()
+    keep, omega = gate_points(pts, params)
+    assert keep.mean() > 0.7 and np.all((omega[keep] > 0) & (omega[keep] <= 1))
+    # what is dropped is dropped for its geometry: too little parallax or too uncertain a depth
+    rel = pts.depth_sigma_m / pts.xyz_ref_m[:, 2]
+    weak = (pts.parallax_deg < params.min_parallax_deg) | (rel > params.max_depth_rel_sigma)
+    np.testing.assert_array_equal(keep, ~weak)
+
+
+def test_noisy_points_have_percent_level_error_and_a_covariance_that_matches_it():
+    rng = np.random.default_rng(2)
+    X = _scene(400, rng, (5.0, 25.0))
+    T = _poses(8, rng=rng)
+    uv = _project(X, T) + rng.normal(0, 0.3, (400, 8, 2))
+    pts = refine_points(uv, T, CAM, triangulate_dlt(uv, T, CAM), pixel_sigma_px=0.3)
+    keep, _ = gate_points(pts, TrackPointsParams())
+    rel = np.abs(pts.xyz_ref_m[keep, 2] - X[keep, 2]) / X[keep, 2]
+    assert keep.mean() > 0.5
+    assert np.median(rel) < 0.01
+    # the depth sigma from the Jacobian describes the actual errors (normalised spread ~ 1)
+    zscore = (pts.xyz_ref_m[keep, 2] - X[keep, 2]) / pts.depth_sigma_m[keep]
+    assert 0.6 < np.std(zscore) < 1.6
+
+
+def test_low_parallax_points_are_gated_out():
+    rng = np.random.default_rng(3)
+    near = _scene(50, rng, (5.0, 10.0))
+    far = _scene(50, rng, (5000.0, 9000.0))  # 5 m of baseline: < 0.06 degrees
+    T = _poses(6, rng=rng)
+    X = np.concatenate([near, far])
+    uv = _project(X, T)
+    pts = refine_points(uv, T, CAM, triangulate_dlt(uv, T, CAM))
+    keep, omega = gate_points(pts, TrackPointsParams(max_depth_m=1e5))
+    assert keep[:50].mean() >= 0.9  # (a few near the epipole have too little parallax)
+    assert not keep[50:].any() and np.all(omega[50:] == 0)
+    assert np.all(pts.parallax_deg[50:] < 0.1)
+
+
+def test_a_track_that_slides_along_an_occluding_edge_is_rejected_by_its_reprojection_error():
+    rng = np.random.default_rng(4)
+    X = _scene(20, rng, (8.0, 12.0))
+    T = _poses(6, rng=rng)
+    uv = _project(X, T)
+    uv[:5, :3, 0] += np.array([6.0, 4.0, 2.0])  # a T-junction drifts along the edge
+    pts = refine_points(uv, T, CAM, triangulate_dlt(uv, T, CAM))
+    keep, _ = gate_points(pts, TrackPointsParams())
+    assert not keep[:5].any() and keep[5:].mean() >= 0.8
+    assert np.all(pts.reproj_max_px[:5] > 1.0)
+
+
+def test_depth_edge_flags_mark_both_sides_of_a_depth_jump_only():
+    # a fronto-parallel wall at 10 m (u < 300) next to one at 20 m (u >= 300), points every 6 px
+    u, v = np.meshgrid(np.arange(200, 400, 6.0), np.arange(40, 140, 6.0))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    z = np.where(uv[:, 0] < 300, 10.0, 20.0)
+    flags = depth_edge_flags(uv, z, radius_px=8.0, rel_jump=0.1)
+    near_edge = np.abs(uv[:, 0] - 299) <= 8
+    assert flags[near_edge & (uv[:, 0] < 300)].all() and flags[near_edge & (uv[:, 0] >= 300)].all()
+    np.testing.assert_array_equal(flags[~near_edge], False)
+    # a smooth slope (3 % between neighbours) is no edge
+    assert not depth_edge_flags(uv, 10.0 * 1.03 ** (uv[:, 0] / 6), radius_px=8, rel_jump=0.1).any()
+
+
+def test_patch_check_rejects_a_patch_across_a_depth_edge():
+    rng = np.random.default_rng(5)
+    fg = rng.integers(0, 255, (188, 621)).astype(np.uint8)
+    bg = rng.integers(0, 255, (188, 621)).astype(np.uint8)
+    # reference: foreground texture left of u = 300; the other view: foreground moved 6 px left,
+    # background moved 1 px left (a depth edge between them)
+    ref = np.where(np.arange(621)[None] < 300, fg, bg)
+    view = np.where(np.arange(621)[None] < 294, np.roll(fg, -6, 1), np.roll(bg, -1, 1))
+    uv_ref = np.array([[250.0, 90.0], [299.0, 90.0], [300.0, 60.0]])
+    uv_view = uv_ref - [6.0, 0.0]  # all tracked with the foreground's motion
+    z = patch_zncc(ref, uv_ref, view, uv_view, np.ones(3), 3)
+    assert z[0] > 0.99
+    assert z[1] < 0.8 and z[2] < 0.8
+
+
+def test_carry_forward_moves_points_into_the_new_camera_exactly():
+    rng = np.random.default_rng(6)
+    X = _scene(100, rng)
+    prev = KeyframePoints(
+        np.arange(100),
+        CAM.project(X)[0].astype(np.float32),
+        X.astype(np.float32),
+        np.tile(np.eye(3, dtype=np.float32) * 0.01, (100, 1, 1)),
+        np.full(100, 0.5, np.float32),
+    )
+    T_cur_prev = make_T(so3_exp(np.array([0.0, 0.02, 0.0])), np.array([0.0, 0.0, -0.3]))
+    cur = carry_forward(prev, T_cur_prev, CAM)
+    assert cur.carried and len(cur) >= 90
+    np.testing.assert_allclose(
+        cur.xyz_cam_m, transform_points(T_cur_prev, X[cur.ids]).astype(np.float32), rtol=1e-6
+    )
+    np.testing.assert_allclose(cur.uv_px, CAM.project(cur.xyz_cam_m.astype(float))[0], atol=1e-3)
+    same = carry_forward(prev, np.eye(4), CAM)
+    np.testing.assert_allclose(same.xyz_cam_m, prev.xyz_cam_m)
+
+
+def test_history_and_keyframe_points_on_exact_tracks():
+    rng = np.random.default_rng(7)
+    X_world = _scene(300, rng, (5.0, 30.0))  # world = the last camera's frame
+    T = _poses(8, rng=rng)
+    uv = _project(X_world, T)
+    hist = TrackHistory(10)
+    for f in range(8):
+        seen = np.flatnonzero(np.isfinite(uv[:, f, 0]))
+        order = rng.permutation(len(seen))  # any order of ids
+        hist.add(1000 + f, seen[order], uv[seen[order], f])
+        hist.set_pose(1000 + f, T[f])
+    pts = keyframe_points(hist, CAM, TrackPointsParams(min_patch_zncc=-1.0))
+    assert len(pts) > 150
+    np.testing.assert_allclose(pts.xyz_cam_m, X_world[pts.ids], rtol=1e-4)
+    np.testing.assert_allclose(pts.uv_px, uv[pts.ids, -1], atol=1e-3)
+    # a newest frame without a pose gives nothing (yet)
+    hist.add(2000, np.arange(5), np.zeros((5, 2)))
+    assert len(keyframe_points(hist, CAM, TrackPointsParams())) == 0
+
+
+def test_bucketing_caps_every_cell_and_spreads_tracks():
+    from mogs_node.sim import SimConfig, make_sequence
+
+    seq = make_sequence(SimConfig(seed=0, n_frames=1, width=621, height=188))
+    params = TrackPointsParams()
+    tp = params.tracker()
+    tr = FeatureTracker(tp, CameraModel(seq.camera)).track(seq.render(0).rgb)
+    cx = np.minimum((tr.uv_raw_px[:, 0] * tp.bucket_cols / 621).astype(int), tp.bucket_cols - 1)
+    cy = np.minimum((tr.uv_raw_px[:, 1] * tp.bucket_rows / 188).astype(int), tp.bucket_rows - 1)
+    counts = np.bincount(cy * tp.bucket_cols + cx, minlength=tp.bucket_cols * tp.bucket_rows)
+    assert counts.max() <= tp.bucket_cap
+    assert len(tr.ids) > 300
+    assert np.count_nonzero(counts) >= 0.6 * len(counts)  # sky and blank road excepted
+
+
+def test_params_are_validated_and_bad_shapes_are_named():
+    with pytest.raises(ConfigError):
+        TrackPointsParams(min_views=1)
+    with pytest.raises(ConfigError):
+        TrackPointsParams(min_depth_m=5.0, max_depth_m=1.0)
+    with pytest.raises(ShapeError, match="T_ref_cams"):
+        triangulate_dlt(np.zeros((3, 4, 2)), np.tile(np.eye(4), (3, 1, 1)), CAM)
+    with pytest.raises(ShapeError, match="uv_px"):
+        triangulate_dlt(np.zeros((3, 4)), np.tile(np.eye(4), (4, 1, 1)), CAM)
+
+
+def test_a_keyframe_with_too_few_fresh_points_carries_the_previous_ones():
+    fe = Frontend(FrontendParams(), CameraModel(CAM), np.eye(4))
+    rng = np.random.default_rng(8)
+    X = _scene(60, rng)
+    prev = KeyframePoints(
+        np.arange(60),
+        CAM.project(X)[0].astype(np.float32),
+        X.astype(np.float32),
+        np.zeros((60, 3, 3), np.float32),
+        np.ones(60, np.float32),
+    )
+    T_prev = make_T(np.eye(3), np.array([1.0, 2.0, 3.0]))
+    fe._last_points = (T_prev, prev)
+    T_now = make_T(np.eye(3), np.array([1.0, 2.0, 3.1]))  # 10 cm on: no fresh points
+    pts = fe._keyframe_points(T_now)
+    assert pts.carried and len(pts) > 50
+    np.testing.assert_allclose(pts.xyz_cam_m[:, 2], X[pts.ids, 2] - 0.1, atol=1e-5)
+    # moving on (1 m): occluders may have moved over the old points, nothing is carried
+    fe._last_points = (T_prev, prev)
+    assert len(fe._keyframe_points(make_T(np.eye(3), np.array([1.0, 2.0, 4.0])))) == 0
+
+
+finite = st.floats(-1e6, 1e6, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n_views=st.integers(2, 6),
+    depth_m=st.floats(1e-2, 1e4),
+    step_m=st.floats(0.0, 5.0),
+    nan_share=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**16),
+)
+def test_triangulation_is_finite_or_omitted_at_the_edges(n_views, depth_m, step_m, nan_share, seed):
+    """2 views, tiny and huge depths, no baseline at all, NaN pixels: never an exception, never a
+    non-finite point through the gates, and gated points are in front with positive weight."""
+    rng = np.random.default_rng(seed)
+    uv_kf = np.stack([rng.uniform(0, 621, 30), rng.uniform(0, 188, 30)], 1)
+    X = CAM.backproject(uv_kf, np.full(30, depth_m) * rng.uniform(0.5, 2.0, 30))
+    T = _poses(n_views, step_m=step_m, rng=rng)
+    uv = _project(X, T)
+    uv[rng.random(uv.shape[:2]) < nan_share] = np.nan
+    X0 = triangulate_dlt(uv, T, CAM)
+    pts = refine_points(uv, T, CAM, X0)
+    keep, omega = gate_points(pts, dataclasses.replace(TrackPointsParams(), min_views=2))
+    assert np.all(np.isfinite(pts.xyz_ref_m[keep])) and np.all(pts.xyz_ref_m[keep, 2] > 0)
+    assert np.all(np.isfinite(omega)) and np.all((omega[keep] > 0) & (omega[keep] <= 1))
+    assert np.all(omega[~keep] == 0)
+    if step_m == 0.0:  # no baseline: nothing can be triangulated
+        assert not keep.any()
+    flags = depth_edge_flags(uv_kf[keep], pts.xyz_ref_m[keep, 2], radius_px=8.0, rel_jump=0.1)
+    assert flags.shape == (keep.sum(),)
+
+
+def test_dense_tracker_options_are_validated_and_track_without_the_backward_pass():
+    from mogs_node.frontend.tracker import TrackerParams
+    from mogs_node.sim import SimConfig, make_sequence
+
+    for bad in ({"bucket_cap": -1}, {"klt_max_iter": 0}, {"top_up_every": 0}, {"top_up_below": 0}):
+        with pytest.raises(ConfigError):
+            TrackerParams(**bad)
+    seq = make_sequence(SimConfig(seed=0, n_frames=3, width=621, height=188))
+    tr = FeatureTracker(TrackPointsParams().tracker(), CameraModel(seq.camera))
+    first = tr.track(seq.render(0).rgb)
+    second = tr.track(seq.render(1).rgb)
+    assert second.n_tracked >= 0.7 * len(first.ids)  # 1 m of driving between the frames
+    kept = np.isin(first.ids, second.ids)
+    assert np.all(np.isfinite(second.uv_px)) and kept.sum() == len(second.ids) <= second.n_tracked
+    # new corners come every 2nd frame only: frame 1 has none, frame 2 has some
+    assert second.ids.max() <= first.ids.max()
+    third = tr.track(seq.render(2).rgb)
+    assert third.ids.max() > first.ids.max()
