@@ -114,6 +114,7 @@ class TwoViewDepth:
     fb_error_px: NDArray[np.float32]  # forward-backward flow error
     epipolar_px: NDArray[np.float32]  # distance from the epipolar line (NaN: flow check failed)
     baseline_m: float  # distance between the two camera centres
+    flow_px: NDArray[np.float32] | None = None  # [H, W, 2] DIS flow k -> r (the road prior's test)
 
     @property
     def valid(self) -> NDArray[np.bool_]:
@@ -355,6 +356,7 @@ def two_view_depth(
         fb_error_px=np.where(np.isfinite(fb), fb, np.inf).astype(np.float32),
         epipolar_px=epi_out.reshape(H, W),
         baseline_m=baseline,
+        flow_px=flow_f,
     )
 
 

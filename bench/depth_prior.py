@@ -1,0 +1,193 @@
+"""The weight-free dense prior on the demo drive (issue 16 item 2): before / after, calibration.
+
+Runs the demo's frontend in-process, then the prior over its keyframes with the metrizer in the
+loop (:mod:`mogs_node.eval.depth_prior_eval`), for: the old flow-only prior; flow + road plane;
+flow + road + warped metrized depth (the default). Prints coverage and AbsRel of the prior and of
+the metrized depth against the sim's ground truth, the error against confidence table, and
+writes the curve as a PNG. Writes the ``depth-prior`` section of docs/benchmarks.md.
+
+    python bench/depth_prior.py [--seed S] [--launch launch/demo.yaml] [--lag 1] [--json OUT]
+        [--png docs/depth_prior_calibration.png] [--no-docs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+from mogs_node import msgs  # noqa: E402
+from mogs_node.eval.depth_prior_eval import (  # noqa: E402
+    calibration_bins,
+    prior_params,
+    run_priors,
+    score_priors,
+)
+from mogs_node.eval.pipeline_stages import demo_params, prepare_keyframes  # noqa: E402
+from mogs_node.eval.report import machine_line, update_markdown_section  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def graph_masks(kfs, params) -> list[msgs.Masks]:
+    from mogs_node.node import parse_params
+    from mogs_node.segmentation.graph import GraphSegParams, segment_graph
+    from mogs_node.segmentation.node import SegmentationParams
+
+    seg = parse_params(SegmentationParams, params.get("segmentation", {}), where="segmentation")
+    gp = parse_params(GraphSegParams, seg.graph, where="segmentation.graph")
+    return [
+        msgs.Masks(
+            stamp_ns=s.keyframe.stamp_ns,
+            frame_id="world",
+            keyframe_id=s.keyframe.keyframe_id,
+            labels=np.asarray(segment_graph(s.keyframe.rgb(), gp), np.int32),
+            backend="graph",
+        )
+        for s in kfs
+    ]
+
+
+def plot(bins: list[dict], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [b for b in bins if b["pixels"]]
+    mid = [0.5 * (b["conf_lo"] + b["conf_hi"]) for b in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(mid, [b["absrel"] for b in rows], "o-", label="measured AbsRel")
+    ax.plot(mid, [b["median_rel_err"] for b in rows], "s-", label="measured median rel. error")
+    ax.plot(mid, [b["predicted_rel_err"] for b in rows], "x--", label="predicted rel. error")
+    ax.set_yscale("log")
+    ax.set_xlabel("prior confidence (bin centre)")
+    ax.set_ylabel("relative depth error")
+    ax.set_title(title, fontsize=9)
+    ax2 = ax.twinx()
+    ax2.bar(mid, [b["share"] for b in rows], width=0.04, alpha=0.2, color="grey")
+    ax2.set_ylabel("share of prior pixels")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def markdown(fig: dict, command: str, png: str) -> str:
+    lines = [
+        "## Dense weight-free depth prior on the demo drive (issue 16 item 2)",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {machine_line()}. The demo's sequence and parameters (`launch/demo.yaml`), the "
+        f"frontend in-process: {fig['keyframes']} keyframes. The metrizer runs in the loop (frontend "
+        f"points, graph masks); its depth of a keyframe reaches the prior {fig['lag']} keyframe(s) "
+        "later. Coverage: share of ground-truth pixels with a value (mean over keyframes; min = "
+        "worst keyframe); AbsRel pooled over pixels.",
+        "",
+        "| prior | prior AbsRel | prior coverage | prior min kf cov. | metrized AbsRel | "
+        "metrized coverage |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name, v in fig["variants"].items():
+        p, m = v["prior"], v["metrized"]
+        lines.append(
+            f"| {name} | {p['absrel']:.3f} | {p['coverage']:.3f} | "
+            f"{p['min_keyframe_coverage']:.3f} | {m['absrel']:.3f} | {m['coverage']:.3f} |"
+        )
+    lines += [
+        "",
+        "Error against confidence of the default prior (all keyframes' pixels with a prior and "
+        "a ground truth, bins `(lo, hi]`; predicted = the prior's own error model):",
+        "",
+        "| confidence | share | AbsRel | median rel. err. | predicted | flow | road | warp |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for b in fig["calibration"]:
+        if not b["pixels"]:
+            continue
+        lines.append(
+            f"| {b['conf_lo']:.2f}-{b['conf_hi']:.2f} | {b['share']:.3f} | {b['absrel']:.3f} | "
+            f"{b['median_rel_err']:.3f} | {b['predicted_rel_err']:.3f} | {b['share_flow']:.2f} | "
+            f"{b['share_road']:.2f} | {b['share_warp']:.2f} |"
+        )
+    lines += ["", f"![error against confidence]({png})"]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
+    ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
+    ap.add_argument("--lag", type=int, default=1, help="keyframes until metrized depth arrives")
+    ap.add_argument("--json", default=None, help="also write the figures here")
+    ap.add_argument("--png", default="docs/depth_prior_calibration.png", help="curve (PNG)")
+    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    t0 = time.process_time()
+    params = demo_params(args.launch)
+    kfs, info = prepare_keyframes(params, seed=args.seed)
+    masks = graph_masks(kfs, params)
+    flow, road, fusion = prior_params(params)
+    variants = {
+        "flow only (before)": (flow, replace(road, enabled=False), replace(fusion, warp_sources=0)),
+        "flow + road plane": (flow, road, replace(fusion, warp_sources=0)),
+        "flow + road + warped metrized depth (default)": (flow, road, fusion),
+    }
+    keyframes = [s.keyframe for s in kfs]
+    gts = [s.gt_depth_m for s in kfs]
+    ids = [k.keyframe_id for k in keyframes]
+    fig: dict = {"keyframes": len(kfs), "lag": args.lag, "variants": {}}
+    for name, (f, r, u) in variants.items():
+        run = run_priors(keyframes, f, r, u, masks=masks, params=params, lag=args.lag)
+        fig["variants"][name] = {
+            "prior": score_priors([p.depth_m for p in run.priors], gts, ids),
+            "metrized": score_priors([m[0] for m in run.metrized], gts, ids),
+        }
+        log_v = fig["variants"][name]
+        logging.info(
+            "%s: prior %.3f @ %.3f, metrized %.3f @ %.3f",
+            name,
+            log_v["prior"]["absrel"],
+            log_v["prior"]["coverage"],
+            log_v["metrized"]["absrel"],
+            log_v["metrized"]["coverage"],
+        )
+    fig["calibration"] = calibration_bins(run.priors, gts)
+    after = fig["variants"]["flow + road + warped metrized depth (default)"]
+    before = fig["variants"]["flow only (before)"]
+    fig.update(
+        prior_coverage=after["prior"]["coverage"],
+        prior_absrel=after["prior"]["absrel"],
+        prior_min_keyframe_coverage=after["prior"]["min_keyframe_coverage"],
+        prior_coverage_before=before["prior"]["coverage"],
+        prior_absrel_before=before["prior"]["absrel"],
+        metrized_absrel=after["metrized"]["absrel"],
+        metrized_coverage=after["metrized"]["coverage"],
+        cpu_s=time.process_time() - t0,
+    )
+    command = "python bench/depth_prior.py" + "".join(
+        f" {a}" for a in sys.argv[1:] if a != "--no-docs"
+    )
+    png = Path(args.png)
+    plot(fig["calibration"], png if png.is_absolute() else REPO / png, "dense prior, demo drive")
+    md = markdown(fig, command, Path(args.png).name if not png.is_absolute() else str(png))
+    print(md)
+    if args.json:
+        Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
+    if not args.no_docs:
+        update_markdown_section("depth-prior", md)
+
+
+if __name__ == "__main__":
+    main()
