@@ -1,10 +1,10 @@
 """Forward warp of an earlier keyframe's depth into a new keyframe, with a z-buffer.
 
 Each source pixel with a depth is lifted to 3D (``X_j = d K^-1 [u, v, 1]``), moved into the new
-camera (``X_k = T_k_j X_j``) and splatted onto the 2x2 target pixels around its projection (a
-footprint that closes the cracks of a forward motion magnifying the scene up to 2x); where several
-points land on a pixel the nearest wins (z-buffer), so a foreground object hides what lies behind
-it. Remaining one-pixel cracks inside a surface (all valid 4-neighbours within ``crack_rel`` of
+camera (``X_k = T_k_j X_j``) and splatted onto the target pixel nearest its projection; where
+several points land on a pixel the nearest point wins (z-buffer), so a foreground object hides what
+lies behind it. A second pass splats onto the 2x2 pixels around each projection, into pixels the
+first left empty only (closing the cracks of a forward motion magnifying the scene up to 2x). Remaining one-pixel cracks inside a surface (all valid 4-neighbours within ``crack_rel`` of
 each other) are filled with their mean. Pixels the source never saw (disocclusions, outside its
 view) stay empty. Vectorised: one ``np.minimum.at`` over the splats, no Python loop over pixels.
 """
@@ -74,23 +74,30 @@ def forward_warp_depth(
     P, vals = P[:, front], val2[src][front]
     u = K[0, 0] * P[0] / P[2] + K[0, 1] * P[1] / P[2] + K[0, 2]
     v = K[1, 1] * P[1] / P[2] + K[1, 2]
+    zbuf = np.full(Ho * Wo, np.inf)
+    vbuf = np.zeros((Ho * Wo, C), np.float32)
+    # pass 1: the nearest pixel (exact where the motion does not magnify); pass 2: the 2x2
+    # footprint around the projection, only into pixels pass 1 left empty (cracks)
+    nearest = [(np.rint(u).astype(np.int64), np.rint(v).astype(np.int64))]
     u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-    zs, idx, vs = [], [], []
-    for du in (0, 1):  # the 2x2 footprint: four vectorised passes, not a loop over points
-        for dv in (0, 1):
-            uu, vv = u0 + du, v0 + dv
+    footprint = [(u0 + du, v0 + dv) for du in (0, 1) for dv in (0, 1)]
+    for splats in (nearest, footprint):
+        idx, zs, vs = [], [], []
+        for uu, vv in splats:  # at most four vectorised passes, not a loop over points
             ok = (uu >= 0) & (uu < Wo) & (vv >= 0) & (vv < Ho)
             idx.append(vv[ok] * Wo + uu[ok])
             zs.append(P[2][ok])
             vs.append(vals[ok])
-    idx_a, z_a, v_a = np.concatenate(idx), np.concatenate(zs), np.concatenate(vs)
-    if idx_a.size == 0:
-        return depth_k, value_k
-    zbuf = np.full(Ho * Wo, np.inf)
-    np.minimum.at(zbuf, idx_a, z_a)
-    win = z_a == zbuf[idx_a]
-    vbuf = np.zeros((Ho * Wo, C), np.float32)
-    vbuf[idx_a[win]] = v_a[win]
+        idx_a, z_a, v_a = np.concatenate(idx), np.concatenate(zs), np.concatenate(vs)
+        free = ~np.isfinite(zbuf[idx_a])
+        idx_a, z_a, v_a = idx_a[free], z_a[free], v_a[free]
+        if idx_a.size == 0:
+            continue
+        z_new = np.full(Ho * Wo, np.inf)
+        np.minimum.at(z_new, idx_a, z_a)
+        win = z_a == z_new[idx_a]
+        vbuf[idx_a[win]] = v_a[win]
+        zbuf = np.minimum(zbuf, z_new)
     hit = np.isfinite(zbuf)
     depth_k.ravel()[hit] = zbuf[hit]
     vbuf[~hit] = 0.0
