@@ -337,7 +337,7 @@ def two_view_depth(
         & (epi < params.max_epipolar_px)
     )
     parallax_px = np.radians(parallax) * np.float32(0.5 * (K[0, 0] + K[1, 1]))
-    sigma = np.maximum(fb.ravel()[idx], np.float32(params.flow_noise_px))
+    sigma = np.maximum(np.maximum(fb.ravel()[idx], epi), np.float32(params.flow_noise_px))
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = sigma / parallax_px / np.float32(params.rel_err_ref)
     good = idx[ok]
