@@ -1,9 +1,9 @@
 """The weight-free dense prior on the demo drive (issue 16 item 2): before / after, calibration.
 
 Runs the demo's frontend in-process, then the prior over its keyframes with the metrizer in the
-loop (:mod:`mogs_node.eval.depth_prior_eval`), for: the old flow-only prior; flow + road plane;
-flow + road + warped metrized depth (the default). Prints coverage and AbsRel of the prior and of
-the metrized depth against the sim's ground truth, the error against confidence table, and
+loop (:mod:`mogs_node.eval.depth_prior_eval`), for: main's flow-only prior; + the road plane;
++ the previous prior carried; + earlier metrized depth warped in (the default). Prints coverage
+and AbsRel of the prior and of the metrized depth against the sim's ground truth, the error against confidence table, and
 writes the curve as a PNG. Writes the ``depth-prior`` section of docs/benchmarks.md.
 
     python bench/depth_prior.py [--seed S] [--launch launch/demo.yaml] [--lag 1] [--json OUT]
@@ -35,6 +35,8 @@ from mogs_node.eval.pipeline_stages import demo_params, prepare_keyframes  # noq
 from mogs_node.eval.report import machine_line, update_markdown_section  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+BEFORE = "flow only, references from 0.3 m (main)"
+AFTER = "flow + road + carried + warped metrized depth (default)"
 
 
 def graph_masks(kfs, params) -> list[msgs.Masks]:
@@ -109,8 +111,9 @@ def markdown(fig: dict, command: str, png: str) -> str:
         "Error against confidence of the default prior (all keyframes' pixels with a prior and "
         "a ground truth, bins `(lo, hi]`; predicted = the prior's own error model):",
         "",
-        "| confidence | share | AbsRel | median rel. err. | predicted | flow | road | warp |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| confidence | share | AbsRel | median rel. err. | predicted | led by flow | road | "
+        "warp | carry |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for b in fig["calibration"]:
         if not b["pixels"]:
@@ -118,7 +121,7 @@ def markdown(fig: dict, command: str, png: str) -> str:
         lines.append(
             f"| {b['conf_lo']:.2f}-{b['conf_hi']:.2f} | {b['share']:.3f} | {b['absrel']:.3f} | "
             f"{b['median_rel_err']:.3f} | {b['predicted_rel_err']:.3f} | {b['share_flow']:.2f} | "
-            f"{b['share_road']:.2f} | {b['share_warp']:.2f} |"
+            f"{b['share_road']:.2f} | {b['share_warp']:.2f} | {b['share_carry']:.2f} |"
         )
     lines += ["", f"![error against confidence]({png})"]
     return "\n".join(lines)
@@ -139,10 +142,17 @@ def main() -> None:
     kfs, info = prepare_keyframes(params, seed=args.seed)
     masks = graph_masks(kfs, params)
     flow, road, fusion = prior_params(params)
+    no_feedback = replace(fusion, warp_sources=0, carry=False)
     variants = {
-        "flow only (before)": (flow, replace(road, enabled=False), replace(fusion, warp_sources=0)),
-        "flow + road plane": (flow, road, replace(fusion, warp_sources=0)),
-        "flow + road + warped metrized depth (default)": (flow, road, fusion),
+        # main's prior: one or two flow references from 0.3 m, nothing else
+        BEFORE: (
+            replace(flow, min_baseline_m=0.3),
+            replace(road, enabled=False),
+            no_feedback,
+        ),
+        "flow + road plane": (flow, road, no_feedback),
+        "flow + road + previous prior carried": (flow, road, replace(fusion, warp_sources=0)),
+        AFTER: (flow, road, fusion),
     }
     keyframes = [s.keyframe for s in kfs]
     gts = [s.gt_depth_m for s in kfs]
@@ -164,8 +174,8 @@ def main() -> None:
             log_v["metrized"]["coverage"],
         )
     fig["calibration"] = calibration_bins(run.priors, gts)
-    after = fig["variants"]["flow + road + warped metrized depth (default)"]
-    before = fig["variants"]["flow only (before)"]
+    after = fig["variants"][AFTER]
+    before = fig["variants"][BEFORE]
     fig.update(
         prior_coverage=after["prior"]["coverage"],
         prior_absrel=after["prior"]["absrel"],

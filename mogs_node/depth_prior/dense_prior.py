@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.depth_prior.flow_prior import (
+    FlowPrior,
     FlowPriorParams,
     _grey,
     _pixel_rays,
@@ -231,6 +232,44 @@ def _verify(
     return np.sqrt(e_w * e_w + r * r).astype(np.float32), r_img
 
 
+def _road(
+    grey: NDArray[np.uint8],
+    K: NDArray[np.float64],
+    Tk: NDArray[np.float64],
+    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    flow: FlowPrior,
+    flow_params: FlowPriorParams,
+    road_params: RoadPriorParams,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The road plane verified against each reference (the flow ones with their DIS flow, the
+    extra ``road_references`` photometrically only): road where any reference verifies it (a
+    reference may have seen the road hidden behind something that has since been passed)."""
+    H, W = grey.shape
+    up = up_in_camera(Tk, road_params.up_world, flow_params.ground_up_cam)
+    _, _, rays = _pixel_rays(K, H, W)
+    refs: list = []
+    for i, (img, T_r) in enumerate(list(references) + list(road_references)):
+        T_r = check_array(f"references[{i}].T_world_cam", T_r, shape=(4, 4), finite=True)
+        pair = flow.pairs[i] if i < len(flow.pairs) else None
+        refs.append(
+            (
+                _grey(img, f"references[{i}].image"),
+                se3_inverse(T_r) @ Tk,
+                None if pair is None else pair.flow_px,
+                None if pair is None else pair.fb_error_px,
+            )
+        )
+    depth = np.zeros((H, W), np.float32)
+    err = np.full((H, W), np.inf, np.float32)
+    for ref in refs or [None]:
+        road = road_prior(grey, K, rays, up, flow_params.camera_height_m, road_params, ref)
+        better = road.rel_err < err
+        depth = np.where(better, road.depth_m, depth)
+        err = np.where(better, road.rel_err, err)
+    return depth, err
+
+
 def compute_dense_prior(
     image_k: NDArray[np.uint8],
     K: NDArray[np.float64],
@@ -238,6 +277,7 @@ def compute_dense_prior(
     references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
     earlier_depth: Sequence[tuple] = (),
     previous_prior: tuple | None = None,
+    road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = (),
     *,
     flow_params: FlowPriorParams | None = None,
     road_params: RoadPriorParams | None = None,
@@ -255,6 +295,8 @@ def compute_dense_prior(
             their image for the photometric check; may be empty.
         previous_prior: ``(depth_m, confidence, T_world_cam[, image])`` of the previous
             keyframe's own prior (carried when ``params.carry``), or None.
+        road_references: ``(image, T_world_cam)`` of further earlier keyframes the road plane
+            is verified against (photometrically), besides ``references``.
         flow_params, road_params, params: the sources' and the fusion's parameters (None:
             defaults).
     """
@@ -270,21 +312,11 @@ def compute_dense_prior(
     cands_e = [error_from_confidence(flow.confidence, flow_params.rel_err_ref)]
     names = ["flow"]
     if road_params.enabled and flow_params.camera_height_m > 0:
-        up = up_in_camera(Tk, road_params.up_world, flow_params.ground_up_cam)
-        ref = None
-        if flow.pairs:
-            T_r_k = se3_inverse(np.asarray(references[0][1], np.float64)) @ Tk
-            p0 = flow.pairs[0]
-            ref = (
-                _grey(references[0][0], "references[0].image"),
-                T_r_k,
-                p0.flow_px,
-                p0.fb_error_px,
-            )
-        _, _, rays = _pixel_rays(K, H, W)
-        road = road_prior(grey, K, rays, up, flow_params.camera_height_m, road_params, ref)
-        cands_d.append(road.depth_m)
-        cands_e.append(road.rel_err)
+        road_d, road_e = _road(
+            grey, K, Tk, references, road_references, flow, flow_params, road_params
+        )
+        cands_d.append(road_d)
+        cands_e.append(road_e)
         names.append("road")
     stats: dict[str, float] = {}
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)

@@ -70,6 +70,7 @@ class RoadPriorParams:
     image_only_factor: float = 4.0  # error factor without a reference (flood fill from the car)
     flood_tolerance: float = 12.0  # grey levels: flood fill tolerance from the seed patch mean
     image_only: bool = False  # without a reference: flood fill from the car (unverifiable)
+    extra_references: int = 1  # earlier keyframes besides the flow references to verify against
     fill_px: int = 3  # holes in the verified road up to about this radius are closed
 
     def __post_init__(self) -> None:

@@ -87,6 +87,19 @@ class PriorSequence:
             self._pending.pop(min(self._pending))
         return True
 
+    def _road_references(self, past: list[_Past], refs: list[int]) -> list[int]:
+        """The keyframe before the nearest reference, when far enough: the road it saw may have
+        been hidden from the nearest one (``road.extra_references`` of them)."""
+        out: list[int] = []
+        if not refs:
+            return out
+        j = refs[0] - 1
+        while j >= 0 and len(out) < self.road.extra_references:
+            if j not in refs:
+                out.append(j)
+            j -= 1
+        return out
+
     def next(
         self, keyframe_id: int, image: NDArray[np.uint8], K: NDArray, T_world_cam: NDArray
     ) -> tuple[DensePrior, list[int]]:
@@ -112,6 +125,7 @@ class PriorSequence:
             [(past[j].grey, past[j].T_world_cam) for j in refs],
             earlier,
             carried,
+            [(past[j].grey, past[j].T_world_cam) for j in self._road_references(past, refs)],
             flow_params=self.flow,
             road_params=self.road,
             params=self.fusion,
