@@ -270,6 +270,47 @@ def _road(
     return depth, err
 
 
+def _warped(
+    grey: NDArray[np.uint8],
+    Tk: NDArray[np.float64],
+    K: NDArray[np.float64],
+    earlier_depth: Sequence[tuple],
+    previous_prior: tuple | None,
+    flow_params: FlowPriorParams,
+    params: FusionParams,
+) -> list[tuple[str, NDArray[np.float32], NDArray[np.float32]]]:
+    """The warp (metrized) and carry (previous prior) candidates: ``(name, depth, rel_err)``."""
+    Tk_inv = se3_inverse(Tk)
+    out = []
+    if earlier_depth and params.warp_sources > 0:
+        d_w, c_w = _warp_in(
+            grey,
+            Tk_inv,
+            K,
+            earlier_depth[: params.warp_sources],
+            flow_params.max_depth_m,
+            params.warp_min_confidence,
+            params,
+            "earlier_depth",
+        )
+        e_w = np.where(c_w > 0, params.warp_rel_err / np.sqrt(np.maximum(c_w, 1e-6)), np.inf)
+        out.append(("warp", d_w, e_w.astype(np.float32)))
+    if previous_prior is not None and params.carry:
+        d_c, c_c = _warp_in(
+            grey,
+            Tk_inv,
+            K,
+            [previous_prior],
+            flow_params.max_depth_m,
+            1e-6,
+            params,
+            "previous_prior",
+        )
+        e_c = error_from_confidence(c_c, params.rel_err_ref) * np.float32(params.carry_growth)
+        out.append(("carry", d_c, e_c))
+    return out
+
+
 def compute_dense_prior(
     image_k: NDArray[np.uint8],
     K: NDArray[np.float64],
@@ -320,34 +361,7 @@ def compute_dense_prior(
         names.append("road")
     stats: dict[str, float] = {}
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
-    Tk_inv = se3_inverse(Tk)
-    warped = []
-    if earlier_depth and params.warp_sources > 0:
-        d_w, c_w = _warp_in(
-            grey,
-            Tk_inv,
-            K,
-            earlier_depth[: params.warp_sources],
-            flow_params.max_depth_m,
-            params.warp_min_confidence,
-            params,
-            "earlier_depth",
-        )
-        e_w = np.where(c_w > 0, params.warp_rel_err / np.sqrt(np.maximum(c_w, 1e-6)), np.inf)
-        warped.append(("warp", d_w, e_w.astype(np.float32)))
-    if previous_prior is not None and params.carry:
-        d_c, c_c = _warp_in(
-            grey,
-            Tk_inv,
-            K,
-            [previous_prior],
-            flow_params.max_depth_m,
-            1e-6,
-            params,
-            "previous_prior",
-        )
-        e_c = error_from_confidence(c_c, params.rel_err_ref) * np.float32(params.carry_growth)
-        warped.append(("carry", d_c, e_c))
+    warped = _warped(grey, Tk, K, earlier_depth, previous_prior, flow_params, params)
     for name, d_w, e_w in warped:
         e_w, r = _verify(d_w, e_w, d_meas, e_meas, params)
         stats[f"{name}_disagreement"] = r
