@@ -105,3 +105,50 @@ def test_depth_anything_node_publishes_declared_kind(inproc_bus, wired_node, tmp
     assert got.depth.shape == kf.image.shape[:2] and np.all(got.confidence == 1)
     assert node.net is not None
     np.testing.assert_allclose(got.depth, node.net.infer(kf.image).value)
+
+
+def _metrized(kid: int, depth: np.ndarray, kind: str = "metric") -> msgs.DepthMap:
+    return msgs.DepthMap(
+        stamp_ns=kid * 100_000_000,
+        frame_id="cam",
+        keyframe_id=kid,
+        kind=kind,
+        depth=depth.astype(np.float32),
+        confidence=np.full(depth.shape, 0.9, np.float32),
+        source="metrizer",
+    )
+
+
+def test_flow_node_carries_metrized_depth_into_a_standstill_keyframe(
+    inproc_bus, wired_node
+) -> None:
+    """Standing still: no baseline, but the first keyframe's metrized depth is warped in; a
+    metrized depth of a non-metric kind or another size is ignored, and the node goes on."""
+    bus, ctx = inproc_bus
+    node = DepthPriorNode(
+        "prior",
+        {"flow": {"far_baseline_m": 0.0}, "road": {"up_world": [0.0, -1.0, 0.0]}},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
+    w = wired_node(node, ("/frontend/keyframe", "/metrizer/depth"), "/prior/depth")
+    kf7, depth = keyframe(7, np.eye(4))
+    w.pub.publish("/frontend/keyframe", kf7)
+    (first,) = w.collect(1, 20)
+    assert not first.confidence.any()  # nothing known yet
+    w.pub.publish("/metrizer/depth", _metrized(7, depth, kind="relative_inverse_depth"))
+    w.pub.publish("/metrizer/depth", _metrized(7, np.ones((4, 4))))
+    w.pub.publish("/metrizer/depth", _metrized(7, depth))
+    for _ in range(100):  # the three metrized messages handled
+        node.spin_once(50)
+        if node.sequence.history and node.sequence.history[-1].metrized is not None:
+            break
+    kf8, _ = keyframe(8, np.eye(4))  # same place: standing still
+    w.pub.publish("/frontend/keyframe", kf8)
+    (second,) = w.collect(1, 20)
+    assert second.keyframe_id == 8 and second.kind == "metric"
+    m = second.confidence > 0
+    assert m.mean() > 0.95
+    np.testing.assert_allclose(second.depth[m], depth[m], rtol=1e-4)
+    assert node.counters["handler_errors"] == 0

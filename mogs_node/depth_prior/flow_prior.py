@@ -114,6 +114,7 @@ class TwoViewDepth:
     fb_error_px: NDArray[np.float32]  # forward-backward flow error
     epipolar_px: NDArray[np.float32]  # distance from the epipolar line (NaN: flow check failed)
     baseline_m: float  # distance between the two camera centres
+    flow_px: NDArray[np.float32] | None = None  # [H, W, 2] DIS flow k -> r (the road prior's test)
 
     @property
     def valid(self) -> NDArray[np.bool_]:
@@ -336,7 +337,7 @@ def two_view_depth(
         & (epi < params.max_epipolar_px)
     )
     parallax_px = np.radians(parallax) * np.float32(0.5 * (K[0, 0] + K[1, 1]))
-    sigma = np.maximum(fb.ravel()[idx], np.float32(params.flow_noise_px))
+    sigma = np.maximum(np.maximum(fb.ravel()[idx], epi), np.float32(params.flow_noise_px))
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = sigma / parallax_px / np.float32(params.rel_err_ref)
     good = idx[ok]
@@ -355,6 +356,7 @@ def two_view_depth(
         fb_error_px=np.where(np.isfinite(fb), fb, np.inf).astype(np.float32),
         epipolar_px=epi_out.reshape(H, W),
         baseline_m=baseline,
+        flow_px=flow_f,
     )
 
 

@@ -134,30 +134,18 @@ def prepare_keyframes(
     return kfs, info
 
 
-def _flow_priors(kfs: list[StageKeyframe], flow: dict[str, Any], *, gt_pose: bool) -> list:
-    """The prior node's flow prior per keyframe, history and references as the node keeps them."""
-    from collections import deque
+def _flow_priors(kfs: list[StageKeyframe], prior: dict[str, Any], *, gt_pose: bool) -> list:
+    """The prior node's dense prior per keyframe (flow, road plane, previous prior carried), its
+    history kept as the node keeps it; without the metrizer in the loop (no metrized depth is
+    warped in here: :mod:`mogs_node.eval.depth_prior_eval` runs that loop)."""
+    from mogs_node.depth_prior.sequence import PriorSequence
+    from mogs_node.eval.depth_prior_eval import prior_params
 
-    from mogs_node.depth_prior.flow_prior import (
-        FlowPriorParams,
-        choose_references,
-        compute_flow_prior,
-    )
-    from mogs_node.node import parse_params
-
-    fp = parse_params(FlowPriorParams, flow, where="prior.flow")
-    hist: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=fp.history)
+    seq = PriorSequence(*prior_params({"prior": prior}))
     out = []
     for s in kfs:
-        img = s.keyframe.image
-        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
         T = s.T_world_cam_gt if gt_pose else s.keyframe.T_world_cam
-        past = list(hist)
-        Th = np.array([p[1] for p in past]) if past else np.zeros((0, 4, 4))
-        refs = choose_references(T, Th, fp)
-        prior = compute_flow_prior(grey, s.keyframe.K, T, [past[j] for j in refs], fp)
-        hist.append((grey, np.array(T)))
-        out.append(prior)
+        out.append(seq.next(s.keyframe.keyframe_id, s.keyframe.image, s.keyframe.K, T)[0])
     return out
 
 
@@ -212,7 +200,6 @@ def stage_inputs(
     prior_p = params.get("prior", {})
     if prior_p.get("backend", "flow") != "flow":
         raise ConfigError("prior.backend: the stage breakdown needs the demo's flow prior")
-    flow = prior_p.get("flow", {})
 
     def as_msg(s: StageKeyframe, depth, conf, kind: str, source: str) -> msgs.DepthMap:
         return msgs.DepthMap(
@@ -227,7 +214,7 @@ def stage_inputs(
 
     priors: dict[str, list] = {}
     for name, gt_pose in (("flow", False), ("flow_gtpose", True)):
-        fps = _flow_priors(kfs, flow, gt_pose=gt_pose)
+        fps = _flow_priors(kfs, prior_p, gt_pose=gt_pose)
         priors[name] = [
             as_msg(s, p.depth_m, p.confidence, "metric", "flow")
             for s, p in zip(kfs, fps, strict=True)

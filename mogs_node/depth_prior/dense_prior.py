@@ -1,0 +1,384 @@
+"""Dense weight-free depth prior: flow, road plane and warped earlier depth, fused by confidence.
+
+The default prior backend (DESIGN.md section 3; paper III-A's LFM slot). Three sources, each with a
+*predicted relative depth error* ``e`` per pixel:
+
+1. ``flow``: two-view DIS depth against one or more earlier keyframes
+   (:func:`mogs_node.depth_prior.flow_prior.compute_flow_prior`); ``e = sigma / parallax_px``
+   (match error over parallax), recovered from its confidence.
+2. ``road``: the road plane at the calibrated camera height, verified against the nearest
+   reference's flow and image (:mod:`mogs_node.depth_prior.road`); ``e`` grows as
+   ``sigma_n / sin(angle below the horizon)``.
+3. ``warp``: earlier keyframes' metrized depth (``/metrizer/depth``) forward-warped with the
+   frontend's poses and a z-buffer (:mod:`mogs_node.depth_prior.warp`);
+   ``e = warp_rel_err / sqrt(c_m)`` (``c_m`` the metrizer's confidence, floored at
+   ``warp_min_confidence``). This carries depth through standstill, where there is no baseline.
+
+Fusion per pixel: the candidate with the smallest ``e`` leads; candidates that agree with it within
+``agree_sigmas * (e_i + e_lead)`` (relative) are averaged with inverse-variance weights, and the
+error stays the leader's (the sources are not independent: the metrized and the carried depth
+descend from earlier priors, so shrinking the error as for independent ones would compound
+over keyframes into overconfidence); a disagreeing candidate whose own error is within ``conflict_ratio``
+of the leader's raises the error to the relative disagreement (two credible sources that differ
+tell how wrong one is). Sky gets nothing. The published confidence is
+``c = 1 / (1 + (e / rel_err_ref)^2)``: ``c = 0.5`` means a predicted 5 % error (default), the same
+mapping as the flow prior's, so confidence is comparable across sources and calibrated against
+the truth in docs/depth_prior.md (error against confidence bins).
+
+The prior is metric (``DepthMap.kind = "metric"``) because all three sources are: the frontend's
+poses are metric (VI or road-scaled), the plane height is metric, the metrizer's depth is metric.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.depth_prior.flow_prior import (
+    FlowPrior,
+    FlowPriorParams,
+    _grey,
+    _pixel_rays,
+    compute_flow_prior,
+)
+from mogs_node.depth_prior.road import RoadPriorParams, road_prior, up_in_camera
+from mogs_node.depth_prior.warp import forward_warp_depth
+from mogs_node.errors import ConfigError
+from mogs_node.geometry import check_array, se3_inverse
+
+__all__ = [
+    "SOURCES",
+    "DensePrior",
+    "FusionParams",
+    "compute_dense_prior",
+    "confidence_from_error",
+    "error_from_confidence",
+    "fuse_candidates",
+]
+
+log = logging.getLogger(__name__)
+
+#: source codes of :attr:`DensePrior.source` (0 = none)
+SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4}
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Parameters of the fusion of the dense prior's sources."""
+
+    rel_err_ref: float = 0.05  # predicted relative error at which the confidence is 0.5
+    warp_rel_err: float = 0.10  # predicted relative error of warped depth at metrizer conf. 1
+    warp_min_confidence: float = 0.05  # metrizer confidences below this are not carried
+    warp_sources: int = 2  # at most this many earlier metrized depths are warped in
+    carry: bool = True  # the previous keyframe's own prior, warped in, is a source too
+    carry_growth: float = 1.25  # ... with its predicted error times this (pose error, aging)
+    warp_max_grey_diff: float = 20.0  # warped grey level vs the keyframe's: larger -> dropped
+    verify_warp: bool = True  # warped sources checked against this keyframe's measurements
+    verify_max_err: float = 0.05  # measurements (flow / road) predicted better than this
+    verify_min_pixels: int = 200  # fewer overlapping measurements: no check
+    verify_window_px: int = 41  # window of the local disagreement
+    agree_sigmas: float = 2.0  # agreement: |d_i - d_lead| <= this * (e_i + e_lead) * d_lead
+    conflict_ratio: float = 2.0  # a disagreeing candidate with e_i <= this * e_lead is a conflict
+
+    def __post_init__(self) -> None:
+        if min(self.rel_err_ref, self.warp_rel_err, self.agree_sigmas) <= 0:
+            raise ConfigError("fusion: rel_err_ref, warp_rel_err and agree_sigmas must be > 0")
+        if not 0 < self.warp_min_confidence <= 1 or self.warp_sources < 0:
+            raise ConfigError("fusion: need 0 < warp_min_confidence <= 1 and warp_sources >= 0")
+        if self.conflict_ratio < 1 or self.carry_growth < 1:
+            raise ConfigError("fusion: conflict_ratio and carry_growth must be >= 1")
+        if self.verify_max_err <= 0 or self.verify_min_pixels < 1 or self.verify_window_px < 1:
+            raise ConfigError("fusion: need verify_max_err > 0 and verify_min_pixels >= 1")
+
+
+@dataclass
+class DensePrior:
+    """The dense prior of one keyframe (all ``[H, W]``)."""
+
+    depth_m: NDArray[np.float32]  # metric z-depth, 0 where none
+    confidence: NDArray[np.float32]  # in [0, 1], 0 where none
+    rel_err: NDArray[np.float32]  # predicted relative error, inf where none
+    source: NDArray[np.int8]  # leading source (SOURCES), 0 where none
+    sky: NDArray[np.bool_]
+    stats: dict[str, float] = field(default_factory=dict)
+
+
+def confidence_from_error(rel_err: NDArray, rel_err_ref: float) -> NDArray[np.float32]:
+    """``1 / (1 + (e / e_ref)^2)``; 0 for infinite or NaN errors."""
+    e = np.asarray(rel_err, np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):
+        c = 1.0 / (1.0 + (e / np.float32(rel_err_ref)) ** 2)
+    return np.where(np.isfinite(e) & (e >= 0), c, 0.0).astype(np.float32)
+
+
+def error_from_confidence(conf: NDArray, rel_err_ref: float) -> NDArray[np.float32]:
+    """Inverse of :func:`confidence_from_error`: ``e_ref sqrt(1/c - 1)``; inf where ``c <= 0``."""
+    c = np.asarray(conf, np.float32)
+    ok = np.isfinite(c) & (c > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.float32(rel_err_ref) * np.sqrt(np.maximum(1.0 / np.where(ok, c, 1.0) - 1.0, 0.0))
+    return np.where(ok, e, np.inf).astype(np.float32)
+
+
+def fuse_candidates(
+    depth_m: NDArray[np.float32], rel_err: NDArray[np.float32], params: FusionParams
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.int64]]:
+    """Fuse ``S`` candidates ``[S, H, W]`` (depth 0 / error inf = none); see module docstring.
+
+    Returns ``(depth, rel_err, lead)`` ``[H, W]``: fused depth (0 where none), its predicted error
+    (inf where none) and the index of the leading candidate (-1 where none).
+    """
+    d = np.asarray(depth_m, np.float32)
+    e = np.asarray(rel_err, np.float32)
+    if d.ndim != 3 or d.shape != e.shape:
+        raise ConfigError(f"fuse_candidates: need [S, H, W] arrays, got {d.shape} / {e.shape}")
+    valid = np.isfinite(d) & (d > 0) & np.isfinite(e) & (e >= 0)
+    e = np.where(valid, np.maximum(e, 1e-4), np.inf).astype(np.float32)
+    d = np.where(valid, d, 0.0).astype(np.float32)
+    if d.shape[0] == 0:
+        z = np.zeros(d.shape[1:], np.float32)
+        return z, np.full(d.shape[1:], np.inf, np.float32), np.full(d.shape[1:], -1, np.int64)
+    lead = np.argmin(e, axis=0)
+    d_lead = np.take_along_axis(d, lead[None], 0)[0]
+    e_lead = np.take_along_axis(e, lead[None], 0)[0]
+    any_valid = valid.any(0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gap = np.abs(d - d_lead) / np.where(d_lead > 0, d_lead, 1.0)
+        agree = valid & (gap <= params.agree_sigmas * (e + e_lead))
+        w = np.where(agree, 1.0 / (e * e), 0.0)
+        wsum = w.sum(0)
+        fused = (w * d).sum(0) / np.where(wsum > 0, wsum, 1.0)
+        conflict = valid & ~agree & (e <= params.conflict_ratio * e_lead)
+        e_conf = np.where(conflict, gap, 0.0).max(0)
+    e_out = np.where(any_valid, np.maximum(e_lead, e_conf), np.inf).astype(np.float32)
+    d_out = np.where(any_valid, fused, 0.0).astype(np.float32)
+    return d_out, e_out, np.where(any_valid, lead, -1)
+
+
+def _warp_in(
+    grey_k: NDArray[np.uint8],
+    Tk_inv: NDArray[np.float64],
+    K: NDArray[np.float64],
+    earlier: Sequence[tuple],
+    max_depth_m: float,
+    min_conf: float,
+    params: FusionParams,
+    name: str,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """``(depth, confidence, T_world_cam[, grey])`` of earlier keyframes warped into ``k``; per
+    pixel the most confident one (most recent first on ties). Where the earlier keyframe's image
+    is given, a warped pixel whose (blurred) grey level differs from ``k``'s by more than
+    ``warp_max_grey_diff`` is dropped: it is seen through something the earlier depth lacked
+    (a forward warp cannot know an occluder it was not given). Returns depth and confidence."""
+    H, W = grey_k.shape
+    depth = np.zeros((H, W), np.float32)
+    conf = np.zeros((H, W), np.float32)
+    gk = cv2.GaussianBlur(grey_k, (0, 0), 1.5).astype(np.float32)
+    for i, item in enumerate(earlier):
+        d_j, c_j, T_j = item[:3]
+        T_j = check_array(f"{name}[{i}].T_world_cam", T_j, shape=(4, 4), finite=True)
+        d_j = check_array(f"{name}[{i}].depth_m", d_j, shape=(H, W))
+        c_j = check_array(f"{name}[{i}].confidence", c_j, shape=(H, W))
+        with np.errstate(invalid="ignore"):
+            keep = np.isfinite(c_j) & (c_j >= min_conf) & np.isfinite(d_j) & (d_j > 0)
+            keep &= d_j <= max_depth_m
+        vals = [np.where(keep, c_j, 0.0)]
+        grey_j = item[3] if len(item) > 3 else None
+        if grey_j is not None:
+            g = _grey(grey_j, f"{name}[{i}].image")
+            vals.append(cv2.GaussianBlur(g, (0, 0), 1.5).astype(np.float32))
+        d_w, v_w = forward_warp_depth(np.where(keep, d_j, 0.0), np.stack(vals, -1), K, Tk_inv @ T_j)
+        c_w = v_w[..., 0]
+        if grey_j is not None:
+            c_w = np.where(np.abs(v_w[..., 1] - gk) <= params.warp_max_grey_diff, c_w, 0.0)
+        take = (d_w > 0) & (d_w <= max_depth_m) & (c_w > conf)
+        depth = np.where(take, d_w, depth)
+        conf = np.where(take, c_w, conf)
+    return depth, conf
+
+
+def _verify(
+    d_w: NDArray[np.float32],
+    e_w: NDArray[np.float32],
+    d_meas: NDArray[np.float32],
+    e_meas: NDArray[np.float32],
+    params: FusionParams,
+) -> tuple[NDArray[np.float32], float]:
+    """Raise a warped source's error to what this keyframe's measurements say of it.
+
+    Where fresh measurements (flow / road, predicted error below ``verify_max_err``) overlap the
+    warped depth, their relative disagreement measures how wrong the carried depth is (a bad
+    metrized depth, pose drift). Its mean over a ``verify_window_px`` window (where the window
+    holds at least ``verify_min_pixels / 16`` overlapping pixels), else its median over the
+    image, is ``r``; every warped pixel's error becomes ``sqrt(e^2 + r^2)``. Returns the new
+    errors and the image median (NaN when the overlap is too small to tell).
+    """
+    both = (d_w > 0) & np.isfinite(e_w) & (d_meas > 0) & (e_meas < params.verify_max_err)
+    if not params.verify_warp or int(both.sum()) < params.verify_min_pixels:
+        return e_w, float("nan")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gap = np.where(both, np.abs(d_w - d_meas) / d_meas, 0.0).astype(np.float32)
+    r_img = float(np.median(gap[both]))
+    k = params.verify_window_px
+    n = cv2.blur(both.astype(np.float32), (k, k), borderType=cv2.BORDER_CONSTANT) * (k * k)
+    g = cv2.blur(gap, (k, k), borderType=cv2.BORDER_CONSTANT) * (k * k)
+    local = n >= max(1.0, params.verify_min_pixels / 16)
+    r = np.where(local, g / np.maximum(n, 1.0), np.float32(r_img)).astype(np.float32)
+    return np.sqrt(e_w * e_w + r * r).astype(np.float32), r_img
+
+
+def _road(
+    grey: NDArray[np.uint8],
+    K: NDArray[np.float64],
+    Tk: NDArray[np.float64],
+    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    flow: FlowPrior,
+    flow_params: FlowPriorParams,
+    road_params: RoadPriorParams,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The road plane verified against each reference (the flow ones with their DIS flow, the
+    extra ``road_references`` photometrically only): road where any reference verifies it (a
+    reference may have seen the road hidden behind something that has since been passed)."""
+    H, W = grey.shape
+    up = up_in_camera(Tk, road_params.up_world, flow_params.ground_up_cam)
+    _, _, rays = _pixel_rays(K, H, W)
+    refs: list = []
+    for i, (img, T_r) in enumerate(list(references) + list(road_references)):
+        T_r = check_array(f"references[{i}].T_world_cam", T_r, shape=(4, 4), finite=True)
+        pair = flow.pairs[i] if i < len(flow.pairs) else None
+        refs.append(
+            (
+                _grey(img, f"references[{i}].image"),
+                se3_inverse(T_r) @ Tk,
+                None if pair is None else pair.flow_px,
+                None if pair is None else pair.fb_error_px,
+            )
+        )
+    depth = np.zeros((H, W), np.float32)
+    err = np.full((H, W), np.inf, np.float32)
+    for ref in refs or [None]:
+        road = road_prior(grey, K, rays, up, flow_params.camera_height_m, road_params, ref)
+        better = road.rel_err < err
+        depth = np.where(better, road.depth_m, depth)
+        err = np.where(better, road.rel_err, err)
+    return depth, err
+
+
+def _warped(
+    grey: NDArray[np.uint8],
+    Tk: NDArray[np.float64],
+    K: NDArray[np.float64],
+    earlier_depth: Sequence[tuple],
+    previous_prior: tuple | None,
+    flow_params: FlowPriorParams,
+    params: FusionParams,
+) -> list[tuple[str, NDArray[np.float32], NDArray[np.float32]]]:
+    """The warp (metrized) and carry (previous prior) candidates: ``(name, depth, rel_err)``."""
+    Tk_inv = se3_inverse(Tk)
+    out = []
+    if earlier_depth and params.warp_sources > 0:
+        d_w, c_w = _warp_in(
+            grey,
+            Tk_inv,
+            K,
+            earlier_depth[: params.warp_sources],
+            flow_params.max_depth_m,
+            params.warp_min_confidence,
+            params,
+            "earlier_depth",
+        )
+        e_w = np.where(c_w > 0, params.warp_rel_err / np.sqrt(np.maximum(c_w, 1e-6)), np.inf)
+        out.append(("warp", d_w, e_w.astype(np.float32)))
+    if previous_prior is not None and params.carry:
+        d_c, c_c = _warp_in(
+            grey,
+            Tk_inv,
+            K,
+            [previous_prior],
+            flow_params.max_depth_m,
+            1e-6,
+            params,
+            "previous_prior",
+        )
+        e_c = error_from_confidence(c_c, params.rel_err_ref) * np.float32(params.carry_growth)
+        out.append(("carry", d_c, e_c))
+    return out
+
+
+def compute_dense_prior(
+    image_k: NDArray[np.uint8],
+    K: NDArray[np.float64],
+    T_world_cam_k: NDArray[np.float64],
+    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    earlier_depth: Sequence[tuple] = (),
+    previous_prior: tuple | None = None,
+    road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = (),
+    *,
+    flow_params: FlowPriorParams | None = None,
+    road_params: RoadPriorParams | None = None,
+    params: FusionParams | None = None,
+) -> DensePrior:
+    """Dense prior of keyframe ``k`` (module docstring).
+
+    Args:
+        image_k: ``[H, W, 3]`` RGB or ``[H, W]`` uint8 keyframe; K: ``[3, 3]`` intrinsics.
+        T_world_cam_k: ``[4, 4]`` pose of the keyframe (frontend, metric).
+        references: ``(image, T_world_cam)`` of earlier keyframes for the flow (nearest first,
+            see :func:`~mogs_node.depth_prior.flow_prior.choose_references`); may be empty.
+        earlier_depth: ``(depth_m, confidence, T_world_cam[, image])`` metrized depths of
+            earlier keyframes, most recent first (at most ``params.warp_sources`` used), with
+            their image for the photometric check; may be empty.
+        previous_prior: ``(depth_m, confidence, T_world_cam[, image])`` of the previous
+            keyframe's own prior (carried when ``params.carry``), or None.
+        road_references: ``(image, T_world_cam)`` of further earlier keyframes the road plane
+            is verified against (photometrically), besides ``references``.
+        flow_params, road_params, params: the sources' and the fusion's parameters (None:
+            defaults).
+    """
+    flow_params = flow_params or FlowPriorParams()
+    road_params = road_params or RoadPriorParams()
+    params = params or FusionParams()
+    grey = _grey(image_k, "image_k")
+    H, W = grey.shape
+    K = check_array("K", K, shape=(3, 3), finite=True)
+    Tk = check_array("T_world_cam_k", T_world_cam_k, shape=(4, 4), finite=True)
+    flow = compute_flow_prior(grey, K, Tk, references, flow_params)
+    cands_d = [flow.depth_m]
+    cands_e = [error_from_confidence(flow.confidence, flow_params.rel_err_ref)]
+    names = ["flow"]
+    if road_params.enabled and flow_params.camera_height_m > 0:
+        road_d, road_e = _road(
+            grey, K, Tk, references, road_references, flow, flow_params, road_params
+        )
+        cands_d.append(road_d)
+        cands_e.append(road_e)
+        names.append("road")
+    stats: dict[str, float] = {}
+    d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
+    warped = _warped(grey, Tk, K, earlier_depth, previous_prior, flow_params, params)
+    for name, d_w, e_w in warped:
+        e_w, r = _verify(d_w, e_w, d_meas, e_meas, params)
+        stats[f"{name}_disagreement"] = r
+        cands_d.append(d_w)
+        cands_e.append(e_w)
+        names.append(name)
+    depth, err, lead = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
+    depth[flow.sky] = 0.0
+    err[flow.sky] = np.inf
+    conf = confidence_from_error(err, params.rel_err_ref)
+    source = np.zeros((H, W), np.int8)
+    for i, n in enumerate(names):
+        source[(lead == i) & (conf > 0)] = SOURCES[n]
+    stats.update(flow.stats)
+    stats["flow_coverage"] = stats.pop("coverage")
+    stats["coverage"] = float(np.mean(conf > 0))
+    for n, code in SOURCES.items():
+        stats[f"share_{n}"] = float(np.mean(source == code))
+    log.debug("dense prior: %s", stats)
+    return DensePrior(depth, conf, err, source, flow.sky, stats)
