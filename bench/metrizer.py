@@ -2,7 +2,7 @@
 
 Inputs are prepared once outside the timed region (segmentation and prior inference excluded, as
 in the paper's comparison): a rendered frame of the synthetic world, ~200 graph-segmentation
-masks, ~500 Shi-Tomasi points with ground-truth depth (1% noise) and the simulated LFM prior.
+masks, ~600 Shi-Tomasi points (``--points``) with ground-truth depth (1% noise) and the simulated LFM prior.
 Single-threaded numpy/OpenCV (the script pins BLAS and OpenCV to one thread).
 
     .venv/bin/python bench/metrizer.py [--repeats 10] [--json PATH] [--no-markdown]
@@ -52,11 +52,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--frames", type=int, default=2, help="distinct keyframes to cycle through")
     ap.add_argument("--masks", type=int, default=200, help="target number of masks")
+    ap.add_argument("--points", type=int, default=600, help="Shi-Tomasi points per keyframe (max)")
     ap.add_argument("--json", default=None, metavar="PATH")
     ap.add_argument("--no-markdown", action="store_true", help="do not update docs/benchmarks.md")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
-    cases = make_cases(args.frames, seed=0, size=(1242, 375), max_corners=500, masks=())
+    cases = make_cases(args.frames, seed=0, size=(1242, 375), max_corners=args.points, masks=())
     inputs = []
     for c in cases:
         lab = _masks_near(c.rgb, args.masks)
@@ -128,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         body = (
             "## Depth metrizer speed (bench/metrizer.py)\n\n"
-            f"`.venv/bin/python bench/metrizer.py --repeats {args.repeats}`: 1242x375 sim keyframe,"
+            f"`.venv/bin/python bench/metrizer.py --repeats {args.repeats} --points {args.points}`:"
+            " 1242x375 sim keyframe,"
             f" {counts.get('masks')} graph masks, {counts.get('features')} points, one thread,"
             f" median of {args.repeats} runs; segmentation and prior inference excluded. CPU ="
             " process time of the single-threaded run (the machine is shared: 1-min load average"

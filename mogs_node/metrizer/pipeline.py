@@ -15,9 +15,11 @@ Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
 7. ``refine``: CDR, eqs. (6)-(11) by IRLS (refinement.py); eq. (8) anchors to a locally aligned
    prior (the global one times a smooth field of the geometric evidence, ``local_anchor``).
 8. ``compose`` / ``model_output`` / ``residual`` / ``sky_holes``: calibrated prior per object;
-   model depth where it agrees; the smooth residual correction; sky -> ``d_max``; pixels without
-   prior get the model depth (accepted shape) or an edge-aware fill of the sparse points
-   (fill.py); output confidence.
+   model depth where it agrees; the smooth residual correction; per object, the global affine
+   where the object's own result does not explain its features better (never worse than the
+   baseline, docs/metrizer.md); sky -> ``d_max``; pixels without prior get, only near
+   neighbour-confirmed features of their own object, the model depth (accepted shape) or the
+   nearest such feature's depth (fill.py); output confidence.
 
 Modes: ``full``; ``no_msc`` (no merging, no shapes: the geometric term of eq. 7 uses each mask's
 sparse features); ``no_msc_cdr`` (the globally aligned prior). See docs/metrizer.md.
@@ -27,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -50,7 +52,7 @@ from mogs_node.metrizer.association import (
     region_adjacency,
 )
 from mogs_node.metrizer.consensus import ConsensusParams, fit_objects
-from mogs_node.metrizer.fill import edge_aware_fill, smooth_field
+from mogs_node.metrizer.fill import consistent_seeds, edge_aware_fill, smooth_field
 from mogs_node.metrizer.merging import absorb_into_models, merge_undersupported
 from mogs_node.metrizer.refinement import CdrParams, CdrProblem, solve_cdr
 
@@ -73,6 +75,20 @@ class MetrizerParams:
     sample_stride: int = 6  # CDR data terms use every stride-th pixel in x and y (+ tiny masks)
     model_extrapolation: float = 2.0  # model depth used within [z_min / f, z_max * f] of inliers
     hole_model_extrapolation: float = 1.25  # the same f for pixels without prior (no gate there)
+    fallback_global: bool = True  # per object: the global affine where the object's own result
+    # does not explain its features better (degrees-of-freedom corrected, see _fallback_to_global)
+    fallback_featureless: bool = False  # ... and objects without features always
+    fallback_min_features: int = 18  # ... objects without features also when the frame has fewer
+    # features with a prior than this (their calibration follows thin neighbouring evidence)
+    hole_model_radius: float = 0.05  # a pixel without prior takes its object's model depth only
+    # within this fraction of the image width of one of the object's own features
+    hole_fill_radius: float = 0.02  # ... the edge-aware fill of the features only within this
+    t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
+    fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
+    # of the same object, or "edge_aware" (FGS normalised convolution of the features)
+    fill_seed_gate: float = 0.3  # a fill seed must be within this relative depth of the median
+    # of its nearest features (of 8) within fill_seed_radius (x image width), and have >= 2 there
+    fill_seed_radius: float = 0.1
     model_prior_gate: float = 0.3  # eq. (7) uses a model pixel only within this relative
     # distance of the globally aligned prior (the pixel is then plausibly on the model's surface)
     feature_prior_gate: float = 0.5  # eq. (7) feature rows: drop a feature whose depth is more than
@@ -86,6 +102,8 @@ class MetrizerParams:
     residual_field: bool = True  # departure: smooth multiplicative correction after CDR
     residual_sigma_frac: float = 0.05  # its Gaussian width, fraction of the image width
     residual_model_weight: float = 0.05  # weight of a model-output sample vs a feature (1)
+    residual_shrink: float = 1.0  # the field decays to 1 (no correction) where it has less
+    # evidence than this many features per Gaussian footprint (as anchor_shrink)
     absorb: bool = True  # departure: groups without a shape join a neighbour's shape that fits
     local_anchor: bool = True  # departure: eq. (8) anchors to the globally aligned prior times a
     # smooth field of the geometric evidence (model depth, features) relative to it
@@ -227,6 +245,7 @@ class _Frame:
     run_label: NDArray[np.intp] | None = None  # [R] object of each raster run of gobj
     run_len: NDArray[np.intp] | None = None  # [R] its length in pixels
     edges: NDArray[np.uint8] | None = None  # quarter-resolution depth-edge band of the prior
+    t_abs_m: float = 0.0  # absolute part of T_s(z) used (see the consensus stage)
 
     def in_edge_band(self, flat_idx: NDArray[np.intp]) -> NDArray[np.bool_]:
         """Whether flat pixels lie in the prior's depth-edge band (computed once, on demand)."""
@@ -458,7 +477,9 @@ def metrize_depth(
     far_grid, norm_grid = _far_and_norm(y_grid, prior_kind, p)
     n_prior_g = np.bincount(gg_grid, minlength=G)
     n_far_g = np.bincount(gg_grid[far_grid], minlength=G)
+    # sky needs the metric global alignment (no feature with a prior: "far" means nothing)
     sky = (n_feat_g == 0) & (n_prior_g > 0) & (n_far_g >= p.sky_far_fraction * n_prior_g)
+    sky &= n_global > 0
     stats.update(n_objects=G, merges=int(n_merges), n_sky_objects=int(sky.sum()))
     tm.lap("merge")
 
@@ -496,6 +517,13 @@ def metrize_depth(
     Am, bm, cm = np.zeros((G, 3, 3)), np.zeros((G, 3)), np.zeros(G)
     zlo, zhi = np.zeros(G), np.zeros(G)
     n_skipped = n_tried = n_degenerate = 0
+    # T_s(z) = t_abs + t_rel z: the absolute term (set for street scenes) shrinks with the scene:
+    # at most t_abs_m * median feature depth / t_abs_ref_depth_m (departure 14)
+    cons = p.consensus
+    if len(z):
+        t_abs = cons.t_abs_m * min(1.0, float(np.median(z)) / p.t_abs_ref_depth_m)
+        if t_abs < cons.t_abs_m:
+            cons = replace(cons, t_abs_m=t_abs)
     if mode == "full" and len(z):
         rng = np.random.default_rng(p.seed)
         Xf = np.stack(
@@ -503,7 +531,7 @@ def metrize_depth(
         )
         order = np.argsort(feat_g, kind="stable")
         starts = np.concatenate([[0], np.cumsum(n_feat_g)])
-        fits = fit_objects(Xf, w, feat_g, G, rng, p.consensus)
+        fits = fit_objects(Xf, w, feat_g, G, rng, cons)
         for g, fit in fits.items():
             n_tried += 1
             n_skipped += int(fit.skipped_costly)
@@ -515,6 +543,7 @@ def metrize_depth(
             zi = z[order[starts[g] : starts[g + 1]]][fit.inliers]
             zlo[g] = max(zi.min() / p.model_extrapolation, p.d_min_m)
             zhi[g] = min(zi.max() * p.model_extrapolation, p.d_max_m)
+    fr.t_abs_m = cons.t_abs_m
     tm.lap("consensus")
     n_absorbed = 0
     obj_to_g = group  # [n_obj] object -> group (after absorption in mode full)
@@ -632,7 +661,9 @@ def metrize_depth(
         sm_g=0.5 * (norm_p + norm_q),
         sm_w=sm_w.astype(np.float64),
     )
-    theta = solve_cdr(prob, p.cdr)
+    # no feature with a prior: no metric evidence to calibrate with, every object keeps the global
+    # affine (the identity then; shapes and the fill of pixels without prior still apply)
+    theta = solve_cdr(prob, p.cdr) if n_global > 0 else np.tile(theta0, (G, 1))
     # a non-finite or sign-flipping calibration (an inverted prior) falls back to the global one
     theta[~np.all(np.isfinite(theta), axis=1) | (theta[:, 0] <= 0)] = theta0
     stats.update(n_geo_rows=int(len(geo[0])), n_nfc_rows=int(len(sg)), n_sm_rows=int(len(gp)))
@@ -724,7 +755,7 @@ def _absorb(fr: _Frame, group, adjacency, model, Xf, samples):
     fi, frow = _expand(feat_g, G, pg)
     u = pu[frow]
     r = shapes.quadric_residual_rows(Am[u], bm[u], cm[u], Xf[fi])
-    f_ok = r <= p.consensus.t_abs_m + p.consensus.t_rel * z[fi]
+    f_ok = r <= fr.t_abs_m + p.consensus.t_rel * z[fi]
     # evidence 2: g with few features: u's model depth at g's samples vs the global prior
     si, srow = _expand(gg_grid, G, pg)
     sel = n_feat_g[pg][srow] < p.absorb_sample_below
@@ -856,6 +887,138 @@ def _model_output(fr: _Frame, depth: NDArray[np.float32], special) -> tuple:
     return used, np.concatenate(out_idx), np.concatenate(out_ratio)
 
 
+# parameters fitted per object beyond the frame's shared global affine: its affine (eq. 6) plus
+# the accepted shape (plane 3, cylinder 5, ellipsoid 9)
+_N_PARAMS = np.array([2, 5, 7, 11])
+
+
+def _fallback_to_global(fr: _Frame, depth: NDArray[np.float32], *, featureless: bool) -> int:
+    """Per-object fallback to the global affine (the ``no_msc_cdr`` result), in place.
+
+    An object keeps its own result (calibrated prior, model output, residual field) only when it
+    explains the object's own sparse features better than the global affine does, after
+    correcting for what it fitted to them: ``L1_obj * n / (n - p) < L1_glob`` with ``L1`` the
+    summed absolute log-depth error at the object's features with a prior, ``n`` their number and
+    ``p`` the object's fitted parameters (2 for its affine of eq. 6, plus those of its shape).
+    ``RSS / (n - p)`` is the unbiased residual variance of a fit with ``p`` parameters; the
+    global affine's two parameters are shared by all features of the frame. An object with
+    ``n <= p`` cannot show that it beats the baseline and falls back. With ``featureless``,
+    objects without features fall back too (else they keep what CDR's anchor and smoothness
+    gave them). Returns the number of objects that fell back.
+    """
+    G, theta0, kind = fr.G, fr.theta0, fr.prior_kind
+    fpix, z = fr.fpix, fr.z
+    ok = fr.has_prior[fpix] & ~fr.sky[fr.feat_g] & (depth[fpix] > 0)
+    g = fr.feat_g[ok]
+    x = fr.prior[fpix[ok]].astype(np.float64)
+    d_glob = depth_from_space(theta0[0] * x + theta0[1], kind, fr.p.d_min_m, fr.p.d_max_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e_obj = np.abs(np.log(z[ok] / depth[fpix[ok]].astype(np.float64)))
+        e_glob = np.abs(np.log(z[ok] / d_glob))
+    n = np.bincount(g, minlength=G).astype(np.float64)
+    l_obj = np.bincount(g, e_obj, minlength=G)
+    l_glob = np.bincount(g, e_glob, minlength=G)
+    dof = n - _N_PARAMS[np.clip(fr.kind_g, 0, 3)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        keep = (dof > 0) & (l_obj * n / np.where(dof > 0, dof, 1.0) < l_glob)
+    fall = ~keep & ~fr.sky
+    if not featureless:
+        fall &= fr.n_feat_g > 0
+    if not fall.any():
+        return 0
+    pix = fr.per_pixel(fall) & fr.has_prior
+    y = (np.float32(theta0[0]) * fr.prior[pix] + np.float32(theta0[1])).astype(np.float32)
+    depth[pix] = _to_depth(y, kind, fr.p)
+    return int(fall.sum())
+
+
+def _nearest_seed(
+    fr: _Frame, seed_pix: NDArray[np.intp], flat_idx: NDArray[np.intp]
+) -> tuple[F64, NDArray[np.intp]]:
+    """Distance [px] from flat pixels to the nearest seed pixel, and that seed pixel.
+
+    A distance transform over the seed pixels (``DIST_LABEL_PIXEL``: the label of a pixel is the
+    raster rank of its nearest zero pixel); ``inf`` / -1 without seeds."""
+    H, W = fr.H, fr.W
+    if len(seed_pix) == 0:
+        return np.full(len(flat_idx), np.inf), np.zeros(len(flat_idx), np.intp)
+    seeds = np.ones(H * W, np.uint8)
+    seeds[seed_pix] = 0
+    dist, lab = cv2.distanceTransformWithLabels(
+        seeds.reshape(H, W), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    ranked = np.flatnonzero(seeds == 0)  # raster order = label order
+    near = ranked[np.clip(lab.ravel()[flat_idx] - 1, 0, len(ranked) - 1)]
+    return dist.ravel()[flat_idx].astype(np.float64), near
+
+
+def _fill_holes(
+    fr: _Frame, holes: NDArray[np.bool_], depth: NDArray[np.float32], out_conf: NDArray[np.float32]
+) -> tuple[int, int]:
+    """Depth for pixels without prior (and not sky), in place; returns the pixel counts
+    ``(model depth, edge-aware fill)``.
+
+    Seeds are the features that agree with their image neighbours (:func:`consistent_seeds`: no
+    prior checks a feature here, so a gross outlier would otherwise be copied into the fill).
+    Only where sparse metric evidence is near: the pixel's nearest seed must lie in the same
+    object and within ``hole_model_radius`` (accepted shape: the model depth by ray-shape
+    intersection) or ``hole_fill_radius`` (otherwise: the edge-aware fill of the sparse points)
+    times the image width. Elsewhere there is no value (0): extrapolating a shape or diffusing
+    far points into a region without any evidence (a textureless car or pillar close to the
+    camera) gave errors of several hundred percent (docs/metrizer.md, pixels without prior).
+    """
+    p, H, W, gobj, kind_g = fr.p, fr.H, fr.W, fr.gobj, fr.kind_g
+    hole_idx = np.flatnonzero(holes)
+    v, u = np.divmod(fr.fpix, W)
+    good = consistent_seeds(
+        np.stack([u, v], 1).astype(np.float64),
+        fr.z,
+        gate=p.fill_seed_gate,
+        radius_px=p.fill_seed_radius * W,
+    )
+    dist, near = _nearest_seed(fr, fr.fpix[good], hole_idx)
+    same = np.isfinite(dist) & (gobj[near] == gobj[hole_idx])
+    n_model = n_fill = 0
+    hi = hole_idx[same & (kind_g[gobj[hole_idx]] > 0) & (dist <= p.hole_model_radius * W)]
+    if len(hi):  # no prior, accepted shape, own features near: the model depth
+        g = gobj[hi]
+        d = _model_depth(hi, g, kind_g, fr.Am, fr.bm, fr.cm, W, fr.K)
+        # no prior to gate the model against: a tighter extrapolation range
+        f = p.hole_model_extrapolation / p.model_extrapolation
+        ok = np.isfinite(d) & (d >= fr.zlo[g] / f) & (d <= fr.zhi[g] * f)
+        depth[hi[ok]] = d[ok]
+        out_conf[hi[ok]] = 0.5 * fr.conf_g[g[ok]]
+        n_model = int(ok.sum())
+    sel = same & (dist <= p.hole_fill_radius * W)
+    sel[sel] = depth[hole_idx[sel]] == 0
+    rest = hole_idx[sel]
+    if len(rest) and p.fill_method == "nearest":  # the nearest consistent feature's depth
+        seed_d = np.zeros(H * W, np.float32)
+        seed_d[fr.fpix[good]] = fr.z[good]
+        depth[rest] = np.clip(seed_d[near[sel]], p.d_min_m, _f32_below(p.d_max_m))
+        out_conf[rest] = 0.1
+        n_fill = len(rest)
+    elif len(rest):  # the edge-aware fill from the consistent features
+        seed_d = np.zeros(H * W, np.float32)
+        seed_w = np.zeros(H * W, np.float32)
+        seed_d[fr.fpix[good]] = fr.z[good]
+        seed_w[fr.fpix[good]] = 1.0
+        filled = edge_aware_fill(
+            seed_d.reshape(H, W),
+            seed_w.reshape(H, W),
+            fr.image,
+            p.fill_scale,
+            p.fill_lambda,
+            p.fill_sigma_color,
+            geometric=True,
+        ).ravel()[rest]
+        ok = filled > 0
+        depth[rest[ok]] = np.clip(filled[ok], p.d_min_m, _f32_below(p.d_max_m))
+        out_conf[rest[ok]] = 0.1
+        n_fill = int(ok.sum())
+    return n_model, n_fill
+
+
 def _compose(fr: _Frame, tm: _Timer, global_only: bool) -> MetrizedDepth:
     """Full-resolution output: calibrated prior per object, model depth, sky, holes, confidence."""
     p: MetrizerParams = fr.p
@@ -906,12 +1069,23 @@ def _compose(fr: _Frame, tm: _Timer, global_only: bool) -> MetrizedDepth:
         )
         if len(idx):
             field = smooth_field(
-                (H, W), idx, val, wt, p.residual_sigma_frac, exponentiate=True
+                (H, W),
+                idx,
+                val,
+                wt,
+                p.residual_sigma_frac,
+                exponentiate=True,
+                shrink=p.residual_shrink,
             ).ravel()
             if used is not None:
                 field[used] = 1.0
             depth *= field
             np.clip(depth, np.float32(p.d_min_m), _f32_below(p.d_max_m), out=depth)
+    n_fallback = 0
+    if p.fallback_global and not global_only:
+        thin = stats["n_features_global"] < p.fallback_min_features
+        n_fallback = _fallback_to_global(fr, depth, featureless=p.fallback_featureless or thin)
+    stats["n_fallback_objects"] = n_fallback
     tm.lap("residual")
 
     if special is not None:
@@ -928,34 +1102,7 @@ def _compose(fr: _Frame, tm: _Timer, global_only: bool) -> MetrizedDepth:
         depth[holes] = 0.0
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
-            hi = np.flatnonzero(holes & (kind_g[gobj] > 0))
-            if len(hi):  # no prior, accepted shape: the model depth
-                g = gobj[hi]
-                d = _model_depth(hi, g, kind_g, fr.Am, fr.bm, fr.cm, W, fr.K)
-                # no prior to gate the model against: a tighter extrapolation range
-                f = p.hole_model_extrapolation / p.model_extrapolation
-                ok = np.isfinite(d) & (d >= fr.zlo[g] / f) & (d <= fr.zhi[g] * f)
-                depth[hi[ok]] = d[ok]
-                out_conf[hi[ok]] = 0.5 * conf_g[g[ok]]
-                n_model_fill = int(ok.sum())
-            rest = holes & (depth == 0)
-            if rest.any():  # else: edge-aware fill from the sparse metric points
-                seed_d = np.zeros(H * W, np.float32)
-                seed_w = np.zeros(H * W, np.float32)
-                seed_d[fpix] = z
-                seed_w[fpix] = 1.0
-                filled = edge_aware_fill(
-                    seed_d.reshape(H, W),
-                    seed_w.reshape(H, W),
-                    fr.image,
-                    p.fill_scale,
-                    p.fill_lambda,
-                    p.fill_sigma_color,
-                ).ravel()
-                ok = rest & (filled > 0)
-                depth[ok] = np.clip(filled[ok], p.d_min_m, _f32_below(p.d_max_m))
-                out_conf[ok] = 0.1
-                n_edge_fill = int(ok.sum())
+            n_model_fill, n_edge_fill = _fill_holes(fr, holes, depth, out_conf)
     stats.update(
         n_model_output_px=n_model_px, n_hole_px_model=n_model_fill, n_hole_px_fill=n_edge_fill
     )
