@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from mogs_node.eval.depth_sim import make_cases  # noqa: E402
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
-from mogs_node.metrizer.pipeline import MetrizerParams, metrize_depth  # noqa: E402
+from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams, metrize  # noqa: E402
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph  # noqa: E402
 
 AUTHORS_MS = 2900.0
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     for c in cases:
         lab = _masks_near(c.rgb, args.masks)
         inputs.append(
-            dict(
+            MetrizerInputs(
                 K=c.K,
                 labels=lab,
                 feature_uv_px=c.uv,
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     params = MetrizerParams()
     for kw in inputs:  # warm-up (imports, caches)
-        metrize_depth(**kw, params=params)
+        metrize(kw, params)
     per_mode: dict[str, dict[str, list[float]]] = {}
     counts = {}
     for mode in ("full", "no_msc", "no_msc_cdr"):
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in range(args.repeats):
             kw = inputs[r % len(inputs)]
             t0 = time.perf_counter()
-            out = metrize_depth(**kw, params=params, mode=mode)
+            out = metrize(kw, params, mode)
             wall = (time.perf_counter() - t0) * 1e3
             for k, v in out.stats["cpu_ms"].items():
                 stages.setdefault(k, []).append(v)
