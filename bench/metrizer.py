@@ -2,7 +2,7 @@
 
 Inputs are prepared once outside the timed region (segmentation and prior inference excluded, as
 in the paper's comparison): a rendered frame of the synthetic world, ~200 graph-segmentation
-masks, ~500 Shi-Tomasi points with ground-truth depth (1% noise) and the simulated LFM prior.
+masks, ~600 Shi-Tomasi points (``--points``) with ground-truth depth (1% noise) and the simulated LFM prior.
 Single-threaded numpy/OpenCV (the script pins BLAS and OpenCV to one thread).
 
     .venv/bin/python bench/metrizer.py [--repeats 10] [--json PATH] [--no-markdown]
@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from mogs_node.eval.depth_sim import make_cases  # noqa: E402
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
-from mogs_node.metrizer.pipeline import MetrizerParams, metrize_depth  # noqa: E402
+from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams, metrize  # noqa: E402
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph  # noqa: E402
 
 AUTHORS_MS = 2900.0
@@ -52,16 +52,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--frames", type=int, default=2, help="distinct keyframes to cycle through")
     ap.add_argument("--masks", type=int, default=200, help="target number of masks")
+    ap.add_argument("--points", type=int, default=600, help="Shi-Tomasi points per keyframe (max)")
     ap.add_argument("--json", default=None, metavar="PATH")
     ap.add_argument("--no-markdown", action="store_true", help="do not update docs/benchmarks.md")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
-    cases = make_cases(args.frames, seed=0, size=(1242, 375), max_corners=500, masks=())
+    cases = make_cases(args.frames, seed=0, size=(1242, 375), max_corners=args.points, masks=())
     inputs = []
     for c in cases:
         lab = _masks_near(c.rgb, args.masks)
         inputs.append(
-            dict(
+            MetrizerInputs(
                 K=c.K,
                 labels=lab,
                 feature_uv_px=c.uv,
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     params = MetrizerParams()
     for kw in inputs:  # warm-up (imports, caches)
-        metrize_depth(**kw, params=params)
+        metrize(kw, params)
     per_mode: dict[str, dict[str, list[float]]] = {}
     counts = {}
     for mode in ("full", "no_msc", "no_msc_cdr"):
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in range(args.repeats):
             kw = inputs[r % len(inputs)]
             t0 = time.perf_counter()
-            out = metrize_depth(**kw, params=params, mode=mode)
+            out = metrize(kw, params, mode)
             wall = (time.perf_counter() - t0) * 1e3
             for k, v in out.stats["cpu_ms"].items():
                 stages.setdefault(k, []).append(v)
@@ -128,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         body = (
             "## Depth metrizer speed (bench/metrizer.py)\n\n"
-            f"`.venv/bin/python bench/metrizer.py --repeats {args.repeats}`: 1242x375 sim keyframe,"
+            f"`.venv/bin/python bench/metrizer.py --repeats {args.repeats} --points {args.points}`:"
+            " 1242x375 sim keyframe,"
             f" {counts.get('masks')} graph masks, {counts.get('features')} points, one thread,"
             f" median of {args.repeats} runs; segmentation and prior inference excluded. CPU ="
             " process time of the single-threaded run (the machine is shared: 1-min load average"

@@ -264,7 +264,7 @@ def _viz(path: Path, rgb, labels, prior, prior_conf, depth, gt, gt_mask) -> None
 def evaluate(args: argparse.Namespace) -> dict:
     """Run the protocol of the module docstring; returns the DESIGN.md section 7 dict."""
     from mogs_node.metrizer.baselines import BASELINES
-    from mogs_node.metrizer.pipeline import MetrizerParams
+    from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams
 
     folder = Path(args.data) if getattr(args, "data", None) else DEFAULT_DIR
     t0 = time.perf_counter()
@@ -301,7 +301,7 @@ def evaluate(args: argparse.Namespace) -> dict:
         prior_cov.append(float((pc & (gt > 0)).sum() / max((gt > 0).sum(), 1)))
         prior_scale.append(fit_scale_huber(prior.depth_m[pc & gt_mask], gt[pc & gt_mask]))
         pred["prior_raw"].append(np.where(pc, prior.depth_m, 0.0)[m_gt])
-        kw = dict(
+        inputs = MetrizerInputs(
             K=data.K,
             labels=labels,
             feature_uv_px=f.uv,
@@ -311,12 +311,11 @@ def evaluate(args: argparse.Namespace) -> dict:
             prior_confidence=prior.confidence,
             prior_kind="metric",
             image_rgb=rgb,
-            params=mp,
         )
         full_depth = None
         for name in METHODS:
             tic = time.perf_counter()
-            out = BASELINES[name](**kw)
+            out = BASELINES[name](**inputs, params=mp)
             ms_per[name] += (time.perf_counter() - tic) * 1e3
             pred[name].append(out.depth_m[m_gt])
             if name == "full":

@@ -109,11 +109,11 @@ def run_methods(
 ):
     """Depth per method ``{name: MetrizedDepth}`` for one case and mask source."""
     from mogs_node.metrizer.baselines import BASELINES as REGISTRY
-    from mogs_node.metrizer.pipeline import MetrizerParams, metrize_depth
+    from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams, metrize
 
     params = params or MetrizerParams()
     labels = case.masks[mask_source]
-    kw = dict(
+    inputs = MetrizerInputs(
         K=case.K,
         labels=labels,
         feature_uv_px=case.uv,
@@ -123,17 +123,16 @@ def run_methods(
         prior_confidence=np.ones_like(case.prior),
         prior_kind="relative_inverse_depth",
         image_rgb=case.rgb,
-        params=params,
     )
     out = {}
     for m in methods:
         if m in EQ6_ONLY:
             pp = replace(params, model_output=False, residual_field=False)
-            out[m] = metrize_depth(**dict(kw, params=pp), mode=EQ6_ONLY[m])
+            out[m] = metrize(inputs, pp, EQ6_ONLY[m])
         elif m in METHODS:
-            out[m] = metrize_depth(**kw, mode=m)
+            out[m] = metrize(inputs, params, m)
         else:
-            out[m] = REGISTRY[m](**kw)
+            out[m] = REGISTRY[m](**inputs, params=params)
     return out
 
 

@@ -83,7 +83,7 @@ def _inputs(cfg: MapEvalConfig) -> dict[str, Any]:
     import cv2
 
     from mogs_node.mapper.insertion import random_depth
-    from mogs_node.metrizer.pipeline import metrize_depth
+    from mogs_node.metrizer.pipeline import MetrizerInputs, metrize
     from mogs_node.sim import LfmParams, SimConfig, make_sequence, simulated_lfm
 
     seq = make_sequence(
@@ -107,7 +107,7 @@ def _inputs(cfg: MapEvalConfig) -> dict[str, Any]:
         uv, z = uv[ok][:200], z[ok][:200]
         z = z * (1.0 + 0.01 * rng.standard_normal(len(z)))
         prior = simulated_lfm(f.depth_m, rng, LfmParams())
-        kw = dict(
+        inputs = MetrizerInputs(
             K=seq.camera.K,
             labels=f.instance_id,
             feature_uv_px=uv,
@@ -121,7 +121,7 @@ def _inputs(cfg: MapEvalConfig) -> dict[str, Any]:
         gt = f.depth_m
         valid = np.isfinite(gt) & (gt > 0) & (gt <= 80)
         for name, mode in (("mogs", "full"), ("prior_global", "no_msc_cdr")):
-            r = metrize_depth(**kw, mode=mode)
+            r = metrize(inputs, mode=mode)
             depth[name].append((r.depth_m, r.confidence))
             m = valid & (r.depth_m > 0)
             depth_err[name].append(float(np.mean(np.abs(r.depth_m[m] - gt[m]) / gt[m])))

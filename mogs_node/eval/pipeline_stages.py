@@ -274,7 +274,7 @@ def evaluate_stages(
     from mogs_node.eval.depth_sim import _depth_edge_free
     from mogs_node.metrizer.consensus import ConsensusParams
     from mogs_node.metrizer.node import MatchedKeyframe, MetrizerNodeParams, metrizer_inputs
-    from mogs_node.metrizer.pipeline import MetrizerParams, metrize_depth
+    from mogs_node.metrizer.pipeline import MetrizerParams, metrize
     from mogs_node.metrizer.refinement import CdrParams
     from mogs_node.node import parse_params
     from mogs_node.report.collect import score_depth
@@ -295,7 +295,7 @@ def evaluate_stages(
                 masks=inputs["masks"][mk][i],
                 prior=inputs["prior"][pr][i],
             )
-            out = metrize_depth(**metrizer_inputs(entry), params=metrizer_params, mode=mp.mode)
+            out = metrize(metrizer_inputs(entry), metrizer_params, mp.mode)
             sc = score_depth(s.keyframe.keyframe_id, s.keyframe.stamp_ns, out.depth_m, s.gt_depth_m)
             scores.append(sc)
             per_kf.append((sc.absrel, sc.coverage))

@@ -18,33 +18,20 @@ from typing import Any
 import numpy as np
 
 from mogs_node.metrizer.fill import edge_aware_fill, nearest_fill
-from mogs_node.metrizer.pipeline import (
-    MetrizedDepth,
-    MetrizerParams,
-    _check_inputs,
-    _sanitise,
-    metrize_depth,
-)
+from mogs_node.metrizer.inputs import MetrizerInputs, sanitise
+from mogs_node.metrizer.pipeline import MetrizedDepth, MetrizerParams, metrize_depth
 
 __all__ = ["BASELINES", "interp_edge_aware", "interp_nearest"]
 
 
 def _sparse(kw: dict[str, Any]):
     p: MetrizerParams = kw.get("params") or MetrizerParams()
-    K, labels, uv, z, w, prior, conf, image = _check_inputs(
-        kw["K"],
-        kw["labels"],
-        kw["feature_uv_px"],
-        kw["feature_depth_m"],
-        kw["feature_weight"],
-        kw["prior"],
-        kw["prior_confidence"],
-        kw.get("prior_kind", "relative_inverse_depth"),
-        kw.get("image_rgb"),
-        "full",
-    )
+    fields_ = {k: v for k, v in kw.items() if k not in ("params", "mode")}
+    c = MetrizerInputs(**fields_).checked()
+    labels = c.labels
     H, W = labels.shape
-    uv, z, w, _, _ = _sanitise(uv, z, w, prior, conf, p, H, W)
+    uv, z, w, _, _ = sanitise(c.uv, c.z, c.w, c.prior, c.conf, p.d_min_m, p.d_max_m, H, W)
+    image = c.image
     u = np.clip(np.round(uv[:, 0]).astype(np.intp), 0, W - 1)
     v = np.clip(np.round(uv[:, 1]).astype(np.intp), 0, H - 1)
     return p, labels, u, v, z, image

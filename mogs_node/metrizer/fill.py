@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["edge_aware_fill", "nearest_fill"]
+__all__ = ["consistent_seeds", "edge_aware_fill", "nearest_fill", "smooth_field"]
 
 F32 = NDArray[np.float32]
 
@@ -39,16 +39,22 @@ def edge_aware_fill(
     scale: float = 0.5,
     lam: float = 50.0,
     sigma_color: float = 8.0,
+    geometric: bool = False,
 ) -> F32:
     """Edge-aware normalised-convolution fill of ``depth_m`` ``[H, W]`` from pixels with weight > 0.
 
+    With ``geometric`` the fill averages log depth (a weighted geometric mean: a far seed does
+    not dominate a near region as it does in a linear average).
     Returns ``[H, W]`` float32, 0 where no seed reaches (the weight diffused there is ~0).
     """
     H, W = depth_m.shape
     w = np.where(np.isfinite(depth_m) & (depth_m > 0), weight, 0.0).astype(np.float32)
     if not np.any(w > 0):
         return np.zeros((H, W), np.float32)
-    d = np.where(w > 0, depth_m, 0.0).astype(np.float32)
+    d = np.where(w > 0, depth_m, 1.0).astype(np.float32)
+    if geometric:
+        d = np.log(d)
+    d = np.where(w > 0, d, 0.0).astype(np.float32)
     h2, w2 = max(1, round(H * scale)), max(1, round(W * scale))
     if guide_rgb is None:
         guide = np.zeros((h2, w2, 3), np.uint8)
@@ -60,8 +66,43 @@ def edge_aware_fill(
     den = cv2.ximgproc.fastGlobalSmootherFilter(guide, ws, lam, sigma_color)
     with np.errstate(divide="ignore", invalid="ignore"):
         f = np.where(den > 1e-6 * max(float(ws.max()), 1e-12), num / den, 0.0).astype(np.float32)
+    reached = den > 1e-6 * max(float(ws.max()), 1e-12)
+    if geometric:
+        f = np.where(reached, np.exp(np.clip(f, -80.0, 80.0)), 0.0).astype(np.float32)
     f = cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)
     return np.where(np.isfinite(f) & (f > 0), f, 0.0).astype(np.float32)
+
+
+def consistent_seeds(
+    uv_px: NDArray[np.floating],
+    depth_m: NDArray[np.floating],
+    k: int = 8,
+    gate: float = 0.3,
+    radius_px: float = np.inf,
+    min_neighbours: int = 2,
+) -> NDArray[np.bool_]:
+    """Sparse points confirmed by their image neighbours ``[N]`` bool.
+
+    A point is kept when at least ``min_neighbours`` of its ``k`` nearest points lie within
+    ``radius_px`` and ``|log z - median(log z of those neighbours)| <= log(1 + gate)``: a gross
+    outlier (a mismatched track) disagrees with its neighbours and an isolated point cannot be
+    checked, so neither seeds a fill where no prior checks it. A lone point on the near side of a
+    depth edge is dropped as well, which costs the fill a little coverage.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(depth_m)
+    if n <= min_neighbours:
+        return np.zeros(n, bool)
+    kk = min(k, n - 1)
+    dist, nb = cKDTree(uv_px).query(uv_px, kk + 1, distance_upper_bound=radius_px)
+    dist, nb = dist[:, 1:], nb[:, 1:]  # drop the point itself
+    lz = np.append(np.log(depth_m), np.nan)  # index n: no neighbour within the radius
+    near = np.where(np.isfinite(dist), lz[np.minimum(nb, n)], np.nan)
+    enough = np.isfinite(near).sum(axis=1) >= min_neighbours
+    with np.errstate(invalid="ignore"):
+        med = np.nanmedian(np.where(enough[:, None], near, 0.0), axis=1)
+    return enough & (np.abs(lz[:n] - med) <= np.log1p(gate))
 
 
 def smooth_field(

@@ -28,7 +28,7 @@ import numpy as np
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.metrizer.consensus import ConsensusParams
-from mogs_node.metrizer.pipeline import MODES, MetrizerParams, metrize_depth
+from mogs_node.metrizer.pipeline import MODES, MetrizerInputs, MetrizerParams, metrize
 from mogs_node.metrizer.refinement import CdrParams
 from mogs_node.node import Node, parse_params
 
@@ -128,8 +128,9 @@ class KeyframeMatcher:
         return [entry]
 
 
-def metrizer_inputs(entry: MatchedKeyframe) -> dict[str, Any]:
-    """Keyword arguments of :func:`metrize_depth` from one matched set (missing parts handled)."""
+def metrizer_inputs(entry: MatchedKeyframe) -> MetrizerInputs:
+    """:class:`MetrizerInputs` of one matched set (missing parts handled); it also unpacks as the
+    keyword arguments of :func:`~mogs_node.metrizer.pipeline.metrize_depth`."""
     kf = entry.keyframe
     img = kf.image
     H, W = img.shape[:2]
@@ -152,7 +153,7 @@ def metrizer_inputs(entry: MatchedKeyframe) -> dict[str, Any]:
     else:
         prior, conf, kind = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32), "metric"
     xyz = np.asarray(kf.feature_xyz_cam_m, dtype=np.float64)
-    return dict(
+    return MetrizerInputs(
         K=np.asarray(kf.K, dtype=np.float64),
         labels=labels,
         feature_uv_px=np.asarray(kf.feature_uv_px, dtype=np.float64),
@@ -218,9 +219,7 @@ class MetrizerNode(Node):
                     entry.keyframe_id,
                     " and ".join(n for n in ("masks", "prior") if getattr(entry, n) is None),
                 )
-            out = metrize_depth(
-                **metrizer_inputs(entry), params=self.metrizer_params, mode=self.params.mode
-            )
+            out = metrize(metrizer_inputs(entry), self.metrizer_params, self.params.mode)
             self.publish(
                 self.params.out_topic,
                 msgs.DepthMap(

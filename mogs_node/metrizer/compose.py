@@ -1,0 +1,355 @@
+"""Full-resolution output of the metrizer (stage 8): the calibrated prior of eq. (6) per object,
+the model depth where it agrees (departure 7), the residual field (departure 8), the per-object
+fallback to the global affine (never worse than the baseline, departure 15), sky, pixels
+without prior and the output confidence (docs/metrizer.md)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.metrizer import shapes
+from mogs_node.metrizer.alignment import depth_from_space
+from mogs_node.metrizer.fill import consistent_seeds, edge_aware_fill, smooth_field
+from mogs_node.metrizer.frame import (
+    Frame,
+    StageTimer,
+    f32_below,
+    far_and_norm,
+    model_depth,
+    to_depth_inplace,
+)
+from mogs_node.metrizer.params import MetrizedDepth, MetrizerParams
+
+__all__ = ["compose", "fallback_to_global", "fill_holes", "model_output", "nearest_seed"]
+
+F64 = NDArray[np.float64]
+
+
+def model_output(fr: Frame, depth: NDArray[np.float32], special) -> tuple:
+    """Replace the calibrated prior by the model depth where they agree (gate), in place.
+
+    Planes are evaluated on the full image at once: their inverse depth is affine in the
+    normalised image coordinates, ``1 / t = alpha x + beta y + gamma`` with ``(alpha, beta, gamma)
+    = -b / c``. Cylinders and ellipsoids use :func:`shapes.ray_depth` on their own pixels.
+    Returns the mask ``[HW]`` of pixels that now hold model depth, and flat indices of every
+    ``sample_stride^2``-th of them with ``log(model / calibrated)`` there (for the residual field).
+    """
+    p: MetrizerParams = fr.p
+    H, W, G, K = fr.H, fr.W, fr.G, fr.K
+    gobj, kind_g, conf_g = fr.gobj, fr.kind_g, fr.conf_g
+    Am, bm, cm, zlo, zhi = fr.Am, fr.bm, fr.cm, fr.zlo, fr.zhi
+    trusted = (conf_g >= p.model_edge_min_conf) & (kind_g > 0)
+    # the prior's edge band is looked up only where the wide gate matters
+    use_band = p.model_edge_gate > p.model_output_gate and bool(trusted.any())
+
+    def in_band(flat_idx):
+        return fr.in_edge_band(flat_idx) & trusted[gobj[flat_idx]]
+
+    g1, g2 = 1.0 + p.model_output_gate, 1.0 + p.model_edge_gate
+    out_idx, out_ratio = [np.zeros(0, np.intp)], [np.zeros(0)]
+    used = np.zeros(H * W, bool)
+    sub = max(1, p.sample_stride**2)
+    plane = (kind_g == shapes.KIND_PLANE) & (np.abs(cm) > 1e-12)
+    quad = (kind_g == shapes.KIND_CYLINDER) | (kind_g == shapes.KIND_ELLIPSOID)
+    if plane.any():
+        coef = np.zeros((G, 3))
+        coef[plane] = -bm[plane] / cm[plane, None]
+        lo = np.where(plane, 1.0 / zhi.clip(min=1e-12), np.inf).astype(np.float32)
+        hi = np.where(plane, 1.0 / zlo.clip(min=1e-12), -np.inf).astype(np.float32)
+        xg = ((np.arange(W) - K[0, 2]) / K[0, 0]).astype(np.float32)
+        yg = ((np.arange(H) - K[1, 2]) / K[1, 1]).astype(np.float32)
+        # full-resolution float32 passes; per-object values expanded from the raster runs
+        c32 = coef.astype(np.float32)
+        inv = fr.per_pixel(c32[:, 0]).reshape(H, W)
+        inv *= xg[None, :]
+        tmp = fr.per_pixel(c32[:, 1]).reshape(H, W)
+        tmp *= yg[:, None]
+        inv += tmp
+        inv, tmp = inv.ravel(), tmp.ravel()
+        inv += fr.per_pixel(c32[:, 2])
+        ok = inv >= fr.per_pixel(lo)
+        ok &= inv <= fr.per_pixel(hi)
+        r = np.multiply(inv, depth, out=tmp)  # calibrated / model
+        okg = r >= np.float32(1.0 / g1)
+        if g1 < 2:
+            okg &= r <= np.float32(1.0 / (2.0 - g1))
+        if use_band:  # wider gate in the prior's edge band, for trusted shapes
+            oke = r >= np.float32(1.0 / g2)
+            if g2 < 2:
+                oke &= r <= np.float32(1.0 / (2.0 - g2))
+            oke &= ok
+            oke &= ~okg
+            cand = np.flatnonzero(oke)
+            okg[cand[in_band(cand)]] = True
+        ok &= okg
+        if special is not None:
+            ok &= ~special
+        used |= ok
+        idx = np.flatnonzero(ok)[::sub]  # residual samples only: no full gather / scatter
+        out_idx.append(idx)
+        out_ratio.append(-np.log(r[idx].astype(np.float64)))
+        np.divide(np.float32(1.0), inv, out=depth, where=ok)
+    if quad.any():
+        qpix = np.flatnonzero(fr.per_pixel(quad))
+        if special is not None:
+            qpix = qpix[~special[qpix]]
+        g = gobj[qpix]
+        dm = model_depth(qpix, g, kind_g, Am, bm, cm, W, K)
+        dcal = depth[qpix].astype(np.float64)
+        gate = np.full(len(qpix), p.model_output_gate)
+        if use_band:
+            gate[in_band(qpix)] = p.model_edge_gate
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ok = (
+                np.isfinite(dm)
+                & (dm >= zlo[g])
+                & (dm <= zhi[g])
+                & (np.abs(dm / dcal - 1.0) <= gate)
+            )
+        used[qpix[ok]] = True
+        out_idx.append(qpix[ok][::sub])
+        out_ratio.append(np.log(dm[ok] / dcal[ok])[::sub])
+        depth[qpix[ok]] = dm[ok]
+    return used, np.concatenate(out_idx), np.concatenate(out_ratio)
+
+
+# parameters fitted per object beyond the frame's shared global affine: its affine (eq. 6) plus
+# the accepted shape (plane 3, cylinder 5, ellipsoid 9)
+N_PARAMS = np.array([2, 5, 7, 11])
+
+
+def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, featureless: bool) -> int:
+    """Per-object fallback to the global affine (the ``no_msc_cdr`` result), in place.
+
+    An object keeps its own result (calibrated prior, model output, residual field) only when it
+    explains the object's own sparse features better than the global affine does, after
+    correcting for what it fitted to them: ``L1_obj * n / (n - p) < L1_glob`` with ``L1`` the
+    summed absolute log-depth error at the object's features with a prior, ``n`` their number and
+    ``p`` the object's fitted parameters (2 for its affine of eq. 6, plus those of its shape).
+    ``RSS / (n - p)`` is the unbiased residual variance of a fit with ``p`` parameters; the
+    global affine's two parameters are shared by all features of the frame. An object with
+    ``n <= p`` cannot show that it beats the baseline and falls back. With ``featureless``,
+    objects without features fall back too (else they keep what CDR's anchor and smoothness
+    gave them). Returns the number of objects that fell back.
+    """
+    G, theta0, kind = fr.G, fr.theta0, fr.prior_kind
+    fpix, z = fr.fpix, fr.z
+    ok = fr.has_prior[fpix] & ~fr.sky[fr.feat_g] & (depth[fpix] > 0)
+    g = fr.feat_g[ok]
+    x = fr.prior[fpix[ok]].astype(np.float64)
+    d_glob = depth_from_space(theta0[0] * x + theta0[1], kind, fr.p.d_min_m, fr.p.d_max_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e_obj = np.abs(np.log(z[ok] / depth[fpix[ok]].astype(np.float64)))
+        e_glob = np.abs(np.log(z[ok] / d_glob))
+    n = np.bincount(g, minlength=G).astype(np.float64)
+    l_obj = np.bincount(g, e_obj, minlength=G)
+    l_glob = np.bincount(g, e_glob, minlength=G)
+    dof = n - N_PARAMS[np.clip(fr.kind_g, 0, 3)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        keep = (dof > 0) & (l_obj * n / np.where(dof > 0, dof, 1.0) < l_glob)
+    fall = ~keep & ~fr.sky
+    if not featureless:
+        fall &= fr.n_feat_g > 0
+    if not fall.any():
+        return 0
+    pix = fr.per_pixel(fall) & fr.has_prior
+    y = (np.float32(theta0[0]) * fr.prior[pix] + np.float32(theta0[1])).astype(np.float32)
+    depth[pix] = to_depth_inplace(y, kind, fr.p)
+    return int(fall.sum())
+
+
+def nearest_seed(
+    fr: Frame, seed_pix: NDArray[np.intp], flat_idx: NDArray[np.intp]
+) -> tuple[F64, NDArray[np.intp]]:
+    """Distance [px] from flat pixels to the nearest seed pixel, and that seed pixel.
+
+    A distance transform over the seed pixels (``DIST_LABEL_PIXEL``: the label of a pixel is the
+    raster rank of its nearest zero pixel); ``inf`` / -1 without seeds."""
+    H, W = fr.H, fr.W
+    if len(seed_pix) == 0:
+        return np.full(len(flat_idx), np.inf), np.zeros(len(flat_idx), np.intp)
+    seeds = np.ones(H * W, np.uint8)
+    seeds[seed_pix] = 0
+    dist, lab = cv2.distanceTransformWithLabels(
+        seeds.reshape(H, W), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    ranked = np.flatnonzero(seeds == 0)  # raster order = label order
+    near = ranked[np.clip(lab.ravel()[flat_idx] - 1, 0, len(ranked) - 1)]
+    return dist.ravel()[flat_idx].astype(np.float64), near
+
+
+def fill_holes(
+    fr: Frame, holes: NDArray[np.bool_], depth: NDArray[np.float32], out_conf: NDArray[np.float32]
+) -> tuple[int, int]:
+    """Depth for pixels without prior (and not sky), in place; returns the pixel counts
+    ``(model depth, edge-aware fill)``.
+
+    Seeds are the features that agree with their image neighbours (:func:`consistent_seeds`: no
+    prior checks a feature here, so a gross outlier would otherwise be copied into the fill).
+    Only where sparse metric evidence is near: the pixel's nearest seed must lie in the same
+    object and within ``hole_model_radius`` (accepted shape: the model depth by ray-shape
+    intersection) or ``hole_fill_radius`` (otherwise: the edge-aware fill of the sparse points)
+    times the image width. Elsewhere there is no value (0): extrapolating a shape or diffusing
+    far points into a region without any evidence (a textureless car or pillar close to the
+    camera) gave errors of several hundred percent (docs/metrizer.md, pixels without prior).
+    """
+    p, H, W, gobj, kind_g = fr.p, fr.H, fr.W, fr.gobj, fr.kind_g
+    hole_idx = np.flatnonzero(holes)
+    v, u = np.divmod(fr.fpix, W)
+    good = consistent_seeds(
+        np.stack([u, v], 1).astype(np.float64),
+        fr.z,
+        gate=p.fill_seed_gate,
+        radius_px=p.fill_seed_radius * W,
+    )
+    dist, near = nearest_seed(fr, fr.fpix[good], hole_idx)
+    same = np.isfinite(dist) & (gobj[near] == gobj[hole_idx])
+    n_model = n_fill = 0
+    hi = hole_idx[same & (kind_g[gobj[hole_idx]] > 0) & (dist <= p.hole_model_radius * W)]
+    if len(hi):  # no prior, accepted shape, own features near: the model depth
+        g = gobj[hi]
+        d = model_depth(hi, g, kind_g, fr.Am, fr.bm, fr.cm, W, fr.K)
+        # no prior to gate the model against: a tighter extrapolation range
+        f = p.hole_model_extrapolation / p.model_extrapolation
+        ok = np.isfinite(d) & (d >= fr.zlo[g] / f) & (d <= fr.zhi[g] * f)
+        depth[hi[ok]] = d[ok]
+        out_conf[hi[ok]] = 0.5 * fr.conf_g[g[ok]]
+        n_model = int(ok.sum())
+    sel = same & (dist <= p.hole_fill_radius * W)
+    sel[sel] = depth[hole_idx[sel]] == 0
+    rest = hole_idx[sel]
+    if len(rest) and p.fill_method == "nearest":  # the nearest consistent feature's depth
+        seed_d = np.zeros(H * W, np.float32)
+        seed_d[fr.fpix[good]] = fr.z[good]
+        depth[rest] = np.clip(seed_d[near[sel]], p.d_min_m, f32_below(p.d_max_m))
+        out_conf[rest] = 0.1
+        n_fill = len(rest)
+    elif len(rest):  # the edge-aware fill from the consistent features
+        seed_d = np.zeros(H * W, np.float32)
+        seed_w = np.zeros(H * W, np.float32)
+        seed_d[fr.fpix[good]] = fr.z[good]
+        seed_w[fr.fpix[good]] = 1.0
+        filled = edge_aware_fill(
+            seed_d.reshape(H, W),
+            seed_w.reshape(H, W),
+            fr.image,
+            p.fill_scale,
+            p.fill_lambda,
+            p.fill_sigma_color,
+            geometric=True,
+        ).ravel()[rest]
+        ok = filled > 0
+        depth[rest[ok]] = np.clip(filled[ok], p.d_min_m, f32_below(p.d_max_m))
+        out_conf[rest[ok]] = 0.1
+        n_fill = int(ok.sum())
+    return n_model, n_fill
+
+
+def compose(fr: Frame, tm: StageTimer, global_only: bool) -> MetrizedDepth:
+    """Full-resolution output: calibrated prior per object, model depth, sky, holes, confidence."""
+    p: MetrizerParams = fr.p
+    H, W, G = fr.H, fr.W, fr.G
+    gobj, prior, conf, has_prior = fr.gobj, fr.prior, fr.conf, fr.has_prior
+    kind, theta, theta0, sky = fr.prior_kind, fr.theta, fr.theta0, fr.sky
+    kind_g, conf_g, n_feat_g, stats = fr.kind_g, fr.conf_g, fr.n_feat_g, fr.stats
+    z, fpix = fr.z, fr.fpix
+
+    if global_only:
+        q_g = np.full(G, 0.3)
+    else:
+        q_g = np.where(
+            kind_g > 0,
+            0.5 + 0.5 * conf_g,
+            np.where(n_feat_g > 0, 0.5 * np.minimum(1.0, n_feat_g / p.n_min), 0.25),
+        )
+    # calibrated prior, eq. (6), everywhere (float32, in place)
+    depth = fr.per_pixel(theta[:, 0].astype(np.float32))
+    depth *= prior
+    depth += fr.per_pixel(theta[:, 1].astype(np.float32))
+    to_depth_inplace(depth, kind, p)
+    out_conf = fr.per_pixel(q_g.astype(np.float32))
+    out_conf *= conf
+    n_model_px = n_model_fill = n_edge_fill = 0
+    sky_pix = fr.per_pixel(sky) if sky.any() else None
+    special = None if sky_pix is None else sky_pix.copy()
+    if not fr.all_prior:
+        special = ~has_prior if special is None else special | ~has_prior
+
+    tm.lap("compose")
+    used, used_idx, used_ratio = None, np.zeros(0, np.intp), np.zeros(0)
+    if p.model_output and (kind_g > 0).any() and not global_only:
+        used, used_idx, used_ratio = model_output(fr, depth, special)
+        n_model_px = int(np.count_nonzero(used))
+    tm.lap("model_output")
+
+    if p.residual_field and not global_only:
+        # departure (docs/metrizer.md): smooth multiplicative correction of the calibrated prior
+        # from its residuals at the model-output pixels and at the consistent features
+        fok = fr.f_consistent & ~sky[fr.feat_g]
+        if used is not None:
+            fok &= ~used[fpix]
+        idx = np.concatenate([used_idx, fpix[fok]])
+        val = np.concatenate([used_ratio, np.log(z[fok] / depth[fpix[fok]])])
+        wt = np.concatenate(
+            [np.full(len(used_idx), p.residual_model_weight), np.ones(int(fok.sum()))]
+        )
+        if len(idx):
+            field = smooth_field(
+                (H, W),
+                idx,
+                val,
+                wt,
+                p.residual_sigma_frac,
+                exponentiate=True,
+                shrink=p.residual_shrink,
+            ).ravel()
+            if used is not None:
+                field[used] = 1.0
+            depth *= field
+            np.clip(depth, np.float32(p.d_min_m), f32_below(p.d_max_m), out=depth)
+    n_fallback = 0
+    if p.fallback_global and not global_only:
+        thin = stats["n_features_global"] < p.fallback_min_features
+        n_fallback = fallback_to_global(fr, depth, featureless=p.fallback_featureless or thin)
+    stats["n_fallback_objects"] = n_fallback
+    tm.lap("residual")
+
+    if special is not None:
+        if sky_pix is not None:  # sky objects: far / prior-less pixels -> d_max, others global
+            y0 = (theta0[0] * prior[sky_pix] + theta0[1]).astype(np.float64)
+            far, _ = far_and_norm(y0, kind, p)
+            far |= ~has_prior[sky_pix]
+            ds = depth_from_space(y0, kind, p.d_min_m, p.d_max_m)
+            ds[far] = p.d_max_m
+            cs = np.where(far, 0.5 * np.maximum(conf[sky_pix], 0.2), 0.25 * conf[sky_pix])
+            depth[sky_pix] = ds
+            out_conf[sky_pix] = cs
+        holes = ~has_prior if sky_pix is None else ~has_prior & ~sky_pix
+        depth[holes] = 0.0
+        out_conf[holes] = 0.0
+        if holes.any() and not global_only:
+            n_model_fill, n_edge_fill = fill_holes(fr, holes, depth, out_conf)
+    stats.update(
+        n_model_output_px=n_model_px, n_hole_px_model=n_model_fill, n_hole_px_fill=n_edge_fill
+    )
+    tm.lap("sky_holes")
+    # final guarantees: finite, 0 or within (0, d_max], confidence in [0, 1] and 0 without depth
+    bad = ~np.isfinite(depth)
+    if bad.any():
+        depth[bad] = 0.0
+    np.clip(out_conf, 0.0, 1.0, out=out_conf)
+    out_conf[depth <= 0] = 0.0
+    stats["ms"] = tm.total()
+    stats["cpu_ms"] = tm.cpu_ms
+    stats["coverage"] = float(np.count_nonzero(depth) / depth.size)
+    return MetrizedDepth(
+        depth_m=depth.reshape(H, W),
+        confidence=out_conf.reshape(H, W),
+        object_labels=gobj.reshape(H, W).astype(np.int32, copy=False),
+        object_model=np.where(sky, 0, kind_g).astype(np.int8),
+        object_affine=theta,
+        object_confidence=conf_g,
+        stats=stats,
+    )

@@ -1,0 +1,105 @@
+"""Parameters and output of the depth metrizer (MSC, paper III-B + CDR, paper III-C)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import ConfigError
+from mogs_node.metrizer.consensus import ConsensusParams
+from mogs_node.metrizer.refinement import CdrParams
+
+__all__ = ["MODES", "MetrizedDepth", "MetrizerParams"]
+
+F64 = NDArray[np.float64]
+
+
+MODES = ("full", "no_msc", "no_msc_cdr")  # see docs/metrizer.md, ablation modes
+
+
+@dataclass(frozen=True)
+class MetrizerParams:
+    """Parameters of the metrizer (MSC + CDR); nested dataclasses hold the stage parameters."""
+
+    d_min_m: float = 0.1  # smallest output depth [m]; features nearer are dropped
+    d_max_m: float = 80.0  # largest output depth [m] (sky and far pixels); features beyond dropped
+    n_min: int = 9  # III-B: a mask with fewer features is under-supported and merges
+    rho_contiguity: float = 0.1  # III-B: merge only when |z_i - z_u| <= rho z_i (median depths)
+    border_vote_radius: int = 1  # feature association: vote in a (2r+1)^2 window on mask borders
+    sample_stride: int = 6  # CDR data terms use every stride-th pixel in x and y (+ tiny masks)
+    model_extrapolation: float = 2.0  # model depth used within [z_min / f, z_max * f] of inliers
+    hole_model_extrapolation: float = 1.25  # the same f for pixels without prior (no gate there)
+    fallback_global: bool = True  # per object: the global affine where the object's own result
+    # does not explain its features better (degrees-of-freedom corrected, see _fallback_to_global)
+    fallback_featureless: bool = False  # ... and objects without features always
+    fallback_min_features: int = 18  # ... objects without features also when the frame has fewer
+    # features with a prior than this (their calibration follows thin neighbouring evidence)
+    hole_model_radius: float = 0.05  # a pixel without prior takes its object's model depth only
+    # within this fraction of the image width of one of the object's own features
+    hole_fill_radius: float = 0.02  # ... the edge-aware fill of the features only within this
+    t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
+    fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
+    # of the same object, or "edge_aware" (FGS normalised convolution of the features)
+    fill_seed_gate: float = 0.3  # a fill seed must be within this relative depth of the median
+    # of its nearest features (of 8) within fill_seed_radius (x image width), and have >= 2 there
+    fill_seed_radius: float = 0.1
+    model_prior_gate: float = 0.3  # eq. (7) uses a model pixel only within this relative
+    # distance of the globally aligned prior (the pixel is then plausibly on the model's surface)
+    feature_prior_gate: float = 0.5  # eq. (7) feature rows: drop a feature whose depth is more than
+    # (1 + gate) times off the globally aligned prior (occlusion-boundary / mismatched features)
+    model_edge_gate: float = 0.5  # the same gate within prior_edge_radius px of a prior depth edge
+    model_edge_min_conf: float = 0.9  # ... for shapes with eq.-(5) confidence at least this
+    prior_edge_rel: float = 0.05  # a prior depth edge: relative gradient above this per pixel
+    prior_edge_radius: int = (
+        4  # [px] neighbourhood of prior depth edges (blurred by learned priors)
+    )
+    residual_field: bool = True  # departure: smooth multiplicative correction after CDR
+    residual_sigma_frac: float = 0.05  # its Gaussian width, fraction of the image width
+    residual_model_weight: float = 0.05  # weight of a model-output sample vs a feature (1)
+    residual_shrink: float = 1.0  # the field decays to 1 (no correction) where it has less
+    # evidence than this many features per Gaussian footprint (as anchor_shrink)
+    absorb: bool = True  # departure: groups without a shape join a neighbour's shape that fits
+    local_anchor: bool = True  # departure: eq. (8) anchors to the globally aligned prior times a
+    # smooth field of the geometric evidence (model depth, features) relative to it
+    anchor_shrink: float = 1.0  # that field decays to 0 where it has less evidence than this
+    # many features per Gaussian footprint (pseudo-observation of "no correction")
+    absorb_prior_gate: float = 0.15  # featureless groups: model vs globally aligned prior
+    absorb_sample_below: int = 5  # groups with fewer features also use sample-pixel evidence
+    model_output: bool = True  # departure: output the model depth where it agrees (below)
+    model_output_gate: float = 0.1  # output the model depth where it is within this relative
+    # distance of the calibrated prior (accepted shapes only); else the calibrated prior
+    sky_depth_frac: float = 0.9  # a prior pixel is "far" beyond this fraction of d_max (globally)
+    sky_far_fraction: float = 0.6  # a featureless object is sky when this share of it is far
+    global_huber: float = 0.05  # Huber width (relative) of the global affine alignment
+    fill_scale: float = 0.5  # resolution factor of the edge-aware fill
+    fill_lambda: float = 50.0  # edge-aware fill: smoothing strength (FGS lambda)
+    fill_sigma_color: float = 8.0  # edge-aware fill: colour edge scale (FGS sigma)
+    seed: int = 0  # RANSAC random seed (results are deterministic per input)
+    consensus: ConsensusParams = ConsensusParams()  # Algorithm 1 parameters
+    cdr: CdrParams = CdrParams()  # eqs. (6)-(11) parameters
+
+    def __post_init__(self) -> None:
+        if not (0 < self.d_min_m < self.d_max_m and np.isfinite(self.d_max_m)):
+            raise ConfigError("MetrizerParams: need 0 < d_min_m < d_max_m < inf")
+        if not self.anchor_shrink >= 0:
+            raise ConfigError(
+                f"MetrizerParams: anchor_shrink >= 0 required, got {self.anchor_shrink}"
+            )
+        if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
+            raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")
+
+
+@dataclass
+class MetrizedDepth:
+    """Output of :func:`metrize_depth`."""
+
+    depth_m: NDArray[np.float32]  # [H, W] metric z-depth, in (0, d_max]; 0 = no value
+    confidence: NDArray[np.float32]  # [H, W] in [0, 1]; 0 where depth_m is 0
+    object_labels: NDArray[np.int32]  # [H, W] object id after merging (every pixel has one)
+    object_model: NDArray[np.int8]  # [M] 0 none, 1 plane, 2 cylinder, 3 ellipsoid
+    object_affine: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))  # [M, 2]
+    object_confidence: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))  # [M] eq. 5
+    stats: dict[str, Any] = field(default_factory=dict)
