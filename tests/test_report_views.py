@@ -32,7 +32,7 @@ from mogs_node.report.views import (
 # A screen-space dilation small enough that a Gaussian's footprint ends before the next pixel:
 # with sigma^2 = 0.01 + 0.05 px^2 a neighbour one pixel away has alpha 0.99 exp(-1 / 0.12)
 # = 2.4e-4 < 1/255, so it is skipped and each pixel sees its own Gaussian only.
-TIGHT = RasterParams(eps2d_px2=0.05)
+TIGHT = RasterParams(backend="torch", eps2d_px2=0.05)  # torch: the C++ backend's semantics
 ALPHA_MAX = TIGHT.alpha_max
 
 
@@ -105,7 +105,8 @@ def test_render_back_with_the_default_rasterizer_settings() -> None:
     depth = np.full((H, W), 6.0)
     K = np.array([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]])
     T = make_T(so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, -3.0]))
-    out, _, _ = render_map_view(_pixel_map(rgb, depth, K, T), T, K, W, H)
+    torch_backend = RasterParams(backend="torch")  # default settings, no compilation
+    out, _, _ = render_map_view(_pixel_map(rgb, depth, K, T), T, K, W, H, raster=torch_backend)
     sigma2 = 0.1**2 + RasterParams().eps2d_px2
     radius = math.sqrt(2 * sigma2 * math.log(ALPHA_MAX * 255))
     pos = np.arange(B)
@@ -137,7 +138,13 @@ def test_render_back_holds_at_tiny_and_huge_scales(seed: int, depth_scale: float
 def test_an_empty_map_renders_the_background_with_no_depth() -> None:
     arrays = {k: np.zeros((0, w) if w else (0,), np.float32) for k, w in FIELDS.items()}
     rgb, d, a = render_map_view(
-        arrays, np.eye(4), np.diag([10.0, 10.0, 1.0]), 8, 6, background_rgb=(0.5, 0.25, 1.0)
+        arrays,
+        np.eye(4),
+        np.diag([10.0, 10.0, 1.0]),
+        8,
+        6,
+        background_rgb=(0.5, 0.25, 1.0),
+        raster=TIGHT,
     )
     np.testing.assert_array_equal(rgb, np.broadcast_to([0.5, 0.25, 1.0], (6, 8, 3)))
     assert not d.any() and not a.any()
