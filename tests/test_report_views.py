@@ -267,20 +267,42 @@ def test_heldout_choice_is_deterministic_spread_and_excludes_keyframes() -> None
         choose_heldout(stamps, kfs, -1)
 
 
+def test_heldout_choice_is_even_in_distance_travelled() -> None:
+    """20 frames standing still, then 1 m per frame: the standing frames count once."""
+    i = np.arange(60)
+    pos = np.stack([np.maximum(0, i - 20), np.zeros(60), np.zeros(60)], 1).astype(float)
+    kfs = [5, 15, 30, 50, 58]
+    got = choose_heldout(i[::-1], kfs, 10, positions_m=pos[::-1])
+    # candidates 6..57 without keyframes, path length 37 m; targets 0, 4.1, ..., 37 m: the
+    # first candidate at or after each
+    np.testing.assert_array_equal(got, [6, 25, 29, 33, 37, 41, 45, 49, 53, 57])
+    # the vehicle never moves: the first candidate, then the index spread fills the places
+    still = choose_heldout(i, kfs, 10, positions_m=np.zeros((60, 3)))
+    assert len(still) == 10 and still[0] == 6 and not np.isin(still, kfs).any()
+    with pytest.raises(ShapeError, match="positions_m"):
+        choose_heldout(i, kfs, 10, positions_m=np.zeros((59, 3)))
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     n_frames=st.integers(0, 400),
     kf_every=st.integers(2, 30),
     n=st.integers(1, 40),
+    seed=st.integers(0, 1000),
 )
-def test_heldout_choice_properties(n_frames: int, kf_every: int, n: int) -> None:
+def test_heldout_choice_properties(n_frames: int, kf_every: int, n: int, seed: int) -> None:
     stamps = np.arange(n_frames, dtype=np.int64) * 7
     kfs = stamps[::kf_every]
-    got = choose_heldout(stamps, kfs, n)
-    assert len(got) <= n and len(np.unique(got)) == len(got)
-    assert not np.isin(got, kfs).any()
-    if len(kfs) >= 2 and len(got):
-        assert kfs[0] < got.min() and got.max() < kfs[-1]
+    rng = np.random.default_rng(seed)
+    steps = rng.uniform(0, 2, (n_frames, 3)) * (rng.uniform(size=(n_frames, 1)) < 0.5)
+    for pos in (None, np.cumsum(steps, 0)):
+        got = choose_heldout(stamps, kfs, n, positions_m=pos)
+        inside = (stamps > kfs[0]) & (stamps < kfs[-1]) if len(kfs) else False
+        n_cand = int(np.sum(~np.isin(stamps, kfs) & inside))
+        assert len(got) == min(n, n_cand) and len(np.unique(got)) == len(got)
+        assert not np.isin(got, kfs).any() and np.all(np.diff(got) > 0)
+        if len(got):
+            assert kfs[0] < got.min() and got.max() < kfs[-1]
 
 
 @settings(max_examples=40, deadline=None)

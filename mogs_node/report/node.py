@@ -249,7 +249,8 @@ class RunReportNode(Node):
         c, p = self.c, self.params
         kf_stamps = sorted(s for s, _ in c.keyframes.values())
         posed = [s for s in self.frames.images if s in c.odometry]
-        heldout = choose_heldout(posed, kf_stamps, p.heldout_views)
+        xyz = np.array([c.odometry[s][:3, 3] for s in posed]).reshape(-1, 3)
+        heldout = choose_heldout(posed, kf_stamps, p.heldout_views, positions_m=xyz)
         kf_id = {s: i for i, (s, _) in c.keyframes.items()}
         kfs = sorted(s for s in self.kf_frames.images if s in kf_id)
         self.view_jobs = [("heldout", int(s), -1) for s in heldout]

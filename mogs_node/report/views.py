@@ -145,31 +145,45 @@ def choose_heldout(
     keyframe_stamps_ns: np.ndarray | list[int],
     n: int,
     *,
+    positions_m: np.ndarray | None = None,
     within_keyframes: bool = True,
 ) -> np.ndarray:
-    """Up to ``n`` held-out stamps, evenly spread: candidates are ``stamps_ns`` (frames with a
-    pose and a ground-truth image) that are not keyframes and, with ``within_keyframes``, lie
-    between the first and the last keyframe (outside it the map has not seen the scene).
+    """Up to ``n`` held-out stamps spread evenly over the drive.
 
-    The choice is the candidates (sorted) at ``round(linspace(0, len - 1, n))``: deterministic,
-    the first and last candidates included, gaps between chosen frames differ by at most one
-    candidate. Returns the chosen stamps (int64, sorted); all candidates when there are <= n.
+    Candidates are ``stamps_ns`` (frames with a pose and a ground-truth image) that are not
+    keyframes and, with ``within_keyframes``, lie strictly between the first and the last keyframe
+    (outside that span the map has not seen the scene). Without ``positions_m`` the choice is the
+    sorted candidates at ``round(linspace(0, len - 1, n))``. With ``positions_m`` [len(stamps),
+    3] (camera positions, aligned with ``stamps_ns``) it is even in distance travelled: for each
+    of ``n`` equally spaced path lengths along the candidates, the first candidate at or after
+    it; frames of a standing vehicle then count once, and the remaining places are filled in
+    index order as without positions. Deterministic; the first candidate is included. Returns the chosen stamps (int64, sorted); all candidates when there are <= n.
     """
     if n < 0:
         raise ShapeError(f"n: must be >= 0, got {n}")
-    s = np.unique(np.asarray(stamps_ns, np.int64))
+    stamps = np.asarray(stamps_ns, np.int64).reshape(-1)
     kf = np.unique(np.asarray(keyframe_stamps_ns, np.int64))
-    cand = s[~np.isin(s, kf)]
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    keep = ~np.isin(stamps, kf) & np.concatenate([[True], np.diff(stamps) > 0])
     if within_keyframes:
-        if len(kf) == 0:
-            return np.zeros(0, np.int64)
-        cand = cand[(cand > kf[0]) & (cand < kf[-1])]
+        keep &= (stamps > kf[0]) & (stamps < kf[-1]) if len(kf) else False
+    cand = stamps[keep]
     if len(cand) <= n:
         return cand
     if n == 0:
         return np.zeros(0, np.int64)
-    idx = np.round(np.linspace(0, len(cand) - 1, n)).astype(np.int64)
-    return cand[idx]
+    by_index = np.round(np.linspace(0, len(cand) - 1, n)).astype(np.int64)
+    if positions_m is None:
+        return cand[by_index]
+    pos = check_array("positions_m", positions_m, shape=(len(order), 3), finite=True)
+    pos = np.asarray(pos, np.float64)[order][keep]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    targets = np.linspace(0.0, arc[-1], n)
+    chosen = np.unique(np.minimum(np.searchsorted(arc, targets, side="left"), len(cand) - 1))
+    fill = [i for i in by_index if i not in set(chosen.tolist())]
+    chosen = np.sort(np.concatenate([chosen, fill[: n - len(chosen)]])).astype(np.int64)
+    return cand[chosen]
 
 
 def render_map_view(
