@@ -56,3 +56,35 @@ def test_trajectory_figures_with_a_scaled_estimate(tmp_path: Path) -> None:
     assert fig["trajectory"]["ate_sim3_rmse_m"] < 1e-6
     line = write_report(tmp_path / "report.md", fig)
     assert "ATE" in line and (tmp_path / "report.md").read_text().startswith("# MOGS run")
+
+
+def test_final_map_figures_and_report_section(tmp_path: Path) -> None:
+    from mogs_node.report.views import ViewScore
+
+    c = RunCollector()
+    c.add_keyframe(0, 100, np.eye(4))
+    c.add_keyframe(1, 200, np.eye(4))
+    c.mapped.update({0, 1})
+    assert not c.map_ready  # the newest keyframe's map update has not arrived
+    c.map_updated.add(0)
+    assert not c.map_ready
+    c.map_updated.add(1)
+    assert c.map_ready
+    c.view_scores = [
+        ViewScore("heldout", 150, -1, 20.0, 0.5, 1.0, "renders/heldout_150.png"),
+        ViewScore("heldout", 170, -1, 30.0, 0.9, 0.5, "renders/heldout_170.png"),
+        ViewScore("keyframe", 200, 1, 40.0, 0.95, 1.0, "renders/keyframe_000001.png"),
+    ]
+    fig = summarise(c)["map"]
+    assert fig["heldout_frames"] == 2 and fig["keyframe_frames"] == 1
+    assert fig["heldout_psnr_db"] == pytest.approx(25.0)  # mean over views
+    assert fig["heldout_ssim"] == pytest.approx(0.7)
+    assert fig["heldout_coverage"] == pytest.approx(0.75)
+    assert fig["keyframe_psnr_db"] == pytest.approx(40.0) and fig["exposure"] == "none"
+    assert [v["png"] for v in fig["views"]][-1] == "renders/keyframe_000001.png"
+    line = write_report(tmp_path / "report.md", summarise(c))
+    text = (tmp_path / "report.md").read_text()
+    assert "| held-out frames | 2 | 25.00 | 0.700 | 0.750 |" in text
+    assert "![keyframe 1, t = 0.00 s](renders/keyframe_000001.png)" in text
+    assert text.count("![") == 3
+    assert "held-out PSNR 25.0 dB" in line

@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 
 from mogs_node.eval.metrics import depth_metrics
+from mogs_node.report.views import MapReplica, ViewScore
 
-__all__ = ["DepthScore", "RunCollector", "summarise", "write_report"]
+__all__ = ["DepthScore", "RunCollector", "summarise", "summarise_views", "write_report"]
 
 
 @dataclass
@@ -50,6 +51,9 @@ class RunCollector:
     acknowledged: set[int] = field(default_factory=set)  # stamps with any odometry message
     node_counters: dict[str, dict[str, float]] = field(default_factory=dict)  # last per node
     last_stats: dict[str, Any] = field(default_factory=dict)
+    final_map: MapReplica = field(default_factory=MapReplica)  # from /mapper/gaussians
+    map_updated: set[int] = field(default_factory=set)  # keyframe ids of the map updates
+    view_scores: list[ViewScore] = field(default_factory=list)  # final map, rendered at the end
 
     def add_depth(self, keyframe_id: int, depth_m: np.ndarray, confidence: np.ndarray) -> None:
         self.depth_done.add(keyframe_id)
@@ -80,6 +84,12 @@ class RunCollector:
         """Every keyframe seen has its metrized depth and reached the mapper."""
         ids = set(self.keyframes)
         return bool(ids) and ids <= self.depth_done and ids <= self.mapped
+
+    @property
+    def map_ready(self) -> bool:
+        """The map update of the newest mapped keyframe arrived (the mapper publishes its stats,
+        then its update, in order on reliable topics: so every earlier update arrived too)."""
+        return bool(self.mapped) and max(self.mapped) in self.map_updated
 
 
 def score_depth(
@@ -141,9 +151,84 @@ def summarise(c: RunCollector) -> dict[str, Any]:
             out["trajectory"] = {"error": str(err)}
     if c.last_stats:
         out["mapper"] = dict(c.last_stats)
+    if c.view_scores or len(c.final_map):
+        out["map"] = {
+            "gaussians": len(c.final_map),
+            "updates": c.final_map.updates,
+            **summarise_views(c.view_scores),
+        }
     if c.node_counters:  # what each node dropped (best effort) or lost (reliable gaps)
         out["nodes"] = {n: dict(v) for n, v in sorted(c.node_counters.items())}
     return out
+
+
+def summarise_views(scores: list[ViewScore]) -> dict[str, Any]:
+    """Mean PSNR [dB] / SSIM / coverage of the final map's held-out and keyframe views (means
+    over views, as 3DGS papers report them) and every view's figures."""
+    out: dict[str, Any] = {"exposure": "none"}
+    for kind, prefix in (("heldout", "heldout"), ("keyframe", "keyframe")):
+        v = [s for s in scores if s.kind == kind]
+        out[f"{prefix}_frames"] = len(v)
+        if v:
+            out[f"{prefix}_psnr_db"] = float(np.mean([s.psnr_db for s in v]))
+            out[f"{prefix}_ssim"] = float(np.mean([s.ssim for s in v]))
+            out[f"{prefix}_coverage"] = float(np.mean([s.coverage for s in v]))
+    out["views"] = [
+        {
+            "kind": s.kind,
+            "stamp_ns": s.stamp_ns,
+            "keyframe_id": s.keyframe_id,
+            "psnr_db": s.psnr_db,
+            "ssim": s.ssim,
+            "coverage": s.coverage,
+            "png": s.png,
+        }
+        for s in scores
+    ]
+    return out
+
+
+def _map_lines(m: dict[str, Any]) -> list[str]:
+    """report.md section of the final map: the table of scores, then every picture."""
+    lines = [
+        "",
+        "## Final map, rendered at held-out frames and keyframes",
+        "",
+        f"The map as the mapper left it ({m['gaussians']} Gaussians, rebuilt from its "
+        f"{m['updates']} `/mapper/gaussians` updates), rendered after the run at the frontend's "
+        "pose of each view, without exposure compensation, and scored against the camera image. "
+        "Held-out frames are frames that were not keyframes, spread evenly between the first "
+        "and the last keyframe. Pictures: ground truth | render | rendered depth (inverse depth, "
+        "turbo: near red, far blue; black = nothing rendered).",
+        "",
+        "| views | frames | PSNR [dB] | SSIM | coverage |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    for kind, name in (("heldout", "held-out frames"), ("keyframe", "keyframes")):
+        n = m.get(f"{kind}_frames", 0)
+        if n:
+            lines.append(
+                f"| {name} | {n} | {m[f'{kind}_psnr_db']:.2f} | {m[f'{kind}_ssim']:.3f} | "
+                f"{m[f'{kind}_coverage']:.3f} |"
+            )
+        else:
+            lines.append(f"| {name} | 0 | - | - | - |")
+    for kind, name in (("heldout", "Held-out frames"), ("keyframe", "Keyframes")):
+        views = [v for v in m.get("views", []) if v["kind"] == kind]
+        if not views:
+            continue
+        lines += ["", f"### {name}", ""]
+        for v in views:
+            label = f"t = {v['stamp_ns'] / 1e9:.2f} s"
+            if v["keyframe_id"] >= 0:
+                label = f"keyframe {v['keyframe_id']}, " + label
+            lines.append(
+                f"{label}: PSNR {v['psnr_db']:.2f} dB, SSIM {v['ssim']:.3f}, coverage "
+                f"{v['coverage']:.2f}"
+            )
+            if v["png"]:
+                lines += ["", f"![{label}]({v['png']})", ""]
+    return lines
 
 
 def write_report(path: Path, figures: dict[str, Any], *, title: str = "MOGS run") -> str:
@@ -186,12 +271,20 @@ def write_report(path: Path, figures: dict[str, Any], *, title: str = "MOGS run"
             "",
             "## Gaussian map",
             "",
-            "| Gaussians | iterations | last PSNR [dB] |",
+            "| Gaussians | iterations | last training PSNR [dB] (mapper window) |",
             "| ---: | ---: | ---: |",
             f"| {m.get('n_gaussians', 0)} | {m.get('iterations', 0)} | {m.get('psnr_db', float('nan')):.2f} |",
         ]
         summary.append(
             f"{m.get('n_gaussians', 0)} Gaussians, PSNR {m.get('psnr_db', float('nan')):.1f} dB"
         )
+    if "map" in figures:
+        m = figures["map"]
+        lines += _map_lines(m)
+        if m.get("heldout_frames"):
+            summary.append(
+                f"held-out PSNR {m['heldout_psnr_db']:.1f} dB, SSIM {m['heldout_ssim']:.3f} "
+                f"({m['heldout_frames']} frames)"
+            )
     path.write_text("\n".join(lines) + "\n")
     return "; ".join(summary)

@@ -1,0 +1,386 @@
+"""Paper Table II in the live pipeline: the demo drive with the mapper initialised three ways.
+
+The demo drive (``launch/demo.yaml``: player -> frontend -> segmentation + depth prior ->
+metrizer -> mapper -> report) runs three times, with the same mapper policy and budget
+(``iters_per_keyframe`` after each keyframe); only the depth the mapper receives differs:
+
+- ``mogs``: the metrizer's depth (``mode: full``, MSC + CDR);
+- ``prior_global``: the globally aligned prior (metrizer ``mode: no_msc_cdr``);
+- ``random``: uniform random depth in [1, 50] m with confidence 0
+  (:func:`mogs_node.mapper.insertion.random_depth`, as ``mogs eval map``), published per keyframe
+  by :class:`RandomDepthNode` in place of the metrizer's output (which still runs, so that every
+  run costs the same upstream).
+
+This script listens on the run's bus: it rebuilds the map from ``/mapper/gaussians``
+(:class:`~mogs_node.report.views.MapReplica`) and, after every map update, renders it at one fixed
+held-out frame (``--view-frame``, a frame that is not a keyframe; its pose is the frontend's
+odometry) and scores it against that frame's camera image. ``iters_to_target`` is the mapper's
+iteration count (``/mapper/stats``) at the first update where the view reaches ``--target-db``,
+``wall_s_to_target`` the seconds since the first camera image, ``gaussians_at_target`` the map's
+size then (``null`` when never reached). At the budget (the end of the drive),
+``psnr_at_budget_db`` / ``ssim_at_budget`` are the run report's means over its held-out frames
+(``map.heldout_psnr_db`` / ``map.heldout_ssim``, docs/report.md).
+
+Usage::
+
+    python bench/pipeline_table2.py [--frames 60] [--view-frame 40] [--json PATH] [--no-docs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+import zmq
+
+from mogs_node import msgs
+from mogs_node.bus import Subscriber
+from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.launch import Launcher, load_launch_file
+from mogs_node.mapper.insertion import random_depth
+from mogs_node.mapper.rasterizer import RasterParams
+from mogs_node.node import Node
+from mogs_node.report.node import NOT_ESTIMATED
+from mogs_node.report.views import MapReplica, image_to_rgb, render_map_view, score_view
+
+INITS = ("mogs", "prior_global", "random")
+RANDOM_TOPIC = "/table2/random_depth"
+
+
+@dataclass(frozen=True)
+class RandomDepthParams:
+    d_min_m: float = 1.0  # random depth range
+    d_max_m: float = 50.0
+    seed: int = 0  # depth of keyframe k: random_depth(..., seed * 1000 + k)
+    in_topic: str = "/metrizer/depth"
+    out_topic: str = RANDOM_TOPIC
+
+
+class RandomDepthNode(Node):
+    """Re-publishes each metrized depth map as random depth with zero confidence (Table II's
+    random initialisation, in the live pipeline)."""
+
+    Params = RandomDepthParams
+
+    def setup(self) -> None:
+        self.subscribe(self.params.in_topic, self.on_depth, msg_type=msgs.DepthMap)
+
+    def on_depth(self, m: msgs.DepthMap) -> None:
+        p: RandomDepthParams = self.params
+        d = random_depth(m.depth.shape, p.d_min_m, p.d_max_m, p.seed * 1000 + m.keyframe_id)
+        self.publish(
+            p.out_topic,
+            msgs.DepthMap(
+                stamp_ns=m.stamp_ns,
+                frame_id=m.frame_id,
+                keyframe_id=m.keyframe_id,
+                kind="metric",
+                depth=d,
+                confidence=np.zeros_like(d),
+                source="random",
+            ),
+        )
+
+
+def launch_dict(init: str, frames: int, out: Path) -> dict[str, Any]:
+    """The demo launch file, set up for one initialisation, outputs in ``out``."""
+    launch = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
+    launch["name"] = f"table2-{uuid.uuid4().hex[:8]}"
+    nodes = {n["name"]: n for n in launch["nodes"]}
+    nodes["player"]["params"]["sim"]["n_frames"] = frames
+    nodes["report"]["params"]["out_dir"] = str(out)
+    nodes["report"]["params"]["idle_timeout_s"] = 1200.0
+    nodes["mapper"]["params"]["ply_path"] = str(out / "map.ply")
+    nodes["mapper"]["heartbeat_timeout_s"] = 0.0  # a window round may be slow on loaded cores
+    nodes["metrizer"]["params"]["mode"] = "no_msc_cdr" if init == "prior_global" else "full"
+    if init == "random":
+        nodes["mapper"]["params"]["depth_topic"] = RANDOM_TOPIC
+        path = os.pathsep.join(p for p in (str(REPO_ROOT), os.environ.get("PYTHONPATH")) if p)
+        launch["nodes"].append(
+            {
+                "name": "randomizer",
+                "class": "bench.pipeline_table2:RandomDepthNode",
+                "env": {"PYTHONPATH": path},  # bench/ is importable from the repository root
+            }
+        )
+        nodes["player"]["params"]["wait_for_nodes"].append("randomizer")
+    return launch
+
+
+@dataclass
+class FixedView:
+    """Follows the run on the bus and scores the map at one fixed held-out frame."""
+
+    view_frame: int
+    target_db: float
+    raster: RasterParams = field(default_factory=RasterParams)  # rasterizer settings of the view
+    replica: MapReplica = field(default_factory=MapReplica)
+    frame_stamps: list[int] = field(default_factory=list)  # every frame, from its odometry
+    images: dict[int, np.ndarray] = field(default_factory=dict)
+    poses: dict[int, np.ndarray] = field(default_factory=dict)
+    kf_stamps: set[int] = field(default_factory=set)
+    camera: tuple[np.ndarray, int, int] | None = None
+    stamp: int | None = None  # the fixed view, once decided
+    iterations: int = 0
+    t0: float | None = None
+    curve: list[dict[str, float]] = field(default_factory=list)
+
+    def on(self, topic: str, m: Any, now: float) -> None:
+        if topic == "/camera/image":
+            self.t0 = now if self.t0 is None else self.t0
+            if self.stamp is None and len(self.images) <= self.view_frame + 5:
+                self.images[m.stamp_ns] = image_to_rgb(m.data, m.encoding)
+        elif topic == "/frontend/odometry":  # reliable: one per frame, estimated or not
+            self.frame_stamps.append(m.stamp_ns)
+            if m.status not in NOT_ESTIMATED:
+                self.poses[m.stamp_ns] = np.array(m.T_world_cam)
+        elif topic == "/frontend/keyframe":
+            self.kf_stamps.add(m.stamp_ns)
+            if self.camera is None:
+                self.camera = (np.array(m.K), m.image.shape[1], m.image.shape[0])
+        elif topic == "/mapper/stats":
+            self.iterations = int(m.iterations)
+        elif topic == "/mapper/gaussians":
+            self.replica.apply(
+                m.ids,
+                m.removed_ids,
+                {
+                    "means": m.means,
+                    "quats_wxyz": m.quats_wxyz,
+                    "log_scales": m.log_scales,
+                    "opacity_logit": m.opacity_logit,
+                    "colors_rgb": m.colors_rgb,
+                },
+            )
+            self._decide()
+            if self.stamp is not None:
+                self._evaluate(now)
+
+    def _decide(self) -> None:
+        """The view: the first frame from index ``view_frame`` on that has a pose and is not a
+        keyframe, decided once two later frames have a pose (their keyframe status is known)."""
+        if self.stamp is not None or len(self.frame_stamps) <= self.view_frame + 2:
+            return
+        for s in sorted(self.frame_stamps)[self.view_frame : self.view_frame + 3]:
+            later = [t for t in self.poses if t > s]
+            ok = s in self.poses and s in self.images and s not in self.kf_stamps
+            if ok and len(later) >= 2:
+                self.stamp = s
+                self.images = {s: self.images[s]}
+                return
+
+    def _evaluate(self, now: float) -> None:
+        K, W, H = self.camera
+        rgb, _, _ = render_map_view(
+            self.replica.arrays, self.poses[self.stamp], K, W, H, raster=self.raster
+        )
+        psnr, ssim = score_view(self.images[self.stamp], rgb)
+        self.curve.append(
+            {
+                "iterations": self.iterations,
+                "wall_s": round(now - (now if self.t0 is None else self.t0), 2),
+                "n_gaussians": len(self.replica),
+                "fixed_view_psnr_db": psnr,
+                "fixed_view_ssim": ssim,
+            }
+        )
+
+    def figures(self) -> dict[str, Any]:
+        hit = next((c for c in self.curve if c["fixed_view_psnr_db"] >= self.target_db), None)
+        last = self.curve[-1] if self.curve else {}
+        return {
+            "view_stamp_ns": self.stamp,
+            "iters_to_target": None if hit is None else hit["iterations"],
+            "wall_s_to_target": None if hit is None else hit["wall_s"],
+            "gaussians_at_target": None if hit is None else hit["n_gaussians"],
+            "fixed_view_psnr_at_budget_db": last.get("fixed_view_psnr_db"),
+            "iterations_budget": self.iterations,
+            "gaussians_at_budget": len(self.replica),
+            "curve": {k: [c[k] for c in self.curve] for k in (last or {})},
+        }
+
+
+TOPICS = ("/camera/image", "/frontend/odometry", "/frontend/keyframe", "/mapper/stats")
+
+
+def run_init(init: str, args: argparse.Namespace, root: Path) -> dict[str, Any]:
+    """One run of the demo drive with initialisation ``init``; its figures."""
+    out = root / init
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "launch.yaml"
+    path.write_text(yaml.safe_dump(launch_dict(init, args.frames, out)))
+    launch = load_launch_file(path)
+    ctx = zmq.Context()
+    sub = Subscriber(launch.bus, context=ctx)
+    for t in (*TOPICS, "/mapper/gaussians"):
+        sub.subscribe(t, reliable=t != "/camera/image")
+    view = FixedView(args.view_frame, args.target_db)
+    launcher = Launcher(launch, out=open(out / "launch.log", "w"), grace_s=30.0)  # noqa: SIM115
+    runner = threading.Thread(
+        target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": args.timeout}
+    )
+    t_start = time.monotonic()
+    runner.start()
+    while runner.is_alive():
+        env = sub.receive(timeout_ms=100)
+        if env is not None:
+            view.on(env.topic, env.msg, time.monotonic())
+    runner.join()
+    sub.close()
+    ctx.term()
+    fig = view.figures()
+    fig["wall_s"] = round(time.monotonic() - t_start, 1)
+    summary = out / "summary.json"
+    m = json.loads(summary.read_text()).get("map", {}) if summary.exists() else {}
+    fig["psnr_at_budget_db"] = m.get("heldout_psnr_db")
+    fig["ssim_at_budget"] = m.get("heldout_ssim")
+    fig["heldout_frames"] = m.get("heldout_frames", 0)
+    fig["run_dir"] = str(out)
+    return fig
+
+
+def ratios(inits: dict[str, Any]) -> dict[str, float | None]:
+    """MOGS against random (iterations and Gaussians at the target) and PSNR against the prior."""
+
+    def div(a: float | None, b: float | None) -> float | None:
+        return None if a is None or b in (None, 0) else round(a / b, 3)
+
+    mo, pg, ra = (inits.get(k, {}) for k in INITS)
+    return {
+        "iters_to_target_mogs_over_random": div(
+            mo.get("iters_to_target"), ra.get("iters_to_target")
+        ),
+        "gaussians_at_target_mogs_over_random": div(
+            mo.get("gaussians_at_target"), ra.get("gaussians_at_target")
+        ),
+        "psnr_at_budget_mogs_minus_prior_global_db": None
+        if mo.get("psnr_at_budget_db") is None or pg.get("psnr_at_budget_db") is None
+        else round(mo["psnr_at_budget_db"] - pg["psnr_at_budget_db"], 3),
+    }
+
+
+def plot(inits: dict[str, Any], target_db: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
+    for init, r in inits.items():
+        c = r["curve"]
+        if not c:
+            continue
+        (line,) = a1.plot(c["iterations"], c["n_gaussians"], ".-", label=init)
+        a2.plot(c["iterations"], c["fixed_view_psnr_db"], ".-", label=init, color=line.get_color())
+    a1.set_xlabel("mapper iterations")
+    a1.set_ylabel("Gaussians")
+    a2.axhline(target_db, color="k", ls=":", lw=1)
+    a2.set_xlabel("mapper iterations")
+    a2.set_ylabel("fixed held-out view PSNR [dB]")
+    a1.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(v: Any, spec: str = ".2f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any]) -> str:
+    rows = "\n".join(
+        f"| {k} | {_fmt(r['iters_to_target'], 'd')} | {_fmt(r['wall_s_to_target'], '.1f')} | "
+        f"{_fmt(r['gaussians_at_target'], 'd')} | {_fmt(r['fixed_view_psnr_at_budget_db'])} | "
+        f"{_fmt(r['psnr_at_budget_db'])} | {_fmt(r['ssim_at_budget'], '.3f')} | "
+        f"{r['iterations_budget']} | {r['gaussians_at_budget']} |"
+        for k, r in res["inits"].items()
+    )
+    rt = res["ratios"]
+    return f"""## Table II in the live pipeline (issue 17)
+
+Command: `{cmd}`
+
+Machine: {machine_line()}; 2 cores shared by all processes (wall times are not comparable across
+machines or loads). Demo drive ({args.frames} frames, 621x188), the same mapper policy and budget
+(`launch/demo.yaml`: {res["iters_per_keyframe"]} iterations per keyframe) for every
+initialisation. Fixed held-out view: frame {args.view_frame} (the first non-keyframe from there),
+scored after every map update; target {args.target_db:g} dB. At the budget: the run report's
+held-out frames (docs/report.md).
+
+| init | iterations to {args.target_db:g} dB | wall s to target | Gaussians at target | fixed view PSNR at budget [dB] | held-out PSNR at budget [dB] | held-out SSIM | iterations (budget) | Gaussians at budget |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
+{rows}
+
+Ratios: MOGS / random iterations to target {_fmt(rt["iters_to_target_mogs_over_random"], ".3f")}
+(goal <= 0.7), Gaussians at target {_fmt(rt["gaussians_at_target_mogs_over_random"], ".3f")}
+(goal <= 0.8); MOGS - prior_global held-out PSNR at budget
+{_fmt(rt["psnr_at_budget_mogs_minus_prior_global_db"])} dB (goal >= 0). "-": the target was not
+reached within the budget.
+
+![Table II in the live pipeline](pipeline_table2.png)
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--frames", type=int, default=60, help="frames of the synthetic drive")
+    ap.add_argument("--view-frame", type=int, default=40, help="index of the fixed held-out frame")
+    ap.add_argument("--target-db", type=float, default=20.0)
+    ap.add_argument(
+        "--inits", default=",".join(INITS), help="comma-separated subset of " + ", ".join(INITS)
+    )
+    ap.add_argument("--timeout", type=float, default=2400.0, help="per run")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--no-docs", action="store_true")
+    args = ap.parse_args(argv)
+    inits = [k.strip() for k in args.inits.split(",") if k.strip()]
+    if not set(inits) <= set(INITS) or not 0 <= args.view_frame < args.frames:
+        ap.error(f"--inits: a subset of {INITS}; --view-frame: in [0, --frames)")
+    root = Path(tempfile.mkdtemp(prefix="mogs-bench-table2-"))
+    demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
+    mapper = next(n for n in demo["nodes"] if n["name"] == "mapper")
+    res: dict[str, Any] = {
+        "target_psnr_db": args.target_db,
+        "frames": args.frames,
+        "view_frame": args.view_frame,
+        "iters_per_keyframe": mapper["params"].get("iters_per_keyframe"),
+        "inits": {},
+    }
+    for init in inits:
+        print(f"[table2] {init} ...", flush=True)
+        r = res["inits"][init] = run_init(init, args, root)
+        print(
+            f"[table2] {init}: iterations to target {r['iters_to_target']}, Gaussians at target "
+            f"{r['gaussians_at_target']}, held-out PSNR at budget {r['psnr_at_budget_db']} "
+            f"(SSIM {r['ssim_at_budget']}), {r['wall_s']} s",
+            flush=True,
+        )
+    res["ratios"] = ratios(res["inits"])
+    for k, v in res["ratios"].items():
+        print(f"{k:45s} {v}")
+    write_json(args.json, res)
+    if not args.no_docs:
+        plot(res["inits"], args.target_db, REPO_ROOT / "docs" / "pipeline_table2.png")
+        cmd = "python bench/pipeline_table2.py " + " ".join(
+            argv if argv is not None else sys.argv[1:]
+        )
+        update_markdown_section("pipeline-table2", markdown(cmd.strip(), args, res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

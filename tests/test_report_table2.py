@@ -1,0 +1,127 @@
+"""bench/pipeline_table2.py: its launch set-up, fixed-view tracking and ratios (no processes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bench.pipeline_table2 import RANDOM_TOPIC, FixedView, launch_dict, ratios
+from mogs_node.geometry import make_T, so3_exp
+from mogs_node.mapper.rasterizer import RasterParams
+
+
+def test_launch_files_differ_only_in_the_depth_the_mapper_gets(tmp_path: Path) -> None:
+    d = {k: launch_dict(k, 30, tmp_path / k) for k in ("mogs", "prior_global", "random")}
+    nodes = {k: {n["name"]: n for n in v["nodes"]} for k, v in d.items()}
+    assert nodes["mogs"]["metrizer"]["params"]["mode"] == "full"
+    assert nodes["prior_global"]["metrizer"]["params"]["mode"] == "no_msc_cdr"
+    assert nodes["random"]["mapper"]["params"]["depth_topic"] == RANDOM_TOPIC
+    assert "randomizer" in nodes["random"] and "randomizer" not in nodes["mogs"]
+    assert "randomizer" in nodes["random"]["player"]["params"]["wait_for_nodes"]
+    for k in d:  # the same mapper policy and budget, the same drive
+        mp = {
+            a: b
+            for a, b in nodes[k]["mapper"]["params"].items()
+            if a not in ("ply_path", "depth_topic")
+        }
+        mp0 = {a: b for a, b in nodes["mogs"]["mapper"]["params"].items() if a != "ply_path"}
+        assert mp == mp0
+        assert nodes[k]["player"]["params"]["sim"]["n_frames"] == 30
+
+
+def _gaussians(rgb: np.ndarray, depth: float, K: np.ndarray, T: np.ndarray, keyframe_id: int):
+    """A map update holding one opaque, 0.1 px Gaussian per pixel of ``rgb`` seen from ``T``."""
+    H, W = rgb.shape[:2]
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    p = np.stack(
+        [(u - K[0, 2]) / K[0, 0] * depth, (v - K[1, 2]) / K[1, 1] * depth, np.full_like(u, depth)],
+        -1,
+    ).reshape(-1, 3)
+    n = len(p)
+    return SimpleNamespace(
+        keyframe_id=keyframe_id,
+        ids=np.arange(n, dtype=np.int64),
+        removed_ids=np.zeros(0, np.int64),
+        means=(p @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
+        quats_wxyz=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        log_scales=np.full((n, 3), np.log(0.1 * depth / K[0, 0]), np.float32),
+        opacity_logit=np.full(n, 12.0, np.float32),
+        colors_rgb=rgb.reshape(-1, 3).astype(np.float32) / 255,
+    )
+
+
+def test_fixed_view_reaches_the_target_when_the_map_holds_the_view() -> None:
+    rng = np.random.default_rng(0)
+    H, W = 12, 16
+    K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
+    T_view = make_T(so3_exp(np.array([0.1, 0.2, -0.1])), np.array([3.0, 0.0, 1.0]))
+    img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    # the pure-PyTorch backend (the same semantics as C++, no compilation); a dilation that ends
+    # before the next pixel, so the map of the view's pixels renders it back (test_report_views)
+    fv = FixedView(
+        view_frame=2, target_db=20.0, raster=RasterParams(backend="torch", eps2d_px2=0.05)
+    )
+    t = 0.0
+    for i in range(6):  # frames 0..5; frame 1 is a keyframe, frame 2 the view
+        s = 1000 + i
+        fv.on(
+            "/camera/image",
+            SimpleNamespace(stamp_ns=s, data=img if i == 2 else img // 2, encoding="rgb8"),
+            t,
+        )
+        if i == 1:
+            fv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=K, image=img), t)
+        T = T_view if i == 2 else make_T(np.eye(3), np.array([0.0, 0.0, -5.0]))
+        fv.on(
+            "/frontend/odometry", SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=T), t
+        )
+    # update 1: a map that is the view's image darkened; update 2: the view itself
+    fv.on("/mapper/stats", SimpleNamespace(iterations=6), 1.0)
+    fv.on("/mapper/gaussians", _gaussians(img // 4, 5.0, K, T_view, 1), 1.0)
+    assert fv.stamp == 1002
+    fv.on("/mapper/stats", SimpleNamespace(iterations=12), 2.0)
+    fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 2.0)
+    fig = fv.figures()
+    assert fig["curve"]["fixed_view_psnr_db"][0] < 20 <= fig["curve"]["fixed_view_psnr_db"][1]
+    assert fig["iters_to_target"] == 12 and fig["gaussians_at_target"] == H * W
+    assert fig["wall_s_to_target"] == pytest.approx(2.0)
+    assert fig["iterations_budget"] == 12
+
+
+def test_the_view_skips_keyframes_and_frames_without_a_pose() -> None:
+    fv = FixedView(view_frame=1, target_db=20.0)
+    img = np.zeros((2, 2, 3), np.uint8)
+    for i in range(6):
+        s = 10 + i
+        fv.on("/camera/image", SimpleNamespace(stamp_ns=s, data=img, encoding="rgb8"), 0.0)
+        if i == 1:
+            fv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=np.eye(3), image=img), 0.0)
+        status = "initializing" if i == 2 else "tracking"
+        fv.on(
+            "/frontend/odometry",
+            SimpleNamespace(stamp_ns=s, status=status, T_world_cam=np.eye(4)),
+            0.0,
+        )
+    fv._decide()
+    assert fv.stamp == 13  # frame 1 is a keyframe, frame 2 has no pose
+
+
+def test_ratios_with_and_without_a_target() -> None:
+    inits = {
+        "mogs": {"iters_to_target": 30, "gaussians_at_target": 800, "psnr_at_budget_db": 22.0},
+        "prior_global": {
+            "iters_to_target": 60,
+            "gaussians_at_target": 900,
+            "psnr_at_budget_db": 21.5,
+        },
+        "random": {"iters_to_target": 60, "gaussians_at_target": 1000, "psnr_at_budget_db": 15.0},
+    }
+    r = ratios(inits)
+    assert r["iters_to_target_mogs_over_random"] == 0.5
+    assert r["gaussians_at_target_mogs_over_random"] == 0.8
+    assert r["psnr_at_budget_mogs_minus_prior_global_db"] == 0.5
+    inits["random"]["iters_to_target"] = None
+    assert ratios(inits)["iters_to_target_mogs_over_random"] is None
