@@ -441,8 +441,10 @@ class PlayerNode(Node):
             topic = p.image_topic
             if self._replay_raw and self.total_frames == 0 and self._rec_next is not None:
                 topic = self._rec_next.topic
-            if p.wait_for_subscriber_s > 0 and not self.wait_for_subscriber(
-                topic, p.wait_for_subscriber_s
+            if (
+                p.wait_for_subscriber_s > 0
+                and not self.wait_for_subscriber(topic, p.wait_for_subscriber_s)
+                and not self.stopping
             ):
                 self.log.warning(
                     "no subscriber of %s after %.1f s: playing anyway",
@@ -529,7 +531,7 @@ class PlayerNode(Node):
         deadline = time.monotonic() + timeout_s
         beat = time.monotonic()
         try:
-            while waiting and time.monotonic() < deadline:
+            while waiting and time.monotonic() < deadline and not self.stopping:
                 if self.diagnostics_period_s > 0 and time.monotonic() - beat >= 1.0:
                     # our own heartbeat meanwhile: the launcher must not think us hung
                     beat = time.monotonic()
@@ -539,7 +541,7 @@ class PlayerNode(Node):
                     waiting.discard(env.msg.node)
         finally:
             sub.close()
-        if waiting:
+        if waiting and not self.stopping:
             self.log.warning(
                 "no heartbeat from %s after %.0f s: playing anyway", sorted(waiting), timeout_s
             )

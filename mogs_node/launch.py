@@ -22,6 +22,12 @@ The launcher prefixes each child's log lines with its name, respawns crashed nod
 on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
 Children get PR_SET_PDEATHSIG so that they never outlive a killed launcher.
 
+A failure that the run cannot recover from ends it: the other nodes are stopped and the launcher
+exits with code 1, its last line naming the node and its error (``[launch] run failed: ...``).
+Such failures are a ``respawn: never`` node exiting non-zero, a node that cannot start with its
+configuration (exit code :data:`~mogs_node.node.EXIT_CONFIG`: bad parameter, missing dataset or
+model file; never respawned, whatever its policy) and a node that has used up ``max_respawns``.
+
 Catch-up: a respawned node, and every node of a resumed run (``resume=True``, ``mogs launch
 --resume RUN``), is started with ``MOGS_CATCH_UP=1``; nodes that call
 :meth:`~mogs_node.node.Node.catch_up` then replay what they missed from the journal node
@@ -36,11 +42,13 @@ import ctypes
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,13 +59,21 @@ import zmq
 from mogs_node import shm
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.errors import ConfigError
-from mogs_node.node import CATCH_UP_ENV
+from mogs_node.node import CATCH_UP_ENV, EXIT_CONFIG
 
 __all__ = ["LaunchFile", "Launcher", "NodeSpec", "load_launch_file", "run_dir_overrides"]
 
 log = logging.getLogger(__name__)
 
 RESPAWN_POLICIES = ("never", "on_failure", "always")
+#: exit code of ``mogs launch`` when a node failed in a way that ends the run
+EXIT_NODE_FAILED = 1
+#: lines of a child's output kept to name its error when it fails
+_TAIL_LINES = 40
+#: a log line at level ERROR / CRITICAL (format of mogs_node.cli) or the last line of a traceback
+_LOG_ERROR = re.compile(r"^\d\d:\d\d:\d\d [EC] \S+: (?P<msg>.+)$")
+_LOG_OTHER = re.compile(r"^\d\d:\d\d:\d\d [DIW] ")
+_TRACEBACK_END = re.compile(r"^(?:[A-Za-z_][\w.]*\.)?[A-Z]\w*(?:Error|Exception|Exit): .+$")
 
 
 @dataclass(frozen=True)
@@ -148,6 +164,8 @@ def parse_launch(
         cls = _require(nd, "class", str, w)
         if ":" not in cls:
             raise ConfigError(f"{w}.class: expected 'package.module:ClassName', got {cls!r}")
+        if not isinstance(nd.get("params") or {}, dict):
+            raise ConfigError(f"{w}.params: expected a mapping, got {nd['params']!r}")
         params = dict(nd.get("params") or {})
         if overrides and nname in overrides:
             params.update(overrides[nname])
@@ -167,6 +185,12 @@ def parse_launch(
                 host=str(nd.get("host", "localhost")),
                 env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
             )
+        )
+    unknown_nodes = sorted(set(overrides or {}) - seen)
+    if unknown_nodes:
+        raise ConfigError(
+            f"{where}: parameter override(s) for unknown node(s) {unknown_nodes}; "
+            f"the nodes are {sorted(seen)}"
         )
     exit_when = tuple(data.get("exit_when") or ())
     for n in exit_when:
@@ -251,6 +275,46 @@ class _Child:
     restart_at: float | None = None
     reader: threading.Thread | None = None
     started_at: float = 0.0
+    tail: deque[str] = field(default_factory=lambda: deque(maxlen=_TAIL_LINES))
+
+
+def error_of(lines: list[str] | deque[str]) -> str:
+    """The error a failed process printed: its last ERROR/CRITICAL log line, else the last line
+    of a traceback, else its last line that is not a debug / info / warning log line ("" when
+    there is none)."""
+    last_traceback = ""
+    for line in reversed(lines):
+        m = _LOG_ERROR.match(line)
+        if m:
+            return m.group("msg").removeprefix("cannot start: ")
+        if not last_traceback and _TRACEBACK_END.match(line):
+            last_traceback = line
+    if last_traceback:
+        return last_traceback
+    return next((ln for ln in reversed(lines) if ln.strip() and not _LOG_OTHER.match(ln)), "")
+
+
+def failure_reason(rc: int, *, policy: str, respawns: int, max_respawns: int) -> str | None:
+    """Why a node's exit with code ``rc`` ends the run, or None when it does not (exit 0, or a
+    respawn is due). A configuration failure (:data:`~mogs_node.node.EXIT_CONFIG`) is never
+    respawned: the same parameters would fail again."""
+    if rc == 0:
+        return None
+    if rc == EXIT_CONFIG:
+        return f"could not start with its configuration (exit code {rc})"
+    how = f"was killed by {_signal_name(-rc)}" if rc < 0 else f"exited with code {rc}"
+    if policy == "never":
+        return f"{how} (respawn: never)"
+    if respawns >= max_respawns:
+        return f"{how} after {respawns} respawns (max_respawns {max_respawns})"
+    return None
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
 
 
 class Launcher:
@@ -266,6 +330,7 @@ class Launcher:
         self._stop = threading.Event()
         self._out_lock = threading.Lock()
         self.children: list[_Child] = []
+        self.failure: str | None = None  # "NODE REASON: ERROR" of a failure that ended the run
         self._heartbeats: dict[str, tuple[float, int]] = {}  # node -> (monotonic time, pid)
         self._hb_lock = threading.Lock()
         bus_json = json.dumps(launch.bus.to_dict())
@@ -319,7 +384,9 @@ class Launcher:
     def _pump(self, child: _Child, stream) -> None:
         width = max(len(c.name) for c in self.children)
         for raw in iter(stream.readline, b""):
-            self._print(f"[{child.name:<{width}}] {raw.decode(errors='replace').rstrip()}")
+            line = raw.decode(errors="replace").rstrip()
+            child.tail.append(line)
+            self._print(f"[{child.name:<{width}}] {line}")
         stream.close()
 
     def _start(self, child: _Child) -> None:
@@ -342,6 +409,7 @@ class Launcher:
         child.exited = None
         child.restart_at = None
         child.started_at = time.monotonic()
+        child.tail.clear()
         child.reader = threading.Thread(
             target=self._pump, args=(child, child.proc.stdout), daemon=True
         )
@@ -376,6 +444,9 @@ class Launcher:
                     break
         finally:
             self.shutdown()
+        if self.failure is not None:
+            self._print(f"[launch] run failed: {self.failure}")
+            return EXIT_NODE_FAILED
         return code
 
     def _watch_heartbeats(self) -> None:
@@ -427,16 +498,8 @@ class Launcher:
                     continue
                 child.exited = rc
                 self._print(f"[launch] {child.name} exited with code {rc}")
-                policy = "always" if child.spec is None else child.spec.respawn
-                failed = rc != 0
-                max_r = 1000 if child.spec is None else child.spec.max_respawns
-                if (
-                    policy == "always" or (policy == "on_failure" and failed)
-                ) and child.respawns < max_r:
-                    delay = 0.2 if child.spec is None else child.spec.respawn_delay_s
-                    child.restart_at = now + delay
-                elif failed and child.spec is None:
-                    self._print("[launch] broker failed and cannot be respawned")
+                if self._on_exit(child, rc, now):
+                    return True
             if child.restart_at is not None and now >= child.restart_at:
                 child.respawns += 1
                 self._print(f"[launch] respawning {child.name} ({child.respawns})")
@@ -447,6 +510,23 @@ class Launcher:
                 self._print("[launch] " + ", ".join(self.launch.exit_when) + " finished")
                 return True
         return False
+
+    def _on_exit(self, child: _Child, rc: int, now: float) -> bool:
+        """Schedule a respawn by policy, or record a failure that ends the run (True)."""
+        policy = "always" if child.spec is None else child.spec.respawn
+        max_r = 1000 if child.spec is None else child.spec.max_respawns
+        reason = failure_reason(rc, policy=policy, respawns=child.respawns, max_respawns=max_r)
+        if reason is None:
+            respawn = policy == "always" or (policy == "on_failure" and rc != 0)
+            if respawn and child.respawns < max_r:
+                child.restart_at = now + (0.2 if child.spec is None else child.spec.respawn_delay_s)
+            return False
+        if child.reader is not None:  # its last lines hold the error
+            child.reader.join(timeout=1.0)
+        error = error_of(child.tail)
+        self.failure = f"{child.name} {reason}" + (f": {error}" if error else "")
+        self._print(f"[launch] {self.failure}; stopping every node")
+        return True
 
     def shutdown(self) -> None:
         """SIGINT to every node (broker last), SIGKILL what is left after the grace period."""
