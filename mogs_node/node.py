@@ -36,6 +36,7 @@ import zmq
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber
 from mogs_node.errors import ConfigError, DatasetError, ModelError, MogsError
+from mogs_node.failure_log import FailureLog
 
 __all__ = [
     "CATCH_UP_ENV",
@@ -201,6 +202,8 @@ class Node:
         )
         self.bus = bus
         self.log = logging.getLogger(f"mogs.{name}")
+        # a failure repeating on every message or tick is logged once, then counted (issue 18)
+        self.failures = FailureLog(self.log)
         # A node owns its context unless given one: closing it then waits until every queued
         # (zero-copy) outgoing frame is sent, before the interpreter frees the arrays behind them.
         self._own_ctx = context is None
@@ -428,10 +431,12 @@ class Node:
             sub.handler(env.msg)
         except MogsError as err:
             self.counters["handler_errors"] += 1
-            self.log.warning("%s: rejected message seq %d: %s", env.topic, env.seq, err)
-        except Exception:  # a node never dies of one message; the traceback is logged
+            self.failures.failed(
+                env.topic, err, f"rejected message seq {env.seq}", with_traceback=False
+            )
+        except Exception as err:  # a node never dies of one message; the traceback is logged
             self.counters["handler_errors"] += 1
-            self.log.exception("%s: handler failed on seq %d", env.topic, env.seq)
+            self.failures.failed(env.topic, err, f"handler failed on seq {env.seq}")
         dt_ms = (time.perf_counter() - t0) * 1000
         self._latency_ewma_ms = 0.9 * self._latency_ewma_ms + 0.1 * dt_ms
         self.counters["handler_ms_max"] = max(self.counters["handler_ms_max"], dt_ms)
@@ -565,9 +570,10 @@ class Node:
                 timer[1] = max(timer[1] + timer[0], now)
                 try:
                     timer[2]()
-                except Exception:
+                except Exception as err:
                     self.counters["handler_errors"] += 1
-                    self.log.exception("timer %s failed", getattr(timer[2], "__name__", timer[2]))
+                    name = getattr(timer[2], "__name__", str(timer[2]))
+                    self.failures.failed(f"timer {name}", err, "failed")
 
     def spin_once(self, timeout_ms: int = 100) -> None:
         """Wait up to ``timeout_ms`` for input, then handle everything queued and due timers."""
@@ -597,9 +603,9 @@ class Node:
                 if key in ready:
                     try:
                         callback()
-                    except Exception:
+                    except Exception as err:
                         self.counters["handler_errors"] += 1
-                        self.log.exception("reader of %s failed", sock)
+                        self.failures.failed(f"reader of {sock}", err, "failed")
             if self._sub is not None and (self._queue or self._sub.socket in ready):
                 self._read_available()
                 self._handle_queue()
