@@ -58,6 +58,7 @@ import zmq
 
 from mogs_node import shm
 from mogs_node.bus import BusConfig, default_bus_config
+from mogs_node.diagnosis import DIAGNOSED_TOPICS, RunDoctor
 from mogs_node.errors import ConfigError
 from mogs_node.node import CATCH_UP_ENV, EXIT_CONFIG
 
@@ -321,9 +322,16 @@ class Launcher:
     """Starts, supervises and stops the processes of a :class:`LaunchFile`."""
 
     def __init__(
-        self, launch: LaunchFile, *, out=None, grace_s: float = 3.0, resume: bool = False
+        self,
+        launch: LaunchFile,
+        *,
+        out=None,
+        grace_s: float = 3.0,
+        resume: bool = False,
+        diagnose: bool = True,
     ) -> None:
         self.launch = launch
+        self.diagnose = diagnose  # say why no keyframe / no depth comes (mogs_node.diagnosis)
         self.resume = resume
         self.out = out or sys.stdout
         self.grace_s = grace_s
@@ -443,6 +451,8 @@ class Launcher:
                 if self._supervise():
                     break
         finally:
+            self._stop.set()
+            watcher.join(timeout=2.0)  # its last word: why the run made no keyframe, if so
             self.shutdown()
         if self.failure is not None:
             self._print(f"[launch] run failed: {self.failure}")
@@ -450,19 +460,35 @@ class Launcher:
         return code
 
     def _watch_heartbeats(self) -> None:
-        """Record the last /diagnostics heartbeat of every node (runs in a thread)."""
+        """Record the last /diagnostics heartbeat of every node and, with ``diagnose``, say why
+        no keyframe or no depth comes (:mod:`mogs_node.diagnosis`; runs in a thread)."""
         from mogs_node import msgs
         from mogs_node.bus import Subscriber
 
+        doctor = RunDoctor() if self.diagnose else None
         ctx = zmq.Context()
         try:
             sub = Subscriber(self.launch.bus, context=ctx)
             sub.subscribe("/diagnostics")
+            for topic in DIAGNOSED_TOPICS if doctor is not None else ():
+                sub.subscribe(topic)
+            next_check = time.monotonic() + 1.0
             while not self._stop.is_set():
                 env = sub.receive(timeout_ms=200)
+                now = time.monotonic()
                 if env is not None and isinstance(env.msg, msgs.Diagnostics):
                     with self._hb_lock:
-                        self._heartbeats[env.msg.node] = (time.monotonic(), env.msg.pid)
+                        self._heartbeats[env.msg.node] = (now, env.msg.pid)
+                if doctor is None:
+                    continue
+                lines = [] if env is None else doctor.observe(env.topic, env.msg, now)
+                if now >= next_check:
+                    next_check = now + 1.0
+                    lines += doctor.check(now)
+                for line in lines:
+                    self._print(f"[launch] {line}")
+            for line in doctor.at_end() if doctor is not None else ():
+                self._print(f"[launch] {line}")
             sub.close()
         except Exception:  # supervision by exit codes goes on without heartbeats
             log.exception("heartbeat watcher stopped")
