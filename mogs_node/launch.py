@@ -33,6 +33,11 @@ Catch-up: a respawned node, and every node of a resumed run (``resume=True``, ``
 :meth:`~mogs_node.node.Node.catch_up` then replay what they missed from the journal node
 (:mod:`mogs_node.journal`). :func:`run_dir_overrides` points the journal, the report, the mapper's
 PLY and checkpoints of a launch file at one run folder.
+
+Disk: a run that ends cleanly (its ``exit_when`` nodes finished) needs neither its journal nor
+its checkpoints any more (they exist for respawns and ``--resume``): the launcher removes them
+(:func:`remove_run_state`) unless ``keep_journal`` (``mogs launch --keep-journal``). A run stopped
+by Ctrl-C, a timeout or a failure keeps them, to be resumed.
 """
 
 from __future__ import annotations
@@ -42,7 +47,6 @@ import ctypes
 import json
 import logging
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -60,21 +64,28 @@ from mogs_node import shm
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.diagnosis import DIAGNOSED_TOPICS, RunDoctor
 from mogs_node.errors import ConfigError
-from mogs_node.node import CATCH_UP_ENV, EXIT_CONFIG
+from mogs_node.node import CATCH_UP_ENV
+from mogs_node.supervision import (
+    CHECKPOINT_FILES,
+    EXIT_NODE_FAILED,
+    JOURNAL_FILES,
+    TAIL_LINES,
+    error_of,
+    failure_reason,
+    remove_run_state,
+)
 
-__all__ = ["LaunchFile", "Launcher", "NodeSpec", "load_launch_file", "run_dir_overrides"]
+__all__ = [
+    "LaunchFile",
+    "Launcher",
+    "NodeSpec",
+    "load_launch_file",
+    "run_dir_overrides",
+]
 
 log = logging.getLogger(__name__)
 
 RESPAWN_POLICIES = ("never", "on_failure", "always")
-#: exit code of ``mogs launch`` when a node failed in a way that ends the run
-EXIT_NODE_FAILED = 1
-#: lines of a child's output kept to name its error when it fails
-_TAIL_LINES = 40
-#: a log line at level ERROR / CRITICAL (format of mogs_node.cli) or the last line of a traceback
-_LOG_ERROR = re.compile(r"^\d\d:\d\d:\d\d [EC] \S+: (?P<msg>.+)$")
-_LOG_OTHER = re.compile(r"^\d\d:\d\d:\d\d [DIW] ")
-_TRACEBACK_END = re.compile(r"^(?:[A-Za-z_][\w.]*\.)?[A-Z]\w*(?:Error|Exception|Exit): .+$")
 
 
 @dataclass(frozen=True)
@@ -276,46 +287,7 @@ class _Child:
     restart_at: float | None = None
     reader: threading.Thread | None = None
     started_at: float = 0.0
-    tail: deque[str] = field(default_factory=lambda: deque(maxlen=_TAIL_LINES))
-
-
-def error_of(lines: list[str] | deque[str]) -> str:
-    """The error a failed process printed: its last ERROR/CRITICAL log line, else the last line
-    of a traceback, else its last line that is not a debug / info / warning log line ("" when
-    there is none)."""
-    last_traceback = ""
-    for line in reversed(lines):
-        m = _LOG_ERROR.match(line)
-        if m:
-            return m.group("msg").removeprefix("cannot start: ")
-        if not last_traceback and _TRACEBACK_END.match(line):
-            last_traceback = line
-    if last_traceback:
-        return last_traceback
-    return next((ln for ln in reversed(lines) if ln.strip() and not _LOG_OTHER.match(ln)), "")
-
-
-def failure_reason(rc: int, *, policy: str, respawns: int, max_respawns: int) -> str | None:
-    """Why a node's exit with code ``rc`` ends the run, or None when it does not (exit 0, or a
-    respawn is due). A configuration failure (:data:`~mogs_node.node.EXIT_CONFIG`) is never
-    respawned: the same parameters would fail again."""
-    if rc == 0:
-        return None
-    if rc == EXIT_CONFIG:
-        return f"could not start with its configuration (exit code {rc})"
-    how = f"was killed by {_signal_name(-rc)}" if rc < 0 else f"exited with code {rc}"
-    if policy == "never":
-        return f"{how} (respawn: never)"
-    if respawns >= max_respawns:
-        return f"{how} after {respawns} respawns (max_respawns {max_respawns})"
-    return None
-
-
-def _signal_name(signum: int) -> str:
-    try:
-        return signal.Signals(signum).name
-    except ValueError:
-        return f"signal {signum}"
+    tail: deque[str] = field(default_factory=lambda: deque(maxlen=TAIL_LINES))
 
 
 class Launcher:
@@ -329,8 +301,11 @@ class Launcher:
         grace_s: float = 3.0,
         resume: bool = False,
         diagnose: bool = True,
+        keep_journal: bool = False,
     ) -> None:
         self.launch = launch
+        self.keep_journal = keep_journal
+        self._state: list[tuple[Path, tuple[str, ...]]] = []  # removed after a clean end
         self.diagnose = diagnose  # say why no keyframe / no depth comes (mogs_node.diagnosis)
         self.resume = resume
         self.out = out or sys.stdout
@@ -366,6 +341,10 @@ class Launcher:
             params = dict(spec.params)
             if spec.cls.endswith(":JournalNode") and "dir" not in params and report_dir:
                 params["dir"] = str(Path(report_dir) / "journal")  # the run's state in one folder
+            if spec.cls.endswith(":JournalNode") and params.get("dir"):
+                self._state.append((Path(params["dir"]), JOURNAL_FILES))
+            if params.get("checkpoint_dir"):
+                self._state.append((Path(params["checkpoint_dir"]), CHECKPOINT_FILES))
             if spec.host not in ("localhost", "127.0.0.1", os.uname().nodename):
                 log.info("node %s runs on host %s: not started here", spec.name, spec.host)
                 continue
@@ -434,6 +413,7 @@ class Launcher:
                 signal.signal(sig, lambda *_: self._stop.set())
         end = None if timeout_s is None else time.monotonic() + timeout_s
         code = 0
+        finished = False  # the exit_when nodes finished: a clean end
         watcher = threading.Thread(
             target=self._watch_heartbeats, name="mogs-heartbeats", daemon=True
         )
@@ -449,6 +429,7 @@ class Launcher:
                     code = 124
                     break
                 if self._supervise():
+                    finished = self.failure is None
                     break
         finally:
             self._stop.set()
@@ -457,6 +438,12 @@ class Launcher:
         if self.failure is not None:
             self._print(f"[launch] run failed: {self.failure}")
             return EXIT_NODE_FAILED
+        if finished and self._state and not self.keep_journal:
+            freed = remove_run_state(self._state)
+            self._print(
+                f"[launch] run complete: removed its journal and checkpoints ({freed / 2**20:.1f} "
+                "MiB; --keep-journal keeps them)"
+            )
         return code
 
     def _watch_heartbeats(self) -> None:

@@ -17,8 +17,9 @@ from _reliability_harness import REPO, cli_argv
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Subscriber
 from mogs_node.errors import ConfigError
-from mogs_node.launch import EXIT_NODE_FAILED, error_of, failure_reason, parse_launch
+from mogs_node.launch import parse_launch
 from mogs_node.node import EXIT_CONFIG
+from mogs_node.supervision import EXIT_NODE_FAILED, error_of, failure_reason
 
 NODE_NAMES = ["frontend", "mapper", "metrizer", "player", "prior", "report", "segmentation"]
 

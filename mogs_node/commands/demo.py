@@ -26,6 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--timeout", type=float, default=1200.0, help="give up after this many seconds"
     )
+    parser.add_argument(
+        "--keep-journal",
+        action="store_true",
+        help="keep the run's journal and mapper checkpoint (default: removed at a clean end)",
+    )
 
 
 def command(args: argparse.Namespace) -> int:
@@ -40,7 +45,7 @@ def command(args: argparse.Namespace) -> int:
         overrides["player"] = {"sim": sim}
     launch = load_launch_file(args.launch, overrides=overrides)
     t0 = time.monotonic()
-    code = Launcher(launch).run(timeout_s=args.timeout)
+    code = Launcher(launch, keep_journal=args.keep_journal).run(timeout_s=args.timeout)
     dt = time.monotonic() - t0
     summary = out / "summary.json"
     if not summary.exists():
