@@ -5,7 +5,9 @@ crossed the bus (node counters from ``/diagnostics``, odometry statuses and posi
 samples, keyframes, prior and metrized depth coverage) and returns, once per cause, a line that
 names the cause and the remedy:
 
-- no keyframe for ``no_keyframe_s`` while images arrive: no IMU, images waiting for IMU samples
+- no keyframe for ``no_keyframe_s`` of data (odometry stamps: the frames the frontend handled;
+  a pipeline slowed down by back-pressure is not a stall), or of wall time after the first image
+  when the frontend handles none: no IMU, images waiting for IMU samples
   that never come (clocks disagree), the frontend receiving no image, no motion (the IMU or the
   odometry says the sensor stands still), still initialising (the calibration does not fit), or
   tracking lost (resets);
@@ -43,7 +45,7 @@ DIAGNOSED_TOPICS = (
 class DoctorParams:
     """Thresholds of the diagnosis."""
 
-    no_keyframe_s: float = 10.0  # say why after this long without a keyframe while images arrive
+    no_keyframe_s: float = 10.0  # say why after this long of data without a keyframe
     still_gyro_std_rad_s: float = 0.1  # the frontend's stillness test (frontend/initialization.py)
     still_accel_std_m_s2: float = 1.5
     still_travel_m: float = 0.2  # odometry moved less than this since the last keyframe: no motion
@@ -87,8 +89,10 @@ class _State:
     frontend: dict[str, float] = field(default_factory=dict)  # frontend_* counters
     keyframes: int = 0
     last_keyframe_at: float | None = None
-    images_at_last_keyframe: int = 0
-    first_image_at: float | None = None  # when images were first seen
+    first_image_at: float | None = None  # when images were first seen (wall clock)
+    odometry: int = 0  # frames the frontend acknowledged, in all
+    span_from_ns: int | None = None  # data time of the last keyframe (or first odometry)
+    span_to_ns: int | None = None  # data time of the latest odometry
     statuses: Counter[str] = field(default_factory=Counter)  # odometry since the last keyframe
     positions: list[NDArray] = field(default_factory=list)  # odometry since the last keyframe
     prior_coverage: dict[int, float] = field(default_factory=dict)
@@ -116,9 +120,9 @@ class RunDoctor:
         elif isinstance(msg, msgs.Imu):
             self.on_imu(msg.gyro_rad_s, msg.accel_m_s2)
         elif isinstance(msg, msgs.Odometry):
-            self.on_odometry(msg.status, np.asarray(msg.T_world_cam)[:3, 3])
+            self.on_odometry(msg.status, np.asarray(msg.T_world_cam)[:3, 3], msg.stamp_ns)
         elif isinstance(msg, msgs.Keyframe):
-            self.on_keyframe(msg.keyframe_id, len(msg.feature_ids), now)
+            self.on_keyframe(msg.keyframe_id, len(msg.feature_ids), msg.stamp_ns, now)
         elif isinstance(msg, msgs.DepthMap) and topic == "/prior/depth":
             self.on_prior(msg.keyframe_id, depth_coverage(msg.depth, msg.confidence))
         elif isinstance(msg, msgs.DepthMap) and topic == "/metrizer/depth":
@@ -144,17 +148,24 @@ class RunDoctor:
         self._gyro.append(np.asarray(gyro_rad_s, np.float64))
         self._accel.append(np.asarray(accel_m_s2, np.float64))
 
-    def on_odometry(self, status: str, position_m: NDArray) -> None:
-        """One frame's odometry: status and camera position in the world ``[3]``."""
+    def on_odometry(self, status: str, position_m: NDArray, stamp_ns: int) -> None:
+        """One frame's odometry: status, camera position in the world ``[3]`` and stamp."""
+        s = self.s
+        s.odometry += 1
+        if s.span_from_ns is None:
+            s.span_from_ns = int(stamp_ns)
+        s.span_to_ns = max(int(stamp_ns), s.span_to_ns or int(stamp_ns))
         self.s.statuses[status] += 1
         if status == "tracking":
             self.s.positions.append(np.asarray(position_m, np.float64)[:3])
 
-    def on_keyframe(self, keyframe_id: int, n_sparse_points: int, now: float) -> None:
+    def on_keyframe(
+        self, keyframe_id: int, n_sparse_points: int, stamp_ns: int, now: float
+    ) -> None:
         s = self.s
         s.keyframes += 1
         s.last_keyframe_at = now
-        s.images_at_last_keyframe = s.images
+        s.span_from_ns = s.span_to_ns = int(stamp_ns)
         s.statuses.clear()
         s.positions.clear()
         s.sparse_points[keyframe_id] = int(n_sparse_points)
@@ -198,14 +209,18 @@ class RunDoctor:
     def check(self, now: float) -> list[str]:
         """Lines to print now: why no keyframe was made for ``no_keyframe_s`` while images came."""
         s = self.s
-        if s.first_image_at is None or s.images <= s.images_at_last_keyframe:
+        if s.first_image_at is None:
             return []
-        since = max(s.first_image_at, s.last_keyframe_at or s.first_image_at)
-        if now - since < self.p.no_keyframe_s:
+        if s.odometry:  # data time: a back-pressured pipeline is slow, not stalled
+            waited = (s.span_to_ns - s.span_from_ns) / 1e9  # type: ignore[operator]
+        elif s.keyframes == 0:  # the frontend handles no frame at all: wall time
+            waited = now - s.first_image_at
+        else:
             return []
-        waited = now - since
+        if waited < self.p.no_keyframe_s:
+            return []
         head = (
-            f"no keyframe for {waited:.0f} s"
+            f"no keyframe for {waited:.0f} s of data"
             if s.keyframes
             else f"no keyframe yet after {s.images} images"
         )

@@ -438,8 +438,10 @@ class Launcher:
         if self.failure is not None:
             self._print(f"[launch] run failed: {self.failure}")
             return EXIT_NODE_FAILED
+        freed = 0
         if finished and self._state and not self.keep_journal:
             freed = remove_run_state(self._state)
+        if freed:
             self._print(
                 f"[launch] run complete: removed its journal and checkpoints ({freed / 2**20:.1f} "
                 "MiB; --keep-journal keeps them)"

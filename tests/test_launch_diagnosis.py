@@ -16,25 +16,30 @@ from mogs_node.errors import ShapeError
 
 
 def _beat(doc: RunDoctor, now: float, *, images: int, imu: int = 0, **frontend: float) -> None:
-    doc.on_diagnostics(
-        "player", {}, {"/camera/image": {"published": images}, "/imu": {"published": imu}}, now
-    )
+    topics = {"/camera/image": {"published": images}, "/imu": {"published": imu}}
+    doc.on_diagnostics("player", {}, topics, now)
     if frontend:
         doc.on_diagnostics("frontend", {f"frontend_{k}": v for k, v in frontend.items()}, {}, now)
 
 
-def _run_until(doc: RunDoctor, t_end: float, **kw) -> list[str]:
-    """Heartbeats every second with 10 images a second; every line said."""
+def _run(
+    doc: RunDoctor, t0: int, t1: int, *, status: str | None = "dropped", step_m: float = 0.0, **kw
+) -> list[str]:
+    """Seconds t0..t1 of a 10 Hz stream: heartbeats each second and, unless ``status`` is None,
+    one odometry per frame (data time = wall time); every line said."""
     said = []
-    for t in range(int(t_end) + 1):
-        _beat(
-            doc,
-            float(t),
-            images=10 * (t + 1),
-            **{k: v(t) if callable(v) else v for k, v in kw.items()},
-        )
+    for t in range(t0, t1 + 1):
+        if status is not None:
+            for k in range(10):
+                stamp = t * 10**9 + k * 10**8
+                doc.on_odometry(status, np.array([step_m * (10 * t + k), 0.0, 0.0]), stamp)
+        _beat(doc, float(t), images=10 * (t + 1), **kw)
         said += doc.check(float(t))
     return said
+
+
+def _run_until(doc: RunDoctor, t_end: float, **kw) -> list[str]:
+    return _run(doc, 0, int(t_end), **kw)
 
 
 def test_no_imu_is_said_once_ten_seconds_after_the_first_image() -> None:
@@ -55,6 +60,17 @@ def test_at_end_says_why_a_short_run_made_no_keyframe() -> None:
     assert line.startswith("the run made no keyframe from 78 images: no IMU")
 
 
+def test_a_back_pressured_pipeline_is_not_a_stall() -> None:
+    """Wall time passes without a keyframe, but the frontend handled little data (the player
+    waits for the mapper): nothing to say."""
+    doc = RunDoctor()
+    doc.on_keyframe(0, 200, 0, 0.0)
+    for t in range(60):  # one frame every 10 s of wall time, 0.1 s of data each
+        doc.on_odometry("tracking", np.zeros(3), t * 10**8)
+        _beat(doc, 10.0 * t, images=t + 1, imu=20 * t, frames=t)
+        assert doc.check(10.0 * t) == []
+
+
 def test_no_images_seen_says_nothing() -> None:
     doc = RunDoctor()
     assert doc.check(100.0) == [] and doc.at_end() == []
@@ -62,7 +78,9 @@ def test_no_images_seen_says_nothing() -> None:
 
 def test_images_waiting_for_imu_mean_the_clocks_disagree() -> None:
     doc = RunDoctor()
-    said = _run_until(doc, 12.0, imu=500, frames=0, imu_samples=500, frames_dropped_waiting_imu=40)
+    said = _run_until(
+        doc, 12.0, status=None, imu=500, frames=0, imu_samples=500, frames_dropped_waiting_imu=40
+    )
     assert len(said) == 1 and "camera and IMU stamps do not overlap" in said[0]
 
 
@@ -73,9 +91,7 @@ def test_a_still_sensor_is_no_motion() -> None:
         doc.on_imu(
             tuple(rng.normal(0, 1e-3, 3)), tuple(np.array([0, 0, 9.81]) + rng.normal(0, 0.02, 3))
         )
-    for _ in range(50):
-        doc.on_odometry("initializing", np.zeros(3))
-    said = _run_until(doc, 12.0, imu=2000, frames=120, imu_samples=2000)
+    said = _run_until(doc, 12.0, status="initializing", imu=2000, frames=120, imu_samples=2000)
     assert len(said) == 1 and "no motion" in said[0]
 
 
@@ -84,40 +100,35 @@ def test_a_moving_sensor_still_initialising_points_at_the_calibration() -> None:
     doc = RunDoctor()
     for _ in range(200):  # swinging: 0.5 rad/s, 3 m/s^2
         doc.on_imu(tuple(rng.normal(0, 0.5, 3)), tuple(rng.normal(0, 3.0, 3)))
-    for _ in range(50):
-        doc.on_odometry("initializing", np.zeros(3))
-    said = _run_until(doc, 12.0, imu=2000, frames=120, imu_samples=2000)
+    said = _run_until(doc, 12.0, status="initializing", imu=2000, frames=120, imu_samples=2000)
     assert len(said) == 1 and "still initialising" in said[0] and "fx_px" in said[0]
 
 
 def test_resets_are_tracking_lost_and_tracking_without_travel_is_no_motion() -> None:
     doc = RunDoctor()
-    doc.on_keyframe(0, 200, 0.0)
-    for _ in range(5):
-        doc.on_odometry("reset", np.zeros(3))
-    said = _run_until(doc, 12.0, imu=2000, frames=120, imu_samples=2000, divergence_resets=2)
-    assert len(said) == 1 and said[0].startswith("no keyframe for") and "tracking lost" in said[0]
-    doc.on_keyframe(1, 200, 13.0)  # a keyframe: a later stall is said again
-    for x in np.linspace(0, 0.05, 30):
-        doc.on_odometry("tracking", np.array([x, 0, 0]))
-    later = [
-        ln
-        for t in range(13, 30)
-        for ln in (_beat(doc, t, images=10 * t + 200) or doc.check(float(t)))
-    ]
+    doc.on_keyframe(0, 200, 0, 0.0)
+    said = _run(
+        doc, 0, 12, status="reset", imu=2000, frames=120, imu_samples=2000, divergence_resets=2
+    )
+    assert len(said) == 1 and "tracking lost" in said[0]
+    assert said[0].startswith("no keyframe for 11 s of data")  # 0 .. 10.9 s
+    doc.on_keyframe(1, 200, 13 * 10**9, 13.0)  # a keyframe: a later stall is said again
+    later = _run(
+        doc, 13, 30, status="tracking", step_m=0.001, imu=2000, frames=300, imu_samples=2000
+    )
     assert len(later) == 1 and "no motion" in later[0]
 
 
 def test_an_empty_depth_says_whether_the_prior_was_empty() -> None:
     doc = RunDoctor()
-    doc.on_keyframe(3, 150, 0.0)
+    doc.on_keyframe(3, 150, 0, 0.0)
     doc.on_prior(3, 0.0)
     (line,) = doc.on_depth(3, 0.0)
     assert line.startswith("keyframe 3 got no depth: its depth prior is empty")
-    doc.on_keyframe(4, 150, 1.0)
+    doc.on_keyframe(4, 150, 1, 1.0)
     doc.on_prior(4, 0.0)
     assert doc.on_depth(4, 0.0) == []  # said once per run
-    doc.on_keyframe(5, 3, 2.0)
+    doc.on_keyframe(5, 3, 2, 2.0)
     doc.on_prior(5, 0.3)
     (line,) = doc.on_depth(5, 0.0)
     assert "only 3 sparse metric points" in line
