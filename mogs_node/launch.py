@@ -288,6 +288,7 @@ class _Child:
     reader: threading.Thread | None = None
     started_at: float = 0.0
     tail: deque[str] = field(default_factory=lambda: deque(maxlen=TAIL_LINES))
+    killed_pid: int | None = None  # the process the heartbeat watchdog killed
 
 
 class Launcher:
@@ -489,6 +490,8 @@ class Launcher:
         timeout = child.spec.heartbeat_timeout_s if child.spec is not None else 0.0
         if timeout <= 0 or child.proc is None or child.exited is not None:
             return
+        if child.killed_pid == child.proc.pid:  # killed, not yet reaped: said once
+            return
         with self._hb_lock:
             seen = self._heartbeats.get(child.name)
         if seen is not None and seen[1] == child.proc.pid:
@@ -498,6 +501,7 @@ class Launcher:
             timeout = max(timeout, child.spec.startup_timeout_s)
         if silent > timeout:
             self._print(f"[launch] {child.name} sent no heartbeat for {silent:.1f} s: killing it")
+            child.killed_pid = child.proc.pid
             child.proc.kill()
 
     def _supervise(self) -> bool:
