@@ -26,6 +26,10 @@ Timing (see :mod:`bridges.replay`):
 - a progress line (bar, frames published / total, rate, IMU count, state) every
   ``progress_period_s`` in the log, and the same figures in ``/diagnostics`` counters.
 
+An image (or ground-truth depth map) that cannot be read, e.g. a truncated PNG, is logged once
+(later ones at the 2nd, 4th, 8th, ... with the count), skipped with its ground truth, and counted
+as ``frames_unreadable`` in ``/diagnostics`` (the run report carries it); the stream goes on.
+
 When everything is published the node lingers ``linger_s`` (flushing, late acknowledgements) and
 stops with exit code 0 if ``exit_when_done``.
 """
@@ -57,7 +61,7 @@ from bridges.replay import (
 from bridges.sources import SOURCE_KINDS, open_sequence
 from mogs_node import msgs
 from mogs_node.datasets import BagTopics, Sequence
-from mogs_node.errors import ConfigError
+from mogs_node.errors import ConfigError, DatasetError
 from mogs_node.node import CATCH_UP_ENV, Node
 
 __all__ = ["PlayerNode", "PlayerParams"]
@@ -224,7 +228,13 @@ class PlayerNode(Node):
         self._next_image = 0  # index into _image_positions of the next image to publish
         # recordings are re-published frame for frame: they keep their recorded seq and src
         self._replay_raw = p.source == "recording"
-        for k in ("frames_published", "imu_published", "ack_waits", "ack_timeouts"):
+        for k in (
+            "frames_published",
+            "frames_unreadable",
+            "imu_published",
+            "ack_waits",
+            "ack_timeouts",
+        ):
             self.counters[k] = 0
         self.counters["frames_total"] = self.total_frames
         if p.fast:
@@ -366,8 +376,12 @@ class PlayerNode(Node):
             self.counters["imu_published"] = self.imu_published
             return
         self._prefetch()
-        image, enc, depth = self._loads.pop(k).result()
         self._next_image += 1
+        try:
+            image, enc, depth = self._loads.pop(k).result()
+        except (DatasetError, OSError, cv2.error) as err:
+            self._unreadable(k, err)
+            return
         self.publish(
             p.image_topic,
             msgs.Image(stamp_ns=stamp, frame_id=p.camera_frame_id, encoding=enc, data=image),
@@ -398,6 +412,15 @@ class PlayerNode(Node):
                 ),
             )
         self._frame_done()
+
+    def _unreadable(self, frame_index: int, err: Exception) -> None:
+        """Skip frame ``frame_index``, which could not be read: counted, logged once."""
+        n = int(self.counters["frames_unreadable"]) + 1
+        self.counters["frames_unreadable"] = n
+        if n & (n - 1) == 0:  # 1st, 2nd, 4th, ...: a folder of bad files is not a log flood
+            self.log.warning(
+                "frame %d unreadable, skipped (%d unreadable so far): %s", frame_index, n, err
+            )
 
     def _frame_done(self) -> None:
         self.frames_published += 1
@@ -441,8 +464,10 @@ class PlayerNode(Node):
             topic = p.image_topic
             if self._replay_raw and self.total_frames == 0 and self._rec_next is not None:
                 topic = self._rec_next.topic
-            if p.wait_for_subscriber_s > 0 and not self.wait_for_subscriber(
-                topic, p.wait_for_subscriber_s
+            if (
+                p.wait_for_subscriber_s > 0
+                and not self.wait_for_subscriber(topic, p.wait_for_subscriber_s)
+                and not self.stopping
             ):
                 self.log.warning(
                     "no subscriber of %s after %.1f s: playing anyway",
@@ -529,7 +554,7 @@ class PlayerNode(Node):
         deadline = time.monotonic() + timeout_s
         beat = time.monotonic()
         try:
-            while waiting and time.monotonic() < deadline:
+            while waiting and time.monotonic() < deadline and not self.stopping:
                 if self.diagnostics_period_s > 0 and time.monotonic() - beat >= 1.0:
                     # our own heartbeat meanwhile: the launcher must not think us hung
                     beat = time.monotonic()
@@ -539,7 +564,7 @@ class PlayerNode(Node):
                     waiting.discard(env.msg.node)
         finally:
             sub.close()
-        if waiting:
+        if waiting and not self.stopping:
             self.log.warning(
                 "no heartbeat from %s after %.0f s: playing anyway", sorted(waiting), timeout_s
             )
@@ -549,9 +574,10 @@ class PlayerNode(Node):
     def teardown(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
         self.log.info(
-            "played %d/%d frames, %d IMU samples, %d messages",
+            "played %d/%d frames (%d unreadable, skipped), %d IMU samples, %d messages",
             self.frames_published,
             self.total_frames,
+            self.counters["frames_unreadable"],
             self.imu_published,
             self.messages_published,
         )

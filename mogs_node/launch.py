@@ -22,11 +22,22 @@ The launcher prefixes each child's log lines with its name, respawns crashed nod
 on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
 Children get PR_SET_PDEATHSIG so that they never outlive a killed launcher.
 
+A failure that the run cannot recover from ends it: the other nodes are stopped and the launcher
+exits with code 1, its last line naming the node and its error (``[launch] run failed: ...``).
+Such failures are a ``respawn: never`` node exiting non-zero, a node that cannot start with its
+configuration (exit code :data:`~mogs_node.node.EXIT_CONFIG`: bad parameter, missing dataset or
+model file; never respawned, whatever its policy) and a node that has used up ``max_respawns``.
+
 Catch-up: a respawned node, and every node of a resumed run (``resume=True``, ``mogs launch
 --resume RUN``), is started with ``MOGS_CATCH_UP=1``; nodes that call
 :meth:`~mogs_node.node.Node.catch_up` then replay what they missed from the journal node
 (:mod:`mogs_node.journal`). :func:`run_dir_overrides` points the journal, the report, the mapper's
 PLY and checkpoints of a launch file at one run folder.
+
+Disk: a run that ends cleanly (its ``exit_when`` nodes finished) needs neither its journal nor
+its checkpoints any more (they exist for respawns and ``--resume``): the launcher removes them
+(:func:`remove_run_state`) unless ``keep_journal`` (``mogs launch --keep-journal``). A run stopped
+by Ctrl-C, a timeout or a failure keeps them, to be resumed.
 """
 
 from __future__ import annotations
@@ -41,6 +52,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,10 +62,26 @@ import zmq
 
 from mogs_node import shm
 from mogs_node.bus import BusConfig, default_bus_config
+from mogs_node.diagnosis import DIAGNOSED_TOPICS, RunDoctor
 from mogs_node.errors import ConfigError
 from mogs_node.node import CATCH_UP_ENV
+from mogs_node.supervision import (
+    CHECKPOINT_FILES,
+    EXIT_NODE_FAILED,
+    JOURNAL_FILES,
+    TAIL_LINES,
+    error_of,
+    failure_reason,
+    remove_run_state,
+)
 
-__all__ = ["LaunchFile", "Launcher", "NodeSpec", "load_launch_file", "run_dir_overrides"]
+__all__ = [
+    "LaunchFile",
+    "Launcher",
+    "NodeSpec",
+    "load_launch_file",
+    "run_dir_overrides",
+]
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +176,8 @@ def parse_launch(
         cls = _require(nd, "class", str, w)
         if ":" not in cls:
             raise ConfigError(f"{w}.class: expected 'package.module:ClassName', got {cls!r}")
+        if not isinstance(nd.get("params") or {}, dict):
+            raise ConfigError(f"{w}.params: expected a mapping, got {nd['params']!r}")
         params = dict(nd.get("params") or {})
         if overrides and nname in overrides:
             params.update(overrides[nname])
@@ -167,6 +197,12 @@ def parse_launch(
                 host=str(nd.get("host", "localhost")),
                 env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
             )
+        )
+    unknown_nodes = sorted(set(overrides or {}) - seen)
+    if unknown_nodes:
+        raise ConfigError(
+            f"{where}: parameter override(s) for unknown node(s) {unknown_nodes}; "
+            f"the nodes are {sorted(seen)}"
         )
     exit_when = tuple(data.get("exit_when") or ())
     for n in exit_when:
@@ -251,21 +287,34 @@ class _Child:
     restart_at: float | None = None
     reader: threading.Thread | None = None
     started_at: float = 0.0
+    tail: deque[str] = field(default_factory=lambda: deque(maxlen=TAIL_LINES))
+    killed_pid: int | None = None  # the process the heartbeat watchdog killed
 
 
 class Launcher:
     """Starts, supervises and stops the processes of a :class:`LaunchFile`."""
 
     def __init__(
-        self, launch: LaunchFile, *, out=None, grace_s: float = 3.0, resume: bool = False
+        self,
+        launch: LaunchFile,
+        *,
+        out=None,
+        grace_s: float = 3.0,
+        resume: bool = False,
+        diagnose: bool = True,
+        keep_journal: bool = False,
     ) -> None:
         self.launch = launch
+        self.keep_journal = keep_journal
+        self._state: list[tuple[Path, tuple[str, ...]]] = []  # removed after a clean end
+        self.diagnose = diagnose  # say why no keyframe / no depth comes (mogs_node.diagnosis)
         self.resume = resume
         self.out = out or sys.stdout
         self.grace_s = grace_s
         self._stop = threading.Event()
         self._out_lock = threading.Lock()
         self.children: list[_Child] = []
+        self.failure: str | None = None  # "NODE REASON: ERROR" of a failure that ended the run
         self._heartbeats: dict[str, tuple[float, int]] = {}  # node -> (monotonic time, pid)
         self._hb_lock = threading.Lock()
         bus_json = json.dumps(launch.bus.to_dict())
@@ -293,6 +342,10 @@ class Launcher:
             params = dict(spec.params)
             if spec.cls.endswith(":JournalNode") and "dir" not in params and report_dir:
                 params["dir"] = str(Path(report_dir) / "journal")  # the run's state in one folder
+            if spec.cls.endswith(":JournalNode") and params.get("dir"):
+                self._state.append((Path(params["dir"]), JOURNAL_FILES))
+            if params.get("checkpoint_dir"):
+                self._state.append((Path(params["checkpoint_dir"]), CHECKPOINT_FILES))
             if spec.host not in ("localhost", "127.0.0.1", os.uname().nodename):
                 log.info("node %s runs on host %s: not started here", spec.name, spec.host)
                 continue
@@ -319,7 +372,9 @@ class Launcher:
     def _pump(self, child: _Child, stream) -> None:
         width = max(len(c.name) for c in self.children)
         for raw in iter(stream.readline, b""):
-            self._print(f"[{child.name:<{width}}] {raw.decode(errors='replace').rstrip()}")
+            line = raw.decode(errors="replace").rstrip()
+            child.tail.append(line)
+            self._print(f"[{child.name:<{width}}] {line}")
         stream.close()
 
     def _start(self, child: _Child) -> None:
@@ -342,6 +397,7 @@ class Launcher:
         child.exited = None
         child.restart_at = None
         child.started_at = time.monotonic()
+        child.tail.clear()
         child.reader = threading.Thread(
             target=self._pump, args=(child, child.proc.stdout), daemon=True
         )
@@ -358,6 +414,7 @@ class Launcher:
                 signal.signal(sig, lambda *_: self._stop.set())
         end = None if timeout_s is None else time.monotonic() + timeout_s
         code = 0
+        finished = False  # the exit_when nodes finished: a clean end
         watcher = threading.Thread(
             target=self._watch_heartbeats, name="mogs-heartbeats", daemon=True
         )
@@ -373,25 +430,55 @@ class Launcher:
                     code = 124
                     break
                 if self._supervise():
+                    finished = self.failure is None
                     break
         finally:
+            self._stop.set()
+            watcher.join(timeout=2.0)  # its last word: why the run made no keyframe, if so
             self.shutdown()
+        if self.failure is not None:
+            self._print(f"[launch] run failed: {self.failure}")
+            return EXIT_NODE_FAILED
+        freed = 0
+        if finished and self._state and not self.keep_journal:
+            freed = remove_run_state(self._state)
+        if freed:
+            self._print(
+                f"[launch] run complete: removed its journal and checkpoints ({freed / 2**20:.1f} "
+                "MiB; --keep-journal keeps them)"
+            )
         return code
 
     def _watch_heartbeats(self) -> None:
-        """Record the last /diagnostics heartbeat of every node (runs in a thread)."""
+        """Record the last /diagnostics heartbeat of every node and, with ``diagnose``, say why
+        no keyframe or no depth comes (:mod:`mogs_node.diagnosis`; runs in a thread)."""
         from mogs_node import msgs
         from mogs_node.bus import Subscriber
 
+        doctor = RunDoctor() if self.diagnose else None
         ctx = zmq.Context()
         try:
             sub = Subscriber(self.launch.bus, context=ctx)
             sub.subscribe("/diagnostics")
+            for topic in DIAGNOSED_TOPICS if doctor is not None else ():
+                sub.subscribe(topic)
+            next_check = time.monotonic() + 1.0
             while not self._stop.is_set():
                 env = sub.receive(timeout_ms=200)
+                now = time.monotonic()
                 if env is not None and isinstance(env.msg, msgs.Diagnostics):
                     with self._hb_lock:
-                        self._heartbeats[env.msg.node] = (time.monotonic(), env.msg.pid)
+                        self._heartbeats[env.msg.node] = (now, env.msg.pid)
+                if doctor is None:
+                    continue
+                lines = [] if env is None else doctor.observe(env.topic, env.msg, now)
+                if now >= next_check:
+                    next_check = now + 1.0
+                    lines += doctor.check(now)
+                for line in lines:
+                    self._print(f"[launch] {line}")
+            for line in doctor.at_end() if doctor is not None else ():
+                self._print(f"[launch] {line}")
             sub.close()
         except Exception:  # supervision by exit codes goes on without heartbeats
             log.exception("heartbeat watcher stopped")
@@ -403,6 +490,8 @@ class Launcher:
         timeout = child.spec.heartbeat_timeout_s if child.spec is not None else 0.0
         if timeout <= 0 or child.proc is None or child.exited is not None:
             return
+        if child.killed_pid == child.proc.pid:  # killed, not yet reaped: said once
+            return
         with self._hb_lock:
             seen = self._heartbeats.get(child.name)
         if seen is not None and seen[1] == child.proc.pid:
@@ -412,6 +501,7 @@ class Launcher:
             timeout = max(timeout, child.spec.startup_timeout_s)
         if silent > timeout:
             self._print(f"[launch] {child.name} sent no heartbeat for {silent:.1f} s: killing it")
+            child.killed_pid = child.proc.pid
             child.proc.kill()
 
     def _supervise(self) -> bool:
@@ -427,16 +517,8 @@ class Launcher:
                     continue
                 child.exited = rc
                 self._print(f"[launch] {child.name} exited with code {rc}")
-                policy = "always" if child.spec is None else child.spec.respawn
-                failed = rc != 0
-                max_r = 1000 if child.spec is None else child.spec.max_respawns
-                if (
-                    policy == "always" or (policy == "on_failure" and failed)
-                ) and child.respawns < max_r:
-                    delay = 0.2 if child.spec is None else child.spec.respawn_delay_s
-                    child.restart_at = now + delay
-                elif failed and child.spec is None:
-                    self._print("[launch] broker failed and cannot be respawned")
+                if self._on_exit(child, rc, now):
+                    return True
             if child.restart_at is not None and now >= child.restart_at:
                 child.respawns += 1
                 self._print(f"[launch] respawning {child.name} ({child.respawns})")
@@ -447,6 +529,23 @@ class Launcher:
                 self._print("[launch] " + ", ".join(self.launch.exit_when) + " finished")
                 return True
         return False
+
+    def _on_exit(self, child: _Child, rc: int, now: float) -> bool:
+        """Schedule a respawn by policy, or record a failure that ends the run (True)."""
+        policy = "always" if child.spec is None else child.spec.respawn
+        max_r = 1000 if child.spec is None else child.spec.max_respawns
+        reason = failure_reason(rc, policy=policy, respawns=child.respawns, max_respawns=max_r)
+        if reason is None:
+            respawn = policy == "always" or (policy == "on_failure" and rc != 0)
+            if respawn and child.respawns < max_r:
+                child.restart_at = now + (0.2 if child.spec is None else child.spec.respawn_delay_s)
+            return False
+        if child.reader is not None:  # its last lines hold the error
+            child.reader.join(timeout=1.0)
+        error = error_of(child.tail)
+        self.failure = f"{child.name} {reason}" + (f": {error}" if error else "")
+        self._print(f"[launch] {self.failure}; stopping every node")
+        return True
 
     def shutdown(self) -> None:
         """SIGINT to every node (broker last), SIGKILL what is left after the grace period."""

@@ -18,6 +18,7 @@ subscriptions, and handlers publish results. The shell owns everything else:
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import logging
 import os
 import signal
@@ -34,15 +35,29 @@ import zmq
 
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber
-from mogs_node.errors import ConfigError, MogsError
+from mogs_node.errors import ConfigError, DatasetError, ModelError, MogsError
+from mogs_node.failure_log import FailureLog
 
-__all__ = ["CATCH_UP_ENV", "EmptyParams", "Node", "parse_params"]
+__all__ = [
+    "CATCH_UP_ENV",
+    "EXIT_CONFIG",
+    "STARTUP_ERRORS",
+    "EmptyParams",
+    "Node",
+    "parse_params",
+]
 
 log = logging.getLogger(__name__)
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 #: set to "1" by the launcher for a respawned node and on ``mogs launch --resume``
 CATCH_UP_ENV = "MOGS_CATCH_UP"
+#: exit code of a node that cannot start with its configuration (sysexits' EX_CONFIG): a typo'd or
+#: bad parameter, a missing dataset or model file. Starting it again cannot help, so the launcher
+#: never respawns it and ends the run (docs/reliability.md, "Failures that end a run").
+EXIT_CONFIG = 78
+#: errors that, raised while a node is built (parameters, ``setup``), mean :data:`EXIT_CONFIG`
+STARTUP_ERRORS: tuple[type[MogsError], ...] = (ConfigError, DatasetError, ModelError)
 
 
 def message_key(msg: msgs.Message) -> int:
@@ -69,8 +84,12 @@ def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "p
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = set(values) - names
     if unknown:
+        close = {u: difflib.get_close_matches(u, names, n=1) for u in sorted(unknown)}
+        hint = "; ".join(f"{u!r}: did you mean {c[0]!r}?" for u, c in close.items() if c)
         raise ConfigError(
-            f"{where}: unknown parameter(s) {sorted(unknown)}; known: {sorted(names)}"
+            f"{where}: unknown parameter(s) {sorted(unknown)}"
+            + (f" ({hint})" if hint else "")
+            + f"; known: {sorted(names)}"
         )
     kwargs = {}
     for name, value in values.items():
@@ -183,6 +202,8 @@ class Node:
         )
         self.bus = bus
         self.log = logging.getLogger(f"mogs.{name}")
+        # a failure repeating on every message or tick is logged once, then counted (issue 18)
+        self.failures = FailureLog(self.log)
         # A node owns its context unless given one: closing it then waits until every queued
         # (zero-copy) outgoing frame is sent, before the interpreter frees the arrays behind them.
         self._own_ctx = context is None
@@ -285,8 +306,16 @@ class Node:
         self._timers[timer_id][1] = time.monotonic() + max(0.0, delay_s)
 
     def wait_for_subscriber(self, topic: str, timeout_s: float = 5.0) -> bool:
-        """Block until someone subscribes to ``topic`` (sources use this before streaming)."""
-        return self._pub.wait_for_subscriber(topic, timeout_s)
+        """Block until someone subscribes to ``topic`` (sources use this before streaming);
+        False after ``timeout_s`` or as soon as the node is asked to stop."""
+        deadline = time.monotonic() + timeout_s
+        while not self._stop.is_set():
+            remaining = deadline - time.monotonic()
+            if self._pub.wait_for_subscriber(topic, max(0.0, min(0.2, remaining))):
+                return True
+            if remaining <= 0:
+                return False
+        return False
 
     def has_subscriber(self, topic: str) -> bool:
         return self._pub.has_subscriber(topic)
@@ -402,10 +431,12 @@ class Node:
             sub.handler(env.msg)
         except MogsError as err:
             self.counters["handler_errors"] += 1
-            self.log.warning("%s: rejected message seq %d: %s", env.topic, env.seq, err)
-        except Exception:  # a node never dies of one message; the traceback is logged
+            self.failures.failed(
+                env.topic, err, f"rejected message seq {env.seq}", with_traceback=False
+            )
+        except Exception as err:  # a node never dies of one message; the traceback is logged
             self.counters["handler_errors"] += 1
-            self.log.exception("%s: handler failed on seq %d", env.topic, env.seq)
+            self.failures.failed(env.topic, err, f"handler failed on seq {env.seq}")
         dt_ms = (time.perf_counter() - t0) * 1000
         self._latency_ewma_ms = 0.9 * self._latency_ewma_ms + 0.1 * dt_ms
         self.counters["handler_ms_max"] = max(self.counters["handler_ms_max"], dt_ms)
@@ -539,9 +570,10 @@ class Node:
                 timer[1] = max(timer[1] + timer[0], now)
                 try:
                     timer[2]()
-                except Exception:
+                except Exception as err:
                     self.counters["handler_errors"] += 1
-                    self.log.exception("timer %s failed", getattr(timer[2], "__name__", timer[2]))
+                    name = getattr(timer[2], "__name__", str(timer[2]))
+                    self.failures.failed(f"timer {name}", err, "failed")
 
     def spin_once(self, timeout_ms: int = 100) -> None:
         """Wait up to ``timeout_ms`` for input, then handle everything queued and due timers."""
@@ -571,9 +603,9 @@ class Node:
                 if key in ready:
                     try:
                         callback()
-                    except Exception:
+                    except Exception as err:
                         self.counters["handler_errors"] += 1
-                        self.log.exception("reader of %s failed", sock)
+                        self.failures.failed(f"reader of {sock}", err, "failed")
             if self._sub is not None and (self._queue or self._sub.socket in ready):
                 self._read_available()
                 self._handle_queue()

@@ -34,6 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NODE.PARAM=VALUE",
         help="override a node parameter (value parsed as YAML), e.g. mapper.device=cuda",
     )
+    parser.add_argument(
+        "--keep-journal",
+        action="store_true",
+        help="keep the run's journal and mapper checkpoint (default: removed at a clean end)",
+    )
 
 
 def command(args: argparse.Namespace) -> int:
@@ -50,7 +55,7 @@ def command(args: argparse.Namespace) -> int:
         overrides.setdefault(node, {}).update(params)
     launch = load_launch_file(args.launch, overrides=overrides)
     t0 = time.monotonic()
-    code = Launcher(launch).run(timeout_s=args.timeout)
+    code = Launcher(launch, keep_journal=args.keep_journal).run(timeout_s=args.timeout)
     dt = time.monotonic() - t0
     summary = out / "summary.json"
     if not summary.exists():

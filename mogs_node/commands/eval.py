@@ -2,7 +2,9 @@
 
 Dataset-specific work lives in ``mogs_node.eval``: ``depth_<dataset>.evaluate(args)``,
 ``traj.evaluate(args)`` and ``map.evaluate(args)`` each return the JSON-ready dict whose keys are
-fixed by DESIGN.md section 7.
+fixed by DESIGN.md section 7. Nothing under ``docs/`` is written unless ``--write-docs`` (the
+standard run of each then replaces its section of ``docs/benchmarks.md``; ``eval map`` also
+its plot), so that ``git status`` stays clean after any evaluation.
 """
 
 from __future__ import annotations
@@ -72,6 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gmap.add_argument("--plot", default=None, metavar="PNG", help="Gaussians-vs-iterations plot")
     gmap.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     gmap.set_defaults(_eval="map")
+    for p in (depth, traj, gmap):
+        p.add_argument(
+            "--write-docs",
+            action="store_true",
+            help="the standard run replaces its section of docs/benchmarks.md (default: no docs/)",
+        )
 
 
 def command(args: argparse.Namespace) -> int:

@@ -3,7 +3,8 @@
 ``--run-dir DIR`` puts the run's journal, report, map and checkpoints in ``DIR``;
 ``--resume DIR`` continues the run stored there: the journal and the mapper's checkpoint are
 reopened, every node catches up from the journal and the player goes on after the last frame
-the journal holds (docs/reliability.md, "Resume").
+the journal holds (docs/reliability.md, "Resume"). A run that ends cleanly removes its journal and
+checkpoints unless ``--keep-journal``; one stopped by Ctrl-C or a timeout keeps them.
 """
 
 from __future__ import annotations
@@ -38,6 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--resume", default=None, metavar="RUN_DIR", help="continue the run stored in RUN_DIR"
     )
+    parser.add_argument(
+        "--keep-journal",
+        action="store_true",
+        help="keep the journal and checkpoints of a run that ends cleanly (default: removed)",
+    )
 
 
 def parse_overrides(items: list[str]) -> dict[str, dict]:
@@ -65,6 +71,7 @@ def command(args: argparse.Namespace) -> int:
             merged.setdefault(node, {}).update(params)
         overrides = merged
     launch = load_launch_file(args.file, overrides=overrides)
-    return Launcher(launch, grace_s=args.grace, resume=bool(args.resume)).run(
-        timeout_s=args.timeout
+    launcher = Launcher(
+        launch, grace_s=args.grace, resume=bool(args.resume), keep_journal=args.keep_journal
     )
+    return launcher.run(timeout_s=args.timeout)

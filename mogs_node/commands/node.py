@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import logging
+import signal
 
 from mogs_node.bus import tune_malloc_for_large_messages
 from mogs_node.commands.broker import bus_from_args
 from mogs_node.errors import ConfigError
-from mogs_node.node import Node
+from mogs_node.node import EXIT_CONFIG, STARTUP_ERRORS, Node
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,12 +39,38 @@ def load_node_class(spec: str) -> type[Node]:
     return cls
 
 
+def _interruptible_start() -> list[int]:
+    """SIGINT / SIGTERM before the node runs interrupt the start-up (as by default) and are
+    remembered in the returned list: an import interrupted that way surfaces as an ImportError,
+    which must not read as a configuration error (``Node.run`` installs its own handlers)."""
+    received: list[int] = []
+
+    def interrupt(signum: int, _frame: object) -> None:
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, interrupt)
+    return received
+
+
 def command(args: argparse.Namespace) -> int:
+    """Build the node and run it; a node that cannot start with its configuration (class,
+    parameters, dataset or model files: :data:`~mogs_node.node.STARTUP_ERRORS`) logs one error
+    line and exits with :data:`~mogs_node.node.EXIT_CONFIG`, which the launcher never respawns."""
     tune_malloc_for_large_messages()
-    cls = load_node_class(args.cls)
+    name = args.name or args.cls.partition(":")[2]
+    stopping = _interruptible_start()
     try:
-        params = json.loads(args.params_json)
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"--params-json: {err}") from err
-    node = cls(args.name or cls.__name__, params, bus_from_args(args))
+        cls = load_node_class(args.cls)
+        try:
+            params = json.loads(args.params_json)
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"--params-json: {err}") from err
+        node = cls(name, params, bus_from_args(args))
+    except STARTUP_ERRORS as err:
+        if stopping:  # the launcher stopped us mid-import: not a configuration error
+            return 130
+        logging.getLogger(f"mogs.{name}").error("cannot start: %s", err)
+        return EXIT_CONFIG
     return node.run(duration_s=args.duration)

@@ -1,4 +1,9 @@
-"""``mogs topic list|echo|hz``: look at live topics through the broker."""
+"""``mogs topic list|echo|hz``: look at live topics through the broker.
+
+``echo`` prints small arrays (a pose, K) in full and summarises large ones (``--full``: all in
+full); when nothing has come on the topic after :data:`SILENT_HINT_S` it says so once, with the
+topics the nodes publish (from their heartbeats), so that a misspelt topic does not wait silently.
+"""
 
 from __future__ import annotations
 
@@ -15,6 +20,10 @@ from mogs_node.bus import Subscriber
 from mogs_node.commands.broker import bus_from_args
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
+#: echo: seconds without a message on the topic before saying who publishes what
+SILENT_HINT_S = 2.0
+#: echo: arrays up to this many elements are printed in full
+SMALL_ARRAY = 16
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,10 +52,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         )
         if name == "echo":
             p.add_argument("-n", "--count", type=int, default=None, help="stop after N messages")
+            p.add_argument("--full", action="store_true", help="print every array in full")
 
 
-def _summary(value: object) -> str:
+def _summary(value: object, *, full: bool = False) -> str:
     if isinstance(value, np.ndarray):
+        if full or (0 < value.size <= SMALL_ARRAY):
+            text = np.array2string(value, threshold=sys.maxsize, max_line_width=100)
+            return f"<{value.dtype} {list(value.shape)}>\n" + _indent(text, "    ")
         if value.size and value.dtype.kind in "fiu":
             return (
                 f"<{value.dtype} {list(value.shape)} min {value.min():.4g} max {value.max():.4g}>"
@@ -55,11 +68,41 @@ def _summary(value: object) -> str:
     return repr(value)
 
 
-def format_message(env: msgs.Envelope) -> str:
+def _indent(text: str, prefix: str) -> str:
+    return "\n".join(prefix + line for line in text.splitlines())
+
+
+def format_message(env: msgs.Envelope, *, full: bool = False) -> str:
     lines = [f"--- {env.topic} {env.msg.TYPE} seq={env.seq} bytes={env.nbytes}"]
     for name in list(type(env.msg).SCALARS) + list(type(env.msg).ARRAYS):
-        lines.append(f"  {name}: {_summary(getattr(env.msg, name))}")
+        lines.append(f"  {name}: {_summary(getattr(env.msg, name), full=full)}")
     return "\n".join(lines)
+
+
+def silent_topic_hint(topic: str, diags: dict[str, msgs.Diagnostics], waited_s: float) -> str:
+    """What to tell a user whose ``topic`` has had no message for ``waited_s``: who publishes it,
+    or that no node does, with the topics the nodes publish (from their latest heartbeats)."""
+    publishers: dict[str, list[str]] = {}
+    for name, d in sorted(diags.items()):
+        for t, st in d.topics.items():
+            if isinstance(st, dict) and st.get("published", 0) > 0 and t != DIAGNOSTICS_TOPIC:
+                publishers.setdefault(t, []).append(name)
+    if not diags:
+        return (
+            f"nothing on {topic} after {waited_s:.0f} s and no node heard on this bus: is the run "
+            "going, and on these endpoints (--launch FILE or --bus-name NAME)?"
+        )
+    # a subscription is to the exact name; "/" alone is every topic
+    mine = [n for t, ns in publishers.items() if topic in (t, "/") for n in ns]
+    if mine:
+        return (
+            f"nothing on {topic} after {waited_s:.0f} s; it is published by {sorted(set(mine))}: "
+            "waiting for the next message"
+        )
+    live = ", ".join(f"{t} ({', '.join(ns)})" for t, ns in sorted(publishers.items()))
+    return f"no publisher of {topic} seen after {waited_s:.0f} s; the live topics are: " + (
+        live or "none yet"
+    )
 
 
 def command(args: argparse.Namespace) -> int:
@@ -71,8 +114,9 @@ def command(args: argparse.Namespace) -> int:
     sub.subscribe(topic)
     # hz also reads the nodes' heartbeats: their drops, losses, malformed counts and latency
     diags: dict[str, msgs.Diagnostics] = {}
-    if args.action == "hz" and topic != DIAGNOSTICS_TOPIC:
+    if args.action in ("hz", "echo") and topic != DIAGNOSTICS_TOPIC:
         sub.subscribe(DIAGNOSTICS_TOPIC)
+    hinted = args.action != "echo" or topic == DIAGNOSTICS_TOPIC
     t0 = time.monotonic()
     end = None if args.duration is None else t0 + args.duration
     types: dict[str, str] = {}
@@ -90,9 +134,12 @@ def command(args: argparse.Namespace) -> int:
                 n += 1
                 types[env.topic] = env.msg.TYPE
                 if args.action == "echo":
-                    print(format_message(env), flush=True)
+                    print(format_message(env, full=args.full), flush=True)
                     if args.count is not None and n >= args.count:
                         break
+            if not hinted and n == 0 and now - t0 >= SILENT_HINT_S:
+                hinted = True
+                print(silent_topic_hint(topic, diags, now - t0), file=sys.stderr, flush=True)
             if args.action == "hz" and now - last_report >= 1.0:
                 _print_hz(sub, topic, now - t0, diags)
                 last_report = now

@@ -367,7 +367,8 @@ def evaluate(args: argparse.Namespace) -> dict:
         "ms_per_frame": {k: v / n_f for k, v in ms_per.items()},
         "wall_s": time.perf_counter() - t0,
     }
-    if n_want is None and getattr(args, "data", None) is None:
+    whole = n_want is None and getattr(args, "data", None) is None
+    if whole and getattr(args, "write_docs", False):
         # Only a run over the whole default excerpt replaces the table in docs/benchmarks.md.
         update_markdown_section("depth_kitti78", _markdown(out, args))
     return out

@@ -198,7 +198,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     }
     if getattr(args, "viz", None):
         _write_viz(Path(args.viz), cases[0], sources[0], d_max)
-    if len(cases) >= 20 and args.size is None and args.masks == "both":
+    standard = len(cases) >= 20 and args.size is None and args.masks == "both"
+    if standard and getattr(args, "write_docs", False):
         _write_markdown(figures, args)  # only the standard run updates docs/benchmarks.md
     return figures
 

@@ -294,9 +294,12 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     }
     figures.update(_ratios(inits, cfg.budget))
     figures["must_show"] = must_show(figures, inits)
+    write_docs = bool(getattr(args, "write_docs", False))  # docs/ only when asked (issue 18)
     plot = Path(args.plot) if args.plot else REPO_ROOT / "docs" / "mapper_gaussians.png"
-    plot_curves(inits, cfg.target_psnr_db, plot)
-    _write_markdown(figures, inits, cfg, plot)
+    if args.plot or write_docs:
+        plot_curves(inits, cfg.target_psnr_db, plot)
+    if write_docs:
+        _write_markdown(figures, inits, cfg, plot)
     return figures
 
 

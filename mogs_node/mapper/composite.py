@@ -81,6 +81,8 @@ def load_cpp_extension() -> ModuleType | None:
             src = Path(__file__).with_name("csrc") / "composite_cpu.cpp"
             build_dir = Path(get_default_build_root()) / f"mogs_torch{torch.__version__}" / _NAME
             build_dir.mkdir(parents=True, exist_ok=True)
+            if not (build_dir / f"{_NAME}.so").exists():  # first use: say why start-up waits
+                log.info("building the C++ compositing extension (once, ~20-40 s) in %s", build_dir)
             with _build_lock(build_dir):
                 _EXT = load(
                     name=_NAME,

@@ -60,6 +60,7 @@ NODE_COUNTERS = (
     "handler_errors",
     "frames_published",
     "frames_total",
+    "frames_unreadable",
     "ack_timeouts",
     "frontend_image_time_backwards",
 )

@@ -1,0 +1,99 @@
+"""What the launcher decides when a node exits, and what a finished run no longer needs (issue 18).
+
+- :func:`failure_reason`: whether an exit ends the run (a ``respawn: never`` node failing, a node
+  that cannot start with its configuration, :data:`~mogs_node.node.EXIT_CONFIG`, never respawned,
+  a node out of respawns) or a respawn is due;
+- :func:`error_of`: the error line to name, from the last lines a node printed;
+- :func:`remove_run_state`: the journal and checkpoint files of a run that ended cleanly.
+
+Pure decisions over exit codes and text, plus one file-removal helper; no processes, no bus.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import signal
+from collections import deque
+from pathlib import Path
+
+from mogs_node.node import EXIT_CONFIG
+
+__all__ = [
+    "CHECKPOINT_FILES",
+    "EXIT_NODE_FAILED",
+    "JOURNAL_FILES",
+    "error_of",
+    "failure_reason",
+    "remove_run_state",
+]
+
+#: exit code of ``mogs launch`` when a node failed in a way that ends the run
+EXIT_NODE_FAILED = 1
+#: lines of a child's output kept to name its error when it fails
+TAIL_LINES = 40
+#: a log line at level ERROR / CRITICAL (format of mogs_node.cli) or the last line of a traceback
+_LOG_ERROR = re.compile(r"^\d\d:\d\d:\d\d [EC] \S+: (?P<msg>.+)$")
+_LOG_OTHER = re.compile(r"^\d\d:\d\d:\d\d [DIW] ")
+_TRACEBACK_END = re.compile(r"^(?:[A-Za-z_][\w.]*\.)?[A-Z]\w*(?:Error|Exception|Exit): .+$")
+
+#: files of a run's state, per kind of folder: the journal's, and a checkpoint_dir's (the mapper's
+#: mapper.ckpt, one moved aside as corrupt, a temporary file of an interrupted save)
+JOURNAL_FILES = ("journal.log",)
+CHECKPOINT_FILES = ("*.ckpt", "*.ckpt.corrupt", ".*.ckpt.*.tmp")
+
+
+def remove_run_state(folders: list[tuple[Path, tuple[str, ...]]]) -> int:
+    """Delete the files matching each folder's patterns, then the folder if it is left empty;
+    returns the bytes freed. Only these files: a folder a user pointed elsewhere keeps the rest."""
+    freed = 0
+    for folder, patterns in folders:
+        if not folder.is_dir():
+            continue
+        for pattern in patterns:
+            for f in folder.glob(pattern):
+                if f.is_file():
+                    freed += f.stat().st_size
+                    f.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # not empty: something else lives there
+            folder.rmdir()
+    return freed
+
+
+def error_of(lines: list[str] | deque[str]) -> str:
+    """The error a failed process printed: its last ERROR/CRITICAL log line, else the last line
+    of a traceback, else its last line that is not a debug / info / warning log line ("" when
+    there is none)."""
+    last_traceback = ""
+    for line in reversed(lines):
+        m = _LOG_ERROR.match(line)
+        if m:
+            return m.group("msg").removeprefix("cannot start: ")
+        if not last_traceback and _TRACEBACK_END.match(line):
+            last_traceback = line
+    if last_traceback:
+        return last_traceback
+    return next((ln for ln in reversed(lines) if ln.strip() and not _LOG_OTHER.match(ln)), "")
+
+
+def failure_reason(rc: int, *, policy: str, respawns: int, max_respawns: int) -> str | None:
+    """Why a node's exit with code ``rc`` ends the run, or None when it does not (exit 0, or a
+    respawn is due). A configuration failure (:data:`~mogs_node.node.EXIT_CONFIG`) is never
+    respawned: the same parameters would fail again."""
+    if rc == 0:
+        return None
+    if rc == EXIT_CONFIG:
+        return f"could not start with its configuration (exit code {rc})"
+    how = f"was killed by {_signal_name(-rc)}" if rc < 0 else f"exited with code {rc}"
+    if policy == "never":
+        return f"{how} (respawn: never)"
+    if respawns >= max_respawns:
+        return f"{how} after {respawns} respawns (max_respawns {max_respawns})"
+    return None
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"

@@ -1,0 +1,46 @@
+"""The first use of the C++ compositing extension says in one line that it is building (issue 18:
+the first run compiled for 21 s in silence); a cached build says nothing."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+import torch.utils.cpp_extension as cpp_extension
+
+from mogs_node.mapper import composite
+
+
+@pytest.fixture
+def fresh_extension(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """No extension loaded yet, a build root in ``tmp_path`` and a ``load`` that builds nothing."""
+    monkeypatch.setattr(composite, "_EXT", None)
+    monkeypatch.setattr(composite, "_EXT_FAILED", False)
+    monkeypatch.delenv("MOGS_NO_CPP_EXT", raising=False)
+    monkeypatch.setattr(cpp_extension, "get_default_build_root", lambda: str(tmp_path))
+    monkeypatch.setattr(cpp_extension, "load", lambda **kw: "loaded:" + kw["name"])
+    return tmp_path
+
+
+def _build_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if "building the C++" in r.getMessage()]
+
+
+def test_first_build_prints_one_line(fresh_extension: Path, caplog) -> None:
+    with caplog.at_level(logging.INFO, logger=composite.log.name):
+        assert composite.load_cpp_extension() == "loaded:" + composite._NAME
+        assert composite.load_cpp_extension() == "loaded:" + composite._NAME  # cached in-process
+    (line,) = _build_lines(caplog)
+    assert str(fresh_extension) in line
+
+
+def test_a_cached_build_prints_nothing(fresh_extension: Path, caplog) -> None:
+    import torch
+
+    d = fresh_extension / f"mogs_torch{torch.__version__}" / composite._NAME
+    d.mkdir(parents=True)
+    (d / f"{composite._NAME}.so").write_bytes(b"")
+    with caplog.at_level(logging.INFO, logger=composite.log.name):
+        assert composite.load_cpp_extension() == "loaded:" + composite._NAME
+    assert _build_lines(caplog) == []
