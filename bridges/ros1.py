@@ -140,6 +140,8 @@ class Ros1BridgeParams:
     image_queue: int = 2  # images waiting for the bus loop; older ones are dropped, counted
     end_after_quiet_s: float = 5.0  # no image for this long after the first: end (0 = never)
     master_check_s: float = 2.0  # how often the roscore is looked for
+    wait_for_nodes: tuple[str, ...] = ()  # subscribe to the camera once these nodes beat
+    wait_for_nodes_s: float = 120.0  # ... or after this long (then with a warning)
     bus_image_topic: str = "/camera/image"
     bus_imu_topic: str = "/imu"
 
@@ -230,12 +232,6 @@ class Ros1Bridge(Node):
             self.counters[k] = 0
         self.counters.update(ros_malformed=0, ros_published=0, master_lost=0)
         _init_node_keeping_logging(rospy, p.ros_node_name)
-        rospy.Subscriber(
-            p.image_topic, rospy.AnyMsg, self._on_ros_image, queue_size=4, buff_size=1 << 26
-        )
-        rospy.Subscriber(p.imu_topic, rospy.AnyMsg, self._on_ros_imu, queue_size=10_000)
-        if p.camera_info_topic:
-            rospy.Subscriber(p.camera_info_topic, rospy.AnyMsg, self._on_ros_info, queue_size=1)
         out = p.outputs()
         self._pubs: dict[str, Any] = {}
         for name, rtype in OUTPUT_TYPES.items():
@@ -251,6 +247,14 @@ class Ros1Bridge(Node):
         self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
         self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
         self.add_reader(self.inbox.wake_r, self.drain)
+        self._inputs_started = False
+        self._waiting = set(p.wait_for_nodes)
+        if self._waiting:  # the pipeline first: a frame before the frontend is up is lost
+            self._wait_deadline = time.monotonic() + p.wait_for_nodes_s
+            self.subscribe("/diagnostics", self._on_heartbeat, reliable=False, queue_size=256)
+            self.every(1.0, self._check_wait)
+        else:
+            self._start_inputs()
         if p.end_after_quiet_s > 0:
             self.every(min(0.5, p.end_after_quiet_s), self.check_quiet)
         self._master_ok = True
@@ -264,6 +268,31 @@ class Ros1Bridge(Node):
             p.imu_topic,
             p.prefix,
         )
+
+    def _start_inputs(self) -> None:
+        """Subscribe to the ROS camera, IMU and CameraInfo (once)."""
+        if self._inputs_started:
+            return
+        self._inputs_started = True
+        p, rospy = self.params, self._rospy
+        rospy.Subscriber(
+            p.image_topic, rospy.AnyMsg, self._on_ros_image, queue_size=4, buff_size=1 << 26
+        )
+        rospy.Subscriber(p.imu_topic, rospy.AnyMsg, self._on_ros_imu, queue_size=10_000)
+        if p.camera_info_topic:
+            rospy.Subscriber(p.camera_info_topic, rospy.AnyMsg, self._on_ros_info, queue_size=1)
+        self.log.info("subscribed to %s and %s", p.image_topic, p.imu_topic)
+
+    def _on_heartbeat(self, msg: msgs.Message) -> None:
+        if isinstance(msg, msgs.Diagnostics):
+            self._waiting.discard(msg.node)
+        if not self._waiting:
+            self._start_inputs()
+
+    def _check_wait(self) -> None:
+        if not self._inputs_started and time.monotonic() > self._wait_deadline:
+            self.log.warning("no heartbeat from %s: subscribing anyway", sorted(self._waiting))
+            self._start_inputs()
 
     def _publisher(self, topic: str, rtype: str, latch: bool) -> Any:
         cls = raw_message_class(self._rospy, rtype)
