@@ -297,3 +297,110 @@ def test_params_are_checked() -> None:
         Ros1BridgeParams(image_queue=0)
     with pytest.raises(ConfigError, match="image_topic"):
         Ros1BridgeParams(image_topic="")
+
+
+# ------------------------------------------------------------------------- pure pieces
+
+
+def test_inbox_drops_old_images_counts_them_and_never_drops_imu() -> None:
+    from bridges.ros1 import _Inbox
+
+    box = _Inbox(image_queue=2)
+    try:
+        for i in range(5):
+            box.put_image("sensor_msgs/Image", bytes([i]))
+        for i in range(1000):
+            box.put_imu(i.to_bytes(2, "little"))
+        imu, images, info = box.take()
+        assert [raw for _, raw in images] == [b"\x03", b"\x04"]  # the latest two
+        assert (box.frames_in, box.frames_dropped, box.imu_in) == (5, 3, 1000)
+        assert [int.from_bytes(b, "little") for b in imu] == list(range(1000)) and info is None
+        assert box.take() == ([], [], None)
+    finally:
+        box.close()
+
+
+def _kf(i: int, T: np.ndarray) -> msgs.Keyframe:
+    return msgs.Keyframe(
+        1000 + i,
+        "cam0",
+        i,
+        np.zeros((4, 4), np.uint8),
+        np.eye(3),
+        T,
+        np.zeros(0, np.int64),
+        np.zeros((0, 2), np.float32),
+        np.zeros((0, 3), np.float32),
+        np.zeros(0, np.float32),
+    )
+
+
+def _update(ids: np.ndarray, removed: np.ndarray, z: float) -> msgs.GaussianUpdate:
+    n = len(ids)
+    return msgs.GaussianUpdate(
+        5,
+        "world",
+        0,
+        ids.astype(np.int64),
+        np.c_[ids, ids, np.full(n, z)].astype(np.float32),
+        np.zeros((n, 3), np.float32),
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.zeros(n, np.float32),
+        np.full((n, 3), 0.5, np.float32),
+        removed.astype(np.int64),
+    )
+
+
+def test_ros_outputs_path_moves_a_keyframe_seen_again() -> None:
+    from bridges.ros_outputs import RosOutputParams, RosOutputs
+
+    out = RosOutputs(RosOutputParams(), rc.Distro.ROS1)
+    for i in range(3):
+        out.on_keyframe(_kf(i, _pose(i)))
+    [(topic, rtype, path)] = out.on_keyframe(_kf(1, _pose(7)))  # keyframe 1 moved
+    assert (topic, rtype) == ("/mogs/path", "nav_msgs/msg/Path")
+    stamps, Ts = rc.path_from_ros(path)
+    assert stamps.tolist() == [1000, 1001, 1002]
+    np.testing.assert_allclose(Ts[1], _pose(7), atol=1e-12)
+
+
+def test_ros_outputs_map_cloud_follows_updates_and_is_throttled() -> None:
+    from bridges.ros_outputs import RosOutputParams, RosOutputs
+
+    out = RosOutputs(RosOutputParams(map_period_s=2.0, max_map_points=40), rc.Distro.ROS2)
+    stats = msgs.MapStats(5, "world", 0, 10, 1, 1, 0.1, 20.0)
+    assert out.on_gaussians(_update(np.arange(100), np.zeros(0), 1.0)) == []
+    first = out.on_stats(stats, now_s=10.0)
+    assert [t for t, _, _ in first] == ["/diagnostics", "/mogs/map_cloud"]
+    xyz, _ = rc.pointcloud_from_ros(first[1][2])
+    assert len(xyz) == 34  # 100 Gaussians, every 3rd: <= max_map_points
+    out.on_gaussians(_update(np.arange(90, 120), np.arange(50), 2.0))  # 50 removed, 10 changed
+    assert [t for t, _, _ in out.on_stats(stats, now_s=11.0)] == ["/diagnostics"]  # too soon
+    later = out.on_stats(stats, now_s=12.5)
+    assert [t for t, _, _ in later] == ["/diagnostics", "/mogs/map_cloud"]
+    assert len(out.cloud.ids) == 70 and sorted(out.cloud.ids.tolist()) == list(range(50, 120))
+    assert [t for t, _, _ in out.on_stats(stats, now_s=20.0)] == ["/diagnostics"]  # unchanged map
+
+
+def test_rviz_config_shows_what_the_bridge_publishes() -> None:
+    import yaml
+
+    from bridges.ros_outputs import OUTPUT_TYPES, RosOutputParams
+
+    cfg = yaml.safe_load((Path(__file__).parents[1] / "launch" / "mogs.rviz").read_text())
+    shown = {
+        d.get("Topic") or d.get("Image Topic"): d["Class"]
+        for d in cfg["Visualization Manager"]["Displays"]
+    }
+    p = RosOutputParams()
+    want = {
+        "odometry": "rviz/Odometry",
+        "path": "rviz/Path",
+        "map_cloud": "rviz/PointCloud2",
+        "depth": "rviz/Image",
+    }
+    assert set(want) == set(OUTPUT_TYPES)
+    for name, cls in want.items():
+        assert shown[p.topic(name)] == cls
+    assert cfg["Visualization Manager"]["Global Options"]["Fixed Frame"] == p.world_frame
+    assert "rviz/TF" in shown.values() and shown["/camera/image_raw"] == "rviz/Image"
