@@ -9,6 +9,7 @@ rclpy. This module re-exports them with ROS 2 defaults for its earlier users. St
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,6 +30,14 @@ from bridges.ros_convert import (
     ros_stamp_ns,
     tf_from_pose,
     to_ros,
+)
+from bridges.ros_outputs import (
+    DIAGNOSTICS_TYPE,
+    OUTPUT_TYPES,
+    TF_TOPIC,
+    TF_TYPE,
+    RosOutputParams,
+    RosOutputs,
 )
 from mogs_node import msgs
 from mogs_node.errors import Ros2UnavailableError
@@ -104,18 +113,23 @@ def require_rclpy() -> Any:
 class Ros2MirrorParams:
     """Parameters of the ROS 2 mirror node."""
 
-    ros_image_topic: str = "/camera/image_raw"  # ROS 2 sensor_msgs/Image in -> /camera/image
+    ros_image_topic: str = "/camera/image_raw"  # ROS 2 camera in -> /camera/image
+    ros_image_compressed: bool = False  # the camera is sensor_msgs/CompressedImage (jpeg / png)
     ros_imu_topic: str = "/imu"  # ROS 2 sensor_msgs/Imu in -> /imu
+    ros_camera_info_topic: str = ""  # sensor_msgs/CameraInfo: logged ("" = none)
     mirror_in: bool = True  # bring the ROS 2 camera and IMU onto the bus
-    mirror_out: bool = True  # publish odometry, keyframe poses, depth and map stats to ROS 2
-    ros_prefix: str = "/mogs"  # ROS 2 names of the outputs: <prefix>/odometry, /keyframe_pose,
-    # /depth, /map_stats, and tf (world -> camera)
-    world_frame: str = "world"  # parent frame of poses and tf
+    mirror_out: bool = True  # publish odometry, path, map cloud, depth, map stats to ROS 2
+    ros_prefix: str = "/mogs"  # ROS 2 names of the outputs: <prefix>/odometry, /path,
+    # /map_cloud, /depth, /keyframe_pose, /map_stats, and tf (world -> camera)
+    world_frame: str = "world"  # parent frame of poses, path, cloud and tf
+    map_period_s: float = 2.0  # map cloud at most this often (0: after every mapped keyframe)
     tick_s: float = 0.005  # how often the rclpy executor is spun
 
 
 class Ros2Mirror(Node):
-    """Mirrors the bus to and from ROS 2 through rclpy, with the conversions of this module.
+    """Mirrors the bus to and from ROS 2 through rclpy, with the conversions of
+    :mod:`bridges.ros_convert` and the outputs of :mod:`bridges.ros_outputs` (shared with the
+    ROS 1 node).
 
     Messages cross as CDR bytes: rclpy publishers accept serialized messages and subscriptions
     created with ``raw=True`` deliver them, so the rosbags typestore does the (tested) encoding.
@@ -125,92 +139,111 @@ class Ros2Mirror(Node):
 
     def setup(self) -> None:
         rclpy = require_rclpy()
-        from rclpy.qos import qos_profile_sensor_data
-        from rosidl_runtime_py.utilities import get_message
-
         p: Ros2MirrorParams = self.params
         if not rclpy.ok():
             rclpy.init()
         self.rnode = rclpy.create_node(self.name.replace("/", "_"))
         self._rclpy = rclpy
-        ts = typestore()
         self._out: dict[str, tuple[Any, str]] = {}
-
-        def out(name: str, rtype: str) -> None:
-            pub = self.rnode.create_publisher(get_message(rtype), name, 10)
-            self._out[name] = (pub, rtype)
-
         if p.mirror_in:
-
-            def on_image(raw: bytes) -> None:
-                self.publish(
-                    "/camera/image",
-                    image_from_ros(ts.deserialize_cdr(raw, "sensor_msgs/msg/Image")),
-                )
-
-            def on_imu(raw: bytes) -> None:
-                self.publish("/imu", imu_from_ros(ts.deserialize_cdr(raw, "sensor_msgs/msg/Imu")))
-
-            self.rnode.create_subscription(
-                get_message("sensor_msgs/msg/Image"),
-                p.ros_image_topic,
-                on_image,
-                qos_profile_sensor_data,
-                raw=True,
-            )
-            self.rnode.create_subscription(
-                get_message("sensor_msgs/msg/Imu"),
-                p.ros_imu_topic,
-                on_imu,
-                qos_profile_sensor_data,
-                raw=True,
-            )
+            self._mirror_in()
         if p.mirror_out:
-            pre = p.ros_prefix.rstrip("/")
-            out(f"{pre}/odometry", "nav_msgs/msg/Odometry")
-            out(f"{pre}/keyframe_pose", "geometry_msgs/msg/PoseStamped")
-            out(f"{pre}/depth", "sensor_msgs/msg/Image")
-            out(f"{pre}/map_stats", "diagnostic_msgs/msg/DiagnosticArray")
-            out("/tf", "tf2_msgs/msg/TFMessage")
-            self.subscribe("/frontend/odometry", self.on_odometry, reliable=False)
-            self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
-            self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
-            self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
+            self._mirror_out()
         self.every(p.tick_s, self.spin_ros)
         self.log.info("mirroring to ROS 2 as node %s", self.rnode.get_name())
 
-    def _send(self, name: str, rmsg: Any) -> None:
-        pub, rtype = self._out[name]
-        pub.publish(typestore().serialize_cdr(rmsg, rtype))
+    def _sub(self, rtype: str, topic: str, callback: Any) -> None:
+        from rclpy.qos import qos_profile_sensor_data
+        from rosidl_runtime_py.utilities import get_message
+
+        self.rnode.create_subscription(
+            get_message(rtype), topic, callback, qos_profile_sensor_data, raw=True
+        )
+
+    def _mirror_in(self) -> None:
+        p = self.params
+        d = Distro.ROS2
+        itype = "sensor_msgs/msg/" + ("CompressedImage" if p.ros_image_compressed else "Image")
+        decode = ros_convert.compressed_image_from_ros if p.ros_image_compressed else image_from_ros
+
+        def on_image(raw: bytes) -> None:
+            self.publish("/camera/image", decode(ros_convert.deserialize(raw, itype, d)))
+
+        def on_imu(raw: bytes) -> None:
+            imu = imu_from_ros(ros_convert.deserialize(raw, "sensor_msgs/msg/Imu", d))
+            self.publish("/imu", imu)
+
+        def on_info(raw: bytes) -> None:
+            cal = ros_convert.camera_info_from_ros(
+                ros_convert.deserialize(raw, "sensor_msgs/msg/CameraInfo", d)
+            )
+            if getattr(self, "calibration", None) != cal:
+                self.calibration = cal
+                self.log.info("CameraInfo on %s: %s", p.ros_camera_info_topic, cal)
+
+        self._sub(itype, p.ros_image_topic, on_image)
+        self._sub("sensor_msgs/msg/Imu", p.ros_imu_topic, on_imu)
+        if p.ros_camera_info_topic:
+            self._sub("sensor_msgs/msg/CameraInfo", p.ros_camera_info_topic, on_info)
+
+    def _mirror_out(self) -> None:
+        from rosidl_runtime_py.utilities import get_message
+
+        p = self.params
+        pre = p.ros_prefix.rstrip("/")
+        self.outputs = RosOutputs(
+            RosOutputParams(
+                prefix=p.ros_prefix,
+                world_frame=p.world_frame,
+                map_period_s=p.map_period_s,
+                diagnostics_topic=f"{pre}/map_stats",
+            ),
+            Distro.ROS2,
+        )
+        topics = {self.outputs.params.topic(n): t for n, t in OUTPUT_TYPES.items()}
+        topics.update(
+            {
+                f"{pre}/keyframe_pose": "geometry_msgs/msg/PoseStamped",
+                f"{pre}/map_stats": DIAGNOSTICS_TYPE,
+                TF_TOPIC: TF_TYPE,
+            }
+        )
+        for name, rtype in topics.items():
+            self._out[name] = (self.rnode.create_publisher(get_message(rtype), name, 10), rtype)
+        self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
+        self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
+        self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
+        self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
+        self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
+
+    def _send(self, triples: list[tuple[str, str, Any]]) -> None:
+        for name, rtype, rmsg in triples:
+            pub, _ = self._out[name]
+            pub.publish(ros_convert.serialize(rmsg, rtype, Distro.ROS2))
 
     def on_odometry(self, msg: msgs.Message) -> None:
-        p = self.params
         assert isinstance(msg, msgs.Odometry)
-        self._send(
-            f"{p.ros_prefix.rstrip('/')}/odometry", odometry_to_ros(msg, world_frame=p.world_frame)
-        )
-        self._send(
-            "/tf",
-            tf_from_pose(
-                msg.stamp_ns, msg.T_world_cam, parent=p.world_frame, child=msg.frame_id or "camera"
-            ),
-        )
+        self._send(self.outputs.on_odometry(msg))
 
     def on_keyframe(self, msg: msgs.Message) -> None:
         p = self.params
         assert isinstance(msg, msgs.Keyframe)
-        self._send(
-            f"{p.ros_prefix.rstrip('/')}/keyframe_pose",
-            pose_to_ros(msg.stamp_ns, msg.T_world_cam, world_frame=p.world_frame),
-        )
+        pose = pose_to_ros(msg.stamp_ns, msg.T_world_cam, world_frame=p.world_frame)
+        rtype = "geometry_msgs/msg/PoseStamped"
+        self._send([(f"{p.ros_prefix.rstrip('/')}/keyframe_pose", rtype, pose)])
+        self._send(self.outputs.on_keyframe(msg))
 
     def on_depth(self, msg: msgs.Message) -> None:
         assert isinstance(msg, msgs.DepthMap)
-        self._send(f"{self.params.ros_prefix.rstrip('/')}/depth", depth_to_ros(msg))
+        self._send(self.outputs.on_depth(msg))
+
+    def on_gaussians(self, msg: msgs.Message) -> None:
+        assert isinstance(msg, msgs.GaussianUpdate)
+        self._send(self.outputs.on_gaussians(msg))
 
     def on_stats(self, msg: msgs.Message) -> None:
         assert isinstance(msg, msgs.MapStats)
-        self._send(f"{self.params.ros_prefix.rstrip('/')}/map_stats", mapstats_to_ros(msg))
+        self._send(self.outputs.on_stats(msg, time.monotonic()))
 
     def spin_ros(self) -> None:
         self._rclpy.spin_once(self.rnode, timeout_sec=0.0)
