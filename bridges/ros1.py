@@ -350,6 +350,7 @@ class Ros1Bridge(Node):
             except MessageError as err:
                 self._bad("image", err)
                 continue
+            self.outputs.input_frame = img.frame_id
             self.publish(p.bus_image_topic, img)
             self.counters["frames_published"] += 1
 

@@ -167,7 +167,10 @@ class Ros2Mirror(Node):
         decode = ros_convert.compressed_image_from_ros if p.ros_image_compressed else image_from_ros
 
         def on_image(raw: bytes) -> None:
-            self.publish("/camera/image", decode(ros_convert.deserialize(raw, itype, d)))
+            img = decode(ros_convert.deserialize(raw, itype, d))
+            if p.mirror_out:
+                self.outputs.input_frame = img.frame_id
+            self.publish("/camera/image", img)
 
         def on_imu(raw: bytes) -> None:
             imu = imu_from_ros(ros_convert.deserialize(raw, "sensor_msgs/msg/Imu", d))

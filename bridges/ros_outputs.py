@@ -58,7 +58,8 @@ class RosOutputParams:
     prefix: str = "/mogs"  # ROS names: <prefix>/odometry, /path, /depth, /map_cloud
     diagnostics_topic: str = "/diagnostics"  # map statistics (DiagnosticArray, "mogs/mapper")
     world_frame: str = "world"  # parent frame of poses, the path, the cloud and tf
-    camera_frame: str = ""  # child frame of odometry and tf ("" = the image's frame id)
+    camera_frame: str = ""  # frame of the camera: odometry's child, tf's child, depth images
+    # ("" = the frame id of the images coming in, see RosOutputs.input_frame)
     map_period_s: float = 2.0  # map cloud at most this often (0 = after every keyframe)
     max_map_points: int = 200_000  # beyond this many Gaussians an even subset is sent
 
@@ -85,9 +86,14 @@ class RosOutputs:
         self.cloud = GaussianCloud()
         self._last_cloud_s: float | None = None
         self._cloud_dirty = False
+        self.input_frame = ""  # frame id of the camera images coming in (the bridge sets it)
 
     def _child(self, frame_id: str) -> str:
-        return self.params.camera_frame or frame_id or "camera"
+        """The camera frame: the parameter, else the input images' frame id, else the message's
+        own when it is not the world frame (the frontend labels its poses "world")."""
+        p = self.params
+        own = frame_id if frame_id != p.world_frame else ""
+        return p.camera_frame or self.input_frame or own or "camera"
 
     def on_odometry(self, msg: msgs.Odometry) -> list[Triple]:
         p, d = self.params, self.distro
@@ -119,6 +125,7 @@ class RosOutputs:
         if msg.kind != "metric":
             return []
         ros = rc.depth_to_ros(msg, distro=self.distro)
+        ros.header.frame_id = self._child(msg.frame_id)  # an image is in the camera's frame
         return [(self.params.topic("depth"), OUTPUT_TYPES["depth"], ros)]
 
     def on_gaussians(self, msg: msgs.GaussianUpdate) -> list[Triple]:

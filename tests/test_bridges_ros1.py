@@ -404,3 +404,21 @@ def test_rviz_config_shows_what_the_bridge_publishes() -> None:
         assert shown[p.topic(name)] == cls
     assert cfg["Visualization Manager"]["Global Options"]["Fixed Frame"] == p.world_frame
     assert "rviz/TF" in shown.values() and shown["/camera/image_raw"] == "rviz/Image"
+
+
+def test_ros_outputs_camera_frame_is_the_images_not_the_worlds() -> None:
+    from bridges.ros_outputs import RosOutputParams, RosOutputs
+
+    odo = msgs.Odometry(5, "world", 0, _pose(1), (0.0, 0.0, 0.0), "tracking")  # the frontend's
+    depth = np.ones((2, 2), np.float32)
+    dm = msgs.DepthMap(5, "world", 0, "metric", depth, depth, "metrizer")
+    out = RosOutputs(RosOutputParams(), rc.Distro.ROS1)
+    assert out.on_odometry(odo)[0][2].child_frame_id == "camera"  # nothing known: "camera"
+    out.input_frame = "cam0"
+    (_, _, ros_odo), (_, _, tf) = out.on_odometry(odo)
+    assert ros_odo.child_frame_id == "cam0" and ros_odo.header.frame_id == "world"
+    assert list(rc.transforms_from_ros(tf)) == [("world", "cam0")]
+    assert out.on_depth(dm)[0][2].header.frame_id == "cam0"
+    fixed = RosOutputs(RosOutputParams(camera_frame="left", world_frame="map"), rc.Distro.ROS2)
+    fixed.input_frame = "cam0"
+    assert fixed.on_odometry(odo)[0][2].child_frame_id == "left"
