@@ -440,12 +440,13 @@ class Ros1Bridge(Node):
             if self._master_ok and not ok:
                 self.counters["master_lost"] += 1
                 self.log.warning(
-                    "roscore at %s is gone: nothing new can subscribe or be found until it is "
-                    "back (logged once)",
+                    "roscore at %s is gone (logged once): the connections made keep working, "
+                    "nothing new can find this node",
                     os.environ.get("ROS_MASTER_URI", "?"),
                 )
             elif ok and not self._master_ok:
-                self.log.info("roscore is back")
+                # a ROS 1 node does not register again with a restarted master
+                self.log.info("a roscore answers again (this node is not registered with it)")
             self._master_ok = ok
 
     def teardown(self) -> None:

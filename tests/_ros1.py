@@ -73,14 +73,16 @@ def master_up(env: dict[str, str]) -> bool:
 
 
 @contextlib.contextmanager
-def roscore(tmp: Path, timeout_s: float = 60.0) -> Iterator[dict[str, str]]:
-    """A real ``roscore`` on a free port; yields the environment that points at it."""
+def roscore(tmp: Path, timeout_s: float = 60.0, port: int = 0) -> Iterator[dict[str, str]]:
+    """A real ``roscore`` on ``port`` (0: a free one); yields the environment pointing at it."""
     home = tmp / "ros_home"
     home.mkdir(parents=True, exist_ok=True)
-    env = ros_env(free_tcp_port(), home)
-    port = env["ROS_MASTER_URI"].rsplit(":", 1)[1]
-    log = (tmp / "roscore.log").open("w")
-    proc = subprocess.Popen(["roscore", "-p", port], env=env, stdout=log, stderr=subprocess.STDOUT)
+    env = ros_env(port or free_tcp_port(), home)
+    port_s = env["ROS_MASTER_URI"].rsplit(":", 1)[1]
+    log = (tmp / "roscore.log").open("a")
+    proc = subprocess.Popen(
+        ["roscore", "-p", port_s], env=env, stdout=log, stderr=subprocess.STDOUT
+    )
     try:
         deadline = time.monotonic() + timeout_s
         while not master_up(env):

@@ -6,6 +6,7 @@ diagnostics; the bridge ends by itself when the camera goes quiet. Skips when RO
 
 from __future__ import annotations
 
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -68,6 +69,16 @@ def _write_tiny_bag(
         for t, img in zip(stamps, imgs):
             bag.write(TOPICS["camera_info"], camera_info_msg(rospy, t, K, W, H), _rt(rospy, t))
             bag.write(TOPICS["image"], image_msg(rospy, t, img, encoding), _rt(rospy, t))
+        # malformed input, once each: counted, logged, not forwarded; the bridge goes on
+        t_bad = stamps[5] + 50_000_000
+        bad = image_msg(rospy, t_bad, imgs[0], encoding)
+        if encoding == "jpeg":
+            bad.data = b"\xff\xd8 not a jpeg"
+        else:
+            bad.data = bad.data[:100]  # fewer bytes than height * step
+        bag.write(TOPICS["image"], bad, _rt(rospy, t_bad))
+        nan_imu = imu_msg(rospy, t_bad, np.array([np.nan, 0, 0]), np.zeros(3))
+        bag.write(TOPICS["imu"], nan_imu, _rt(rospy, t_bad))
     return stamps, imgs, (imu_t, imu)
 
 
@@ -196,6 +207,9 @@ def _run_bridge_case(tmp_path: Path, broker_bus, encoding: str) -> None:
         bridge_log = (tmp_path / "bridge.log").read_text()
         assert rc_bridge == 0, bridge_log
         assert "end of stream" in bridge_log, bridge_log
+        assert re.search(r"malformed image from ROS \(\d so far\): data:", bridge_log)
+        assert re.search(r"malformed IMU from ROS \(\d so far\): angular_velocity:", bridge_log)
+        assert "2 malformed" in bridge_log, bridge_log
         assert heard_rc == 0
     # in: every frame and IMU sample, exact stamps, exact pixels (jpeg: close)
     assert [m.stamp_ns for m in got_img] == stamps
@@ -422,3 +436,29 @@ def test_ros_outputs_camera_frame_is_the_images_not_the_worlds() -> None:
     fixed = RosOutputs(RosOutputParams(camera_frame="left", world_frame="map"), rc.Distro.ROS2)
     fixed.input_frame = "cam0"
     assert fixed.on_odometry(odo)[0][2].child_frame_id == "left"
+
+
+def test_a_roscore_that_goes_away_is_logged_once(tmp_path: Path, broker_bus) -> None:
+    rospy_or_skip()
+    params = {"image_topic": "/cam", "imu_topic": "/imu0", "master_check_s": 0.3}
+    log_path = tmp_path / "bridge.log"
+    with roscore(tmp_path) as env:
+        port = int(env["ROS_MASTER_URI"].rsplit(":", 1)[1])
+        log = log_path.open("w")
+        bridge = subprocess.Popen(
+            node_argv("bridges.ros1:Ros1Bridge", "ros1", params, broker_bus),
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+        assert wait_for_subscriber(env, "/cam", "mogs", 60), log_path.read_text()
+    time.sleep(3.0)  # ten checks without a roscore
+    with roscore(tmp_path, port=port):
+        deadline = time.monotonic() + 30
+        while "answers again" not in log_path.read_text() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        code = stop(bridge, 30)  # Ctrl-C: a clean end
+    log.close()
+    text = log_path.read_text()
+    assert code == 0, text
+    assert text.count("is gone") == 1 and text.count("answers again") == 1, text
