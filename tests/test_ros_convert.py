@@ -446,3 +446,42 @@ def test_image_round_trip_property(h: int, w: int, enc: str, stamp_ns: int, dist
     assert (
         rc.image_from_ros(wire(rc.image_to_ros(m, distro=distro), "sensor_msgs/Image", distro)) == m
     )
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    fx=st.floats(1e-3, 1e6),
+    aspect=st.floats(0.5, 2.0),
+    w=st.integers(1, 20000),
+    h=st.integers(1, 20000),
+    coeffs=st.lists(st.floats(-2, 2), min_size=4, max_size=4),
+    distro=st.sampled_from(DISTROS),
+)
+def test_camera_info_round_trip_property(fx, aspect, w, h, coeffs, distro) -> None:
+    """Tiny and huge focal lengths and image sizes, any radtan coefficients, come back exactly;
+    a NaN anywhere in K is one error naming K."""
+    cam = PinholeCamera(fx, fx * aspect, w / 2 - 0.5, h / 2 - 0.5, w, h)
+    model = "radtan" if any(coeffs) else "none"
+    cal = CameraCalibration(0, "c", cam, model, tuple(coeffs) if any(coeffs) else ())
+    r = wire(rc.camera_info_to_ros(cal, distro=distro), "sensor_msgs/CameraInfo", distro)
+    assert rc.camera_info_from_ros(r) == cal
+    key = "K" if distro is Distro.ROS1 else "k"
+    bad_k = np.array(getattr(r, key), dtype=np.float64)
+    bad_k[4] = np.nan
+    setattr(r, key, bad_k)
+    with pytest.raises(MessageError, match="K"):
+        rc.camera_info_from_ros(r)
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(0, 40), log_scale=st.floats(-20, 20), distro=st.sampled_from(DISTROS))
+def test_path_round_trip_property(n: int, log_scale: float, distro: Distro) -> None:
+    """Any number of poses (none included) at tiny and huge translations."""
+    stamps = np.arange(n, dtype=np.int64) * 7 + 3
+    Ts = np.array([_pose(i) for i in range(n)]).reshape(n, 4, 4)
+    Ts[:, :3, 3] *= np.exp(log_scale)
+    got_stamps, got_T = rc.path_from_ros(
+        wire(rc.path_to_ros(stamps, Ts, distro=distro), "nav_msgs/Path", distro)
+    )
+    assert got_stamps.tolist() == stamps.tolist()
+    np.testing.assert_allclose(got_T, Ts, rtol=1e-12, atol=1e-12 * max(1.0, np.exp(log_scale)))
