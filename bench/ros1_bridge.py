@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import subprocess
 import sys
@@ -96,6 +97,7 @@ def run_direct(bag: Path, out: Path, timeout_s: float) -> tuple[np.ndarray, np.n
                 *_sets([f"player.path={bag}", *TOPIC_SETS]),
             ),
             cwd=REPO,
+            env={**os.environ, "MOGS_NO_CPP_EXT": "1"},  # the mapper's pure-PyTorch compositor
             stdout=log,
             stderr=subprocess.STDOUT,
             timeout=timeout_s + 120,
@@ -109,6 +111,7 @@ def run_direct(bag: Path, out: Path, timeout_s: float) -> tuple[np.ndarray, np.n
 def run_bridge(bag: Path, tmp: Path, rate: float) -> tuple[dict, str]:
     run = tmp / "bridge"
     with roscore(tmp) as env:
+        env["MOGS_NO_CPP_EXT"] = "1"  # as the direct run: no C++ build in the measurement
         set_param(env, "/use_sim_time", "true")
         listener = start_listener(env, tmp / "heard.json")
         log_path = tmp / "bridge.log"
