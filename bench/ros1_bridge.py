@@ -59,6 +59,8 @@ TOPIC_SETS = [
     f"player.bag_pose_topic={GT_POSE_TOPIC}",
     "player.groundtruth_depth=false",
 ]
+#: both runs: the trajectory is measured, not the map (one window iteration per keyframe)
+MAPPER_SETS = ["mapper.iters_per_keyframe=1", "mapper.publish_render=false"]
 
 
 def _sets(items: list[str]) -> list[str]:
@@ -94,7 +96,7 @@ def run_direct(bag: Path, out: Path, timeout_s: float) -> tuple[np.ndarray, np.n
                 "60",
                 "--timeout",
                 str(timeout_s),
-                *_sets([f"player.path={bag}", *TOPIC_SETS]),
+                *_sets([f"player.path={bag}", *TOPIC_SETS, *MAPPER_SETS]),
             ),
             cwd=REPO,
             env={**os.environ, "MOGS_NO_CPP_EXT": "1"},  # the mapper's pure-PyTorch compositor
@@ -130,6 +132,7 @@ def run_bridge(bag: Path, tmp: Path, rate: float) -> tuple[dict, str]:
                             f"ros1.imu_topic={TOPICS['imu']}",
                             f"ros1.camera_info_topic={TOPICS['camera_info']}",
                             "ros1.wait_for_nodes_s=900",
+                            *MAPPER_SETS,
                         ]
                     ),
                 ),

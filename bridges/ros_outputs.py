@@ -8,7 +8,7 @@ onto a ROS graph; a test checks them without one.
 
 | bus | ROS (``prefix`` = ``/mogs``) |
 | --- | --- |
-| ``/frontend/odometry`` | ``<prefix>/odometry`` (``nav_msgs/Odometry``) and ``/tf`` world -> camera |
+| ``/frontend/odometry`` | ``<prefix>/odometry`` (``nav_msgs/Odometry``) and ``/tf`` world -> camera, for estimated frames |
 | ``/frontend/keyframe`` | ``<prefix>/path`` (``nav_msgs/Path`` of every keyframe pose so far) |
 | ``/metrizer/depth`` | ``<prefix>/depth`` (32FC1 metres, REP 118) |
 | ``/mapper/gaussians`` | (the map is updated) |
@@ -26,6 +26,7 @@ from bridges import ros_convert as rc
 from bridges.ros_convert import Distro
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
+from mogs_node.report.node import NOT_ESTIMATED
 from mogs_node.viz.logging import GaussianCloud
 
 __all__ = [
@@ -87,6 +88,7 @@ class RosOutputs:
         self._last_cloud_s: float | None = None
         self._cloud_dirty = False
         self.input_frame = ""  # frame id of the camera images coming in (the bridge sets it)
+        self.not_estimated = 0  # odometry messages without an estimate, not sent
 
     def _child(self, frame_id: str) -> str:
         """The camera frame: the parameter, else the input images' frame id, else the message's
@@ -96,6 +98,11 @@ class RosOutputs:
         return p.camera_frame or self.input_frame or own or "camera"
 
     def on_odometry(self, msg: msgs.Odometry) -> list[Triple]:
+        """Odometry + tf of an estimated frame; none for a frame without an estimate (the
+        frontend initialising, reset, a rejected or dropped frame: its pose means nothing)."""
+        if msg.status in NOT_ESTIMATED:
+            self.not_estimated += 1
+            return []
         p, d = self.params, self.distro
         child = self._child(msg.frame_id)
         odo = rc.odometry_to_ros(msg, world_frame=p.world_frame, child_frame=child, distro=d)
@@ -143,7 +150,8 @@ class RosOutputs:
             )
         ]
         due = self._last_cloud_s is None or now_s - self._last_cloud_s >= p.map_period_s
-        if self._cloud_dirty and due:
+        empty = len(self.cloud.ids) == 0 and self._last_cloud_s is None  # nothing to show yet
+        if self._cloud_dirty and due and not empty:
             out.append(self.map_cloud(msg.stamp_ns))
             self._last_cloud_s = now_s
             self._cloud_dirty = False

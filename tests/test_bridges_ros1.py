@@ -383,6 +383,8 @@ def test_ros_outputs_map_cloud_follows_updates_and_is_throttled() -> None:
 
     out = RosOutputs(RosOutputParams(map_period_s=2.0, max_map_points=40), rc.Distro.ROS2)
     stats = msgs.MapStats(5, "world", 0, 10, 1, 1, 0.1, 20.0)
+    out.on_gaussians(_update(np.zeros(0), np.zeros(0), 1.0))
+    assert [t for t, _, _ in out.on_stats(stats, now_s=9.0)] == ["/diagnostics"]  # no map yet
     assert out.on_gaussians(_update(np.arange(100), np.zeros(0), 1.0)) == []
     first = out.on_stats(stats, now_s=10.0)
     assert [t for t, _, _ in first] == ["/diagnostics", "/mogs/map_cloud"]
@@ -433,6 +435,8 @@ def test_ros_outputs_camera_frame_is_the_images_not_the_worlds() -> None:
     assert ros_odo.child_frame_id == "cam0" and ros_odo.header.frame_id == "world"
     assert list(rc.transforms_from_ros(tf)) == [("world", "cam0")]
     assert out.on_depth(dm)[0][2].header.frame_id == "cam0"
+    init = msgs.Odometry(4, "world", 0, np.eye(4), (0.0, 0.0, 0.0), "initializing")
+    assert out.on_odometry(init) == [] and out.not_estimated == 1  # no pose: nothing on ROS
     fixed = RosOutputs(RosOutputParams(camera_frame="left", world_frame="map"), rc.Distro.ROS2)
     fixed.input_frame = "cam0"
     assert fixed.on_odometry(odo)[0][2].child_frame_id == "left"
