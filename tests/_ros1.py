@@ -266,3 +266,27 @@ def start_listener(
 
 def read_listener(out: Path) -> dict:
     return json.loads(out.read_text())
+
+
+def wait_for_connections(
+    env: dict[str, str], node: str, topics: list[str], timeout_s: float
+) -> bool:
+    """Whether ``node`` has an outbound connection on every one of ``topics`` (its publishers
+    reach a subscriber) within ``timeout_s``: messages published from then on are delivered."""
+    import xmlrpc.client
+
+    import rosgraph
+
+    m = rosgraph.Master("/mogs_test", master_uri=env["ROS_MASTER_URI"])
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            uri = m.lookupNode(node)
+            _, _, info = xmlrpc.client.ServerProxy(uri).getBusInfo("/mogs_test")
+            out = {c[4] for c in info if c[2] == "o"}
+            if set(topics) <= out:
+                return True
+        except Exception:  # not registered yet
+            pass
+        time.sleep(0.2)
+    return False

@@ -27,6 +27,7 @@ from _ros1 import (
     set_param,
     start_listener,
     stop,
+    wait_for_connections,
     wait_for_subscriber,
 )
 
@@ -179,6 +180,8 @@ def _run_bridge_case(tmp_path: Path, broker_bus, encoding: str) -> None:
             assert wait_for_subscriber(env, TOPICS["image"], "mogs", 60), (
                 tmp_path / "bridge.log"
             ).read_text()
+            outs = ["/mogs/odometry", "/mogs/path", "/mogs/depth", "/mogs/map_cloud", "/tf"]
+            assert wait_for_connections(env, "/mogs", [*outs, "/diagnostics"], 60)
             truth = _publish_pipeline_outputs(broker_bus, stamps)
             play = subprocess.run(
                 ["rosbag", "play", "--clock", "-q", str(tmp_path / "tiny.bag")],
