@@ -75,7 +75,7 @@ def run_bag_through_ros1(tmp_path: Path, encoding: str) -> tuple[dict, dict, Pat
                 "--run-dir",
                 str(run),
                 "--grace",
-                "60",
+                "300",  # Ctrl-C: the mapper finishes its keyframe, then writes map.ply
                 "--set",
                 f"ros1.image_topic={TOPICS['image']}",
                 "--set",
@@ -120,7 +120,7 @@ def run_bag_through_ros1(tmp_path: Path, encoding: str) -> tuple[dict, dict, Pat
                 now = (heard["depth_count"], heard["diagnostics"]["count"], n_path)
                 if now != last:
                     last, last_change = now, time.monotonic()
-            launch_rc = stop(launch, 180)  # Ctrl-C: the mapper writes map.ply, the report
+            launch_rc = stop(launch, 420)  # Ctrl-C: the mapper writes map.ply, the report
         finally:
             stop(launch, 10)
             stop(listener, 20)
