@@ -247,6 +247,7 @@ class Ros1Bridge(Node):
         self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
         self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
         self.add_reader(self.inbox.wake_r, self.drain)
+        self.every(max(0.1, min(1.0, p.map_period_s)), self.flush_map)  # the map's last change
         self._inputs_started = False
         self._waiting = set(p.wait_for_nodes)
         if self._waiting:  # the pipeline first: a frame before the frontend is up is lost
@@ -404,10 +405,13 @@ class Ros1Bridge(Node):
         self._send(self.outputs.on_depth(msg))
 
     def on_gaussians(self, msg: msgs.GaussianUpdate) -> None:
-        self._send(self.outputs.on_gaussians(msg))
+        self._send(self.outputs.on_gaussians(msg, time.monotonic()))
+
+    def flush_map(self) -> None:
+        self._send(self.outputs.flush(time.monotonic()))
 
     def on_stats(self, msg: msgs.MapStats) -> None:
-        self._send(self.outputs.on_stats(msg, time.monotonic()))
+        self._send(self.outputs.on_stats(msg))
         self.counters["map_gaussians"] = msg.n_gaussians
 
     # ------------------------------------------------------------------- end, roscore

@@ -149,6 +149,7 @@ class Ros2Mirror(Node):
             self._mirror_in()
         if p.mirror_out:
             self._mirror_out()
+            self.every(max(0.1, min(1.0, p.map_period_s)), self.flush_map)
         self.every(p.tick_s, self.spin_ros)
         self.log.info("mirroring to ROS 2 as node %s", self.rnode.get_name())
 
@@ -242,11 +243,14 @@ class Ros2Mirror(Node):
 
     def on_gaussians(self, msg: msgs.Message) -> None:
         assert isinstance(msg, msgs.GaussianUpdate)
-        self._send(self.outputs.on_gaussians(msg))
+        self._send(self.outputs.on_gaussians(msg, time.monotonic()))
 
     def on_stats(self, msg: msgs.Message) -> None:
         assert isinstance(msg, msgs.MapStats)
-        self._send(self.outputs.on_stats(msg, time.monotonic()))
+        self._send(self.outputs.on_stats(msg))
+
+    def flush_map(self) -> None:
+        self._send(self.outputs.flush(time.monotonic()))
 
     def spin_ros(self) -> None:
         self._rclpy.spin_once(self.rnode, timeout_sec=0.0)

@@ -11,8 +11,8 @@ onto a ROS graph; a test checks them without one.
 | ``/frontend/odometry`` | ``<prefix>/odometry`` (``nav_msgs/Odometry``) and ``/tf`` world -> camera, for estimated frames |
 | ``/frontend/keyframe`` | ``<prefix>/path`` (``nav_msgs/Path`` of every keyframe pose so far) |
 | ``/metrizer/depth`` | ``<prefix>/depth`` (32FC1 metres, REP 118) |
-| ``/mapper/gaussians`` | (the map is updated) |
-| ``/mapper/stats`` | ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, status ``mogs/mapper``) and, at most every ``map_period_s``, ``<prefix>/map_cloud`` (``sensor_msgs/PointCloud2``, Gaussian centres + rgb) |
+| ``/mapper/gaussians`` | the map is updated; at most every ``map_period_s`` ``<prefix>/map_cloud`` (``sensor_msgs/PointCloud2``, Gaussian centres + rgb; :meth:`RosOutputs.flush` sends the last change) |
+| ``/mapper/stats`` | ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, status ``mogs/mapper``) |
 """
 
 from __future__ import annotations
@@ -87,6 +87,7 @@ class RosOutputs:
         self.cloud = GaussianCloud()
         self._last_cloud_s: float | None = None
         self._cloud_dirty = False
+        self._cloud_stamp_ns = 0
         self.input_frame = ""  # frame id of the camera images coming in (the bridge sets it)
         self.not_estimated = 0  # odometry messages without an estimate, not sent
 
@@ -135,27 +136,29 @@ class RosOutputs:
         ros.header.frame_id = self._child(msg.frame_id)  # an image is in the camera's frame
         return [(self.params.topic("depth"), OUTPUT_TYPES["depth"], ros)]
 
-    def on_gaussians(self, msg: msgs.GaussianUpdate) -> list[Triple]:
+    def on_gaussians(self, msg: msgs.GaussianUpdate, now_s: float) -> list[Triple]:
+        """Applies the update; the whole map as a cloud when ``map_period_s`` has passed since
+        the last one (else later, from :meth:`flush`)."""
         self.cloud.apply(msg)
         self._cloud_dirty = True
-        return []
+        self._cloud_stamp_ns = int(msg.stamp_ns)
+        return self.flush(now_s)
 
-    def on_stats(self, msg: msgs.MapStats, now_s: float) -> list[Triple]:
+    def flush(self, now_s: float) -> list[Triple]:
+        """The map cloud if it changed since the last one and ``map_period_s`` has passed (call
+        it now and then: the last change of a run is sent too)."""
         p = self.params
-        out = [
-            (
-                p.diagnostics_topic,
-                DIAGNOSTICS_TYPE,
-                rc.mapstats_to_ros(msg, distro=self.distro),
-            )
-        ]
         due = self._last_cloud_s is None or now_s - self._last_cloud_s >= p.map_period_s
         empty = len(self.cloud.ids) == 0 and self._last_cloud_s is None  # nothing to show yet
-        if self._cloud_dirty and due and not empty:
-            out.append(self.map_cloud(msg.stamp_ns))
-            self._last_cloud_s = now_s
-            self._cloud_dirty = False
-        return out
+        if not (self._cloud_dirty and due) or empty:
+            return []
+        self._last_cloud_s = now_s
+        self._cloud_dirty = False
+        return [self.map_cloud(self._cloud_stamp_ns)]
+
+    def on_stats(self, msg: msgs.MapStats) -> list[Triple]:
+        ros = rc.mapstats_to_ros(msg, distro=self.distro)
+        return [(self.params.diagnostics_topic, DIAGNOSTICS_TYPE, ros)]
 
     def map_cloud(self, stamp_ns: int) -> Triple:
         """The whole map now: Gaussian centres with their colours (an even subset beyond

@@ -386,19 +386,20 @@ def test_ros_outputs_map_cloud_follows_updates_and_is_throttled() -> None:
 
     out = RosOutputs(RosOutputParams(map_period_s=2.0, max_map_points=40), rc.Distro.ROS2)
     stats = msgs.MapStats(5, "world", 0, 10, 1, 1, 0.1, 20.0)
-    out.on_gaussians(_update(np.zeros(0), np.zeros(0), 1.0))
-    assert [t for t, _, _ in out.on_stats(stats, now_s=9.0)] == ["/diagnostics"]  # no map yet
-    assert out.on_gaussians(_update(np.arange(100), np.zeros(0), 1.0)) == []
-    first = out.on_stats(stats, now_s=10.0)
-    assert [t for t, _, _ in first] == ["/diagnostics", "/mogs/map_cloud"]
-    xyz, _ = rc.pointcloud_from_ros(first[1][2])
+    assert [t for t, _, _ in out.on_stats(stats)] == ["/diagnostics"]
+    assert out.on_gaussians(_update(np.zeros(0), np.zeros(0), 1.0), now_s=9.0) == []  # no map
+    first = out.on_gaussians(_update(np.arange(100), np.zeros(0), 1.0), now_s=10.0)
+    assert [t for t, _, _ in first] == ["/mogs/map_cloud"]
+    xyz, _ = rc.pointcloud_from_ros(first[0][2])
     assert len(xyz) == 34  # 100 Gaussians, every 3rd: <= max_map_points
-    out.on_gaussians(_update(np.arange(90, 120), np.arange(50), 2.0))  # 50 removed, 10 changed
-    assert [t for t, _, _ in out.on_stats(stats, now_s=11.0)] == ["/diagnostics"]  # too soon
-    later = out.on_stats(stats, now_s=12.5)
-    assert [t for t, _, _ in later] == ["/diagnostics", "/mogs/map_cloud"]
+    # 50 removed, 10 changed, 20 added: too soon for a cloud, the flush after 2 s sends it
+    assert out.on_gaussians(_update(np.arange(90, 120), np.arange(50), 2.0), now_s=11.0) == []
+    assert out.flush(now_s=11.5) == []
+    [(_, _, later)] = out.flush(now_s=12.5)
     assert len(out.cloud.ids) == 70 and sorted(out.cloud.ids.tolist()) == list(range(50, 120))
-    assert [t for t, _, _ in out.on_stats(stats, now_s=20.0)] == ["/diagnostics"]  # unchanged map
+    xyz, _ = rc.pointcloud_from_ros(later)
+    assert len(xyz) == 35 and set(xyz[:, 0].tolist()) <= set(range(50, 120))
+    assert out.flush(now_s=20.0) == []  # unchanged map: nothing
 
 
 def test_rviz_config_shows_what_the_bridge_publishes() -> None:

@@ -120,6 +120,13 @@ def run_bag_through_ros1(tmp_path: Path, encoding: str) -> tuple[dict, dict, Pat
                 now = (heard["depth_count"], heard["diagnostics"]["count"], n_path)
                 if now != last:
                     last, last_change = now, time.monotonic()
+            # the map cloud after the last update (sent within map_period_s of it)
+            for _ in range(30):
+                heard = read_listener(tmp_path / "heard.json")
+                n_map = int(heard["diagnostics"].get("last", {}).get("n_gaussians", -1))
+                if heard["map_cloud"] and heard["map_cloud"]["width"] == n_map:
+                    break
+                time.sleep(1)
             launch_rc = stop(launch, 420)  # Ctrl-C: the mapper writes map.ply, the report
         finally:
             stop(launch, 10)
@@ -147,6 +154,7 @@ def test_ros1_bag_through_the_pipeline(tmp_path: Path, encoding: str) -> None:
     assert heard["path"] is not None and len(heard["path"]["poses"]) >= 3
     cloud = heard["map_cloud"]
     assert cloud["width"] * cloud["height"] >= 1000 and cloud["finite"]
+    assert cloud["width"] == int(heard["diagnostics"]["last"]["n_gaussians"])  # the whole map
     assert [f[0] for f in cloud["fields"]] == ["x", "y", "z", "rgb"]
     d = heard["depth"]
     assert (
