@@ -14,8 +14,9 @@ Live behaviour:
   counted: ``frames_dropped``); IMU samples are never dropped. On the bus the frontend keeps only
   its latest image (the live policy: best-effort, latest wins, its drops counted in its own
   diagnostics).
-- ``/use_sim_time`` and ``/clock`` (``rosbag play --clock``) are followed by rospy: the stamps of
-  the outputs are those of their images, the diagnostics are stamped with ROS time.
+- ``/use_sim_time`` and ``/clock`` (``rosbag play --clock``) are followed by rospy; every output
+  carries the stamp of the data it comes from (odometry: its image's; path, cloud, depth and map
+  statistics: their keyframe's), so under a bag's clock all of them are on the bag's time.
 - the run ends cleanly when no image came for ``end_after_quiet_s`` seconds (wall time: a bag's
   ``/clock`` stops with the bag) or on Ctrl-C; the node's final diagnostics ("stopped") tell the
   report node that the input ended, the mapper writes ``map.ply``.
@@ -134,7 +135,7 @@ class Ros1BridgeParams:
     master_uri: str = ""  # the roscore ("" = $ROS_MASTER_URI)
     prefix: str = "/mogs"  # ROS names of the outputs: <prefix>/odometry, /path, /map_cloud, ...
     world_frame: str = "world"  # parent frame of poses, path, map cloud and tf
-    camera_frame: str = ""  # child frame of odometry and tf ("" = the image's frame id)
+    camera_frame: str = ""  # odometry's and tf's child, depth's frame ("" = the images' frame id)
     map_period_s: float = 2.0  # map cloud at most this often (0: after every mapped keyframe)
     max_map_points: int = 200_000  # beyond this many Gaussians the cloud is an even subset
     image_queue: int = 2  # images waiting for the bus loop; older ones are dropped, counted
