@@ -6,7 +6,7 @@ A recording holds, per recorded bus topic ``T``:
   exactly as it travelled (``[topic, header, *buffers]``, concatenated in ``data`` with the length
   of each frame in ``frame_sizes``), so a replay re-publishes it bit-exactly
   (:meth:`mogs_node.bus.Publisher.publish_frames`), sequence numbers and session ids included;
-- on topic ``/ros2`` + ``T``, the standard ROS 2 form when one exists (:func:`bridges.ros2.to_ros`:
+- on topic ``/ros2`` + ``T``, the standard ROS 2 form when one exists (:func:`bridges.ros_convert.to_ros`:
   images, IMU, odometry, poses, metric depth, map statistics), for Foxglove, ``ros2 bag play`` and
   other tools.
 
@@ -167,7 +167,7 @@ class RecordingWriter:
         self.counts[topic] = self.counts.get(topic, 0) + 1
         if not (self.ros2_types and msg is not None):
             return
-        from bridges.ros2 import to_ros
+        from bridges.ros_convert import to_ros
 
         try:
             conv = to_ros(msg)

@@ -15,6 +15,7 @@ __all__ = [
     "MessageError",
     "ModelError",
     "MogsError",
+    "Ros1UnavailableError",
     "Ros2UnavailableError",
     "ShapeError",
 ]
@@ -58,6 +59,10 @@ class ModelError(MogsError, RuntimeError):
 
 class DeviceError(MogsError, RuntimeError):
     """A live device (camera, serial port, socket) is missing or failed; the message names it."""
+
+
+class Ros1UnavailableError(MogsError, RuntimeError):
+    """rospy (Debian's ROS 1 packages) is needed and missing."""
 
 
 class Ros2UnavailableError(MogsError, RuntimeError):
