@@ -380,10 +380,18 @@ def test_mapper_prunes_redundant_gaussians_hidden_behind_a_wall() -> None:
     hidden["means"][:, 2] = 9.0  # behind the wall, same pixels
     m.map.add(hidden, birth_kf=0)
     hidden_ids = set(m.map.ids[n_wall:].tolist())
-    contrib, in_view = m._contribution([0])
-    assert bool(in_view.all()) and float(contrib[n_wall:].max()) < 0.1
+    # the forward pass's blending weights: the wall draws, the hidden ones do not
+    r = m.render_view(np.eye(4))
+    assert float(r.weights[:n_wall].sum()) > 0.9 * H * W and float(r.weights[n_wall:].max()) < 0.1
+    # unknown until the keyframe is rendered after their insertion: not judged
+    _, judged = m._contribution([0])
+    assert not bool(judged[n_wall:].any())
     # Gaussians born at the newest keyframe are not judged yet
-    m.optimize(1)
+    m.optimize(1)  # renders keyframe 0: its weight record now covers them
+    contrib, judged = m._contribution([0])
+    hid = torch.as_tensor([i in hidden_ids for i in m.map.ids.tolist()])
+    assert int(hid.sum()) == 5 and bool(judged[hid].all()) and float(contrib[hid].max()) < 0.1
+    assert float(contrib[~hid].sum()) > 0.9 * H * W
     assert hidden_ids <= set(m.map.ids.tolist())
     m.add_keyframe(1, img, np.eye(4), depth, np.ones_like(depth))
     m.optimize(1)

@@ -62,6 +62,24 @@ def test_tile_backend_matches_per_pixel_reference(backend: str, seed: int) -> No
     assert (out.depth - ref.depth).abs().max() < 1e-4 * float(ref.depth.max())
     assert (out.alpha - ref.alpha).abs().max() < 1e-4
     assert torch.equal(out.counts, ref.counts)
+    assert (out.weights - ref.weights).abs().max() < 1e-4 * max(1.0, float(ref.weights.max()))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_forward_weights_equal_colour_gradient_and_sum_to_alpha(backend: str) -> None:
+    """The forward's per-Gaussian weight sum_p alpha_i T_i is d(sum of a colour channel) / d
+    colour_i (what pruning used to get from a backward pass), and over all Gaussians it sums to
+    the image's accumulated alpha; early-terminated pixels included (opaque scene)."""
+    scene = random_scene(120, 7)
+    scene.opacity_logit = scene.opacity_logit + 3.0
+    colors = scene.colors.clone().requires_grad_()
+    scene.colors = colors
+    out = render(scene, pose(), K_SMALL, 40, 24, params=RasterParams(backend=backend))
+    (g,) = torch.autograd.grad(out.color[..., 1].sum(), colors)
+    assert float(out.weights.sum()) > 100.0
+    assert torch.allclose(out.weights, g[:, 1], rtol=1e-4, atol=1e-5)
+    assert abs(float(out.weights.sum()) - float(out.alpha.sum())) < 1e-3 * float(out.alpha.sum())
+    assert torch.equal(out.weights > 0, out.counts > 0)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -262,6 +280,8 @@ def test_property_tile_equals_reference_and_stays_finite(
     assert torch.isfinite(out.color).all() and torch.isfinite(out.depth).all()
     assert (out.color - ref.color).abs().max() < 1e-4
     assert (out.alpha - ref.alpha).abs().max() < 1e-4
+    assert torch.isfinite(out.weights).all() and bool((out.weights >= 0).all())
+    assert (out.weights - ref.weights).abs().max() < 1e-4 * max(1.0, float(ref.weights.max()))
 
 
 def test_auto_backend_falls_back_to_pytorch_without_extension(monkeypatch) -> None:

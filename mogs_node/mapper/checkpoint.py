@@ -30,7 +30,8 @@ import torch
 from mogs_node.errors import ModelError
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap
 from mogs_node.mapper.insertion import InsertionParams
-from mogs_node.mapper.mapper import GaussianMapper, KeyframeState, MapperParams, _SmallAdam
+from mogs_node.mapper.keyframe import KeyframeState, _SmallAdam
+from mogs_node.mapper.mapper import GaussianMapper, MapperParams
 from mogs_node.mapper.rasterizer import RasterParams
 
 __all__ = [
@@ -78,7 +79,7 @@ def _state(mapper: GaussianMapper) -> dict[str, Any]:
         "map.steps": m.steps,
         "map.birth_kf": m.birth_kf,
         "map.n_obs": m.n_obs,
-        "map.changed": torch.tensor(sorted(m._changed), dtype=torch.long),
+        "map.changed": m.changed_ids,
         "map.removed": torch.tensor(sorted(m._removed), dtype=torch.long),
     }
     for k in PARAM_NAMES:
@@ -90,6 +91,7 @@ def _state(mapper: GaussianMapper) -> dict[str, Any]:
         for name in _KF_TENSORS:
             tensors[f"kf{i}.{name}"] = getattr(kf, name)
         tensors[f"kf{i}.visible_ids"] = torch.as_tensor(kf.visible_ids, dtype=torch.long)
+        tensors[f"kf{i}.visible_weights"] = torch.as_tensor(kf.visible_weights, dtype=torch.float32)
         for an in ("exposure_adam", "pose_adam"):
             a: _SmallAdam = getattr(kf, an)
             tensors[f"kf{i}.{an}.m"], tensors[f"kf{i}.{an}.v"] = a.m, a.v
@@ -99,6 +101,7 @@ def _state(mapper: GaussianMapper) -> dict[str, Any]:
                 "index": kf.index,
                 "exposure_adam_t": kf.exposure_adam.t,
                 "pose_adam_t": kf.pose_adam.t,
+                "weights_next_id": kf.weights_next_id,
             }
         )
     meta = {
@@ -243,7 +246,7 @@ def load_checkpoint(
         gm.birth_kf = _tensor(t, "map.birth_kf", path, (n,))
         gm.n_obs = _tensor(t, "map.n_obs", path, (n,))
         gm._next_id = int(meta["next_id"])
-        gm._changed = set(_tensor(t, "map.changed", path, (None,)).tolist())
+        gm.set_changed_ids(_tensor(t, "map.changed", path, (None,)))
         gm._removed = set(_tensor(t, "map.removed", path, (None,)).tolist())
         if n and (bool((gm.ids[1:] <= gm.ids[:-1]).any()) or int(gm.ids[-1]) >= gm._next_id):
             raise CheckpointError(f"checkpoint {path}: Gaussian ids are not increasing")
@@ -259,6 +262,14 @@ def load_checkpoint(
                 exposure_ab=_tensor(t, f"kf{i}.exposure_ab", path, (2,)),
                 visible_ids=_tensor(t, f"kf{i}.visible_ids", path, (None,)).numpy().copy(),
             )
+            # blending-weight records (older files have none: unknown until re-rendered)
+            if f"kf{i}.visible_weights" in t:
+                kf.visible_weights = (
+                    _tensor(t, f"kf{i}.visible_weights", path, (len(kf.visible_ids),))
+                    .numpy()
+                    .copy()
+                )
+                kf.weights_next_id = int(rec.get("weights_next_id", 0))
             for an, size in (("exposure_adam", 2), ("pose_adam", 6)):
                 a = _SmallAdam(size)
                 a.m = _tensor(t, f"kf{i}.{an}.m", path, (size,))
@@ -268,6 +279,12 @@ def load_checkpoint(
             if kf.index != i:
                 raise CheckpointError(f"checkpoint {path}: keyframe {i} has index {kf.index}")
             mapper.keyframes.append(kf)
+        if mapper.device.type != "cpu":
+            gm.to(mapper.device)
+            for kf in mapper.keyframes:
+                kf.image = kf.image.to(mapper.device)
+                kf.depth_m = kf.depth_m.to(mapper.device)
+                kf.confidence = kf.confidence.to(mapper.device)
         mapper.window = [int(i) for i in meta["window"]]
         if any(not 0 <= i < len(mapper.keyframes) for i in mapper.window):
             raise CheckpointError(f"checkpoint {path}: window {mapper.window} out of range")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import logging
 import os
 import threading
@@ -38,6 +39,12 @@ _EXT_LOCK = threading.Lock()
 
 
 _NAME = "mogs_composite_cpu"
+
+
+def _source_tag(src: Path) -> str:
+    """Short hash of the C++ source: each version of it builds into its own cached module, so
+    checkouts with different sources on one machine never rebuild over each other."""
+    return hashlib.sha1(src.read_bytes()).hexdigest()[:10]
 
 
 @contextlib.contextmanager
@@ -79,13 +86,14 @@ def load_cpp_extension() -> ModuleType | None:
             from torch.utils.cpp_extension import get_default_build_root, load
 
             src = Path(__file__).with_name("csrc") / "composite_cpu.cpp"
-            build_dir = Path(get_default_build_root()) / f"mogs_torch{torch.__version__}" / _NAME
+            name = f"{_NAME}_{_source_tag(src)}"
+            build_dir = Path(get_default_build_root()) / f"mogs_torch{torch.__version__}" / name
             build_dir.mkdir(parents=True, exist_ok=True)
             if not (build_dir / f"{_NAME}.so").exists():  # first use: say why start-up waits
                 log.info("building the C++ compositing extension (once, ~20-40 s) in %s", build_dir)
             with _build_lock(build_dir):
                 _EXT = load(
-                    name=_NAME,
+                    name=name,
                     sources=[str(src)],
                     extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
                     extra_ldflags=["-fopenmp"],
@@ -101,6 +109,17 @@ def load_cpp_extension() -> ModuleType | None:
 def cpp_extension_available() -> bool:
     """True when the C++ extension is (or can be) loaded."""
     return load_cpp_extension() is not None
+
+
+def _entry_weights_per_gaussian(
+    gauss_ids: torch.Tensor, entry_w: torch.Tensor, n: int
+) -> torch.Tensor:
+    """Sum the per-list-entry weights [M] into per-Gaussian weights [n] (float64 accumulation in
+    a fixed order: ``bincount`` is serial, so the result is bitwise repeatable)."""
+    if len(gauss_ids) == 0:
+        return torch.zeros(n, dtype=entry_w.dtype)
+    w = torch.bincount(gauss_ids, weights=entry_w.double(), minlength=n)
+    return w.to(entry_w.dtype)
 
 
 class _CompositeCpp(torch.autograd.Function):
@@ -119,16 +138,17 @@ class _CompositeCpp(torch.autograd.Function):
             bg.contiguous(),
             bins.extent_px.to(feats.dtype).contiguous(),
         )
-        out, final_T, n_contrib, counts = ext.forward(
+        out, final_T, n_contrib, counts, entry_w = ext.forward(
             *args, width, height, bins.tile_px, bins.tiles_x, alpha_min, alpha_max, t_min, nthreads
         )
+        weights = _entry_weights_per_gaussian(bins.gauss_ids, entry_w, means2d.shape[0])
         ctx.save_for_backward(*args[2:], final_T, n_contrib)
         ctx.bins, ctx.size, ctx.thr = bins, (width, height), thresholds
-        ctx.mark_non_differentiable(final_T, counts)
-        return out, final_T, counts
+        ctx.mark_non_differentiable(final_T, counts, weights)
+        return out, final_T, counts, weights
 
     @staticmethod
-    def backward(ctx, grad_out, _grad_T, _grad_counts):
+    def backward(ctx, grad_out, _grad_T, _grad_counts, _grad_weights):
         means2d, conics, opacity, feats, bg, ext, final_T, n_contrib = ctx.saved_tensors
         bins, (width, height) = ctx.bins, ctx.size
         alpha_min, alpha_max, _ = ctx.thr
@@ -167,7 +187,7 @@ def composite_torch(
     height: int,
     thresholds: tuple[float, float, float],
     chunk: int = 32,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Pure-PyTorch compositing; same inputs/outputs as :func:`composite`."""
     alpha_min, alpha_max, t_min = thresholds
     ts, tx_n, ty_n = bins.tile_px, bins.tiles_x, bins.tiles_y
@@ -185,6 +205,7 @@ def composite_torch(
     T = torch.ones(n_tiles, ts * ts, dtype=dt)
     acc = torch.zeros(n_tiles, ts * ts, C, dtype=dt)
     counts = torch.zeros(means2d.shape[0], dtype=torch.int32)
+    weights = torch.zeros(means2d.shape[0], dtype=torch.float64)
     done = torch.zeros(n_tiles, ts * ts, dtype=torch.bool)
     thr = torch.log(alpha_min / opacity.detach().clamp_min(1e-30))
     max_len = int(lengths.max()) if n_tiles else 0
@@ -222,6 +243,7 @@ def composite_torch(
         with torch.no_grad():
             used = (alpha > 0) & ~stop
             counts.index_add_(0, gid.flatten(), used.sum(1).flatten().to(torch.int32))
+            weights.index_add_(0, gid.flatten(), w.detach().sum(1).flatten().double())
             done_new = done[act] | stop.any(-1)
         acc = acc.index_copy(0, act, acc_new)
         T = T.index_copy(0, act, T_new)
@@ -232,7 +254,7 @@ def composite_torch(
     # [n_tiles, ts*ts, C] -> [H, W, C]
     out = out.reshape(ty_n, tx_n, ts, ts, C).permute(0, 2, 1, 3, 4).reshape(ty_n * ts, tx_n * ts, C)
     T_img = T.reshape(ty_n, tx_n, ts, ts).permute(0, 2, 1, 3).reshape(ty_n * ts, tx_n * ts)
-    return out[:height, :width], T_img[:height, :width].detach(), counts
+    return out[:height, :width], T_img[:height, :width].detach(), counts, weights.to(dt)
 
 
 def composite(
@@ -246,13 +268,15 @@ def composite(
     height: int,
     thresholds: tuple[float, float, float],
     backend: str = "auto",
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite screen-space Gaussians into ``[H, W, C]`` features.
 
     ``means2d`` [N, 2], ``conics`` [N, 3], ``opacity`` [N], ``feats`` [N, C] (C <= 8), ``bg`` [C],
     all the same float dtype; ``thresholds = (alpha_min, alpha_max, t_min)``. Returns
-    ``(out [H, W, C], final_transmittance [H, W], counts [N] int32)`` where ``counts`` is the number
-    of pixels each Gaussian contributed to. ``backend``: ``"auto"`` (C++ if available), ``"cpp"``,
+    ``(out [H, W, C], final_transmittance [H, W], counts [N] int32, weights [N])`` where ``counts``
+    is the number of pixels each Gaussian contributed to and ``weights`` its summed blending
+    weight ``sum_p alpha_i(p) T_i(p)`` over those pixels (3DGS eq. 3's per-pixel weights; not
+    differentiable), so that pruning by contribution needs no extra pass. ``backend``: ``"auto"`` (C++ if available), ``"cpp"``,
     ``"torch"``.
     """
     if backend in ("auto", "cpp") and load_cpp_extension() is not None:

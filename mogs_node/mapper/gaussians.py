@@ -40,24 +40,42 @@ class MapChanges:
 
 
 class GaussianMap:
-    """Mutable map state (float32 tensors on the CPU)."""
+    """Mutable map state: float32 tensors (and the per-row bookkeeping) on ``device``."""
 
-    def __init__(self) -> None:
-        self.ids = torch.zeros(0, dtype=torch.long)
+    def __init__(self, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)
+        dev = self.device
+        self.ids = torch.zeros(0, dtype=torch.long, device=dev)
         self.params: dict[str, torch.Tensor] = {
-            k: torch.zeros((0, w) if w else (0,)) for k, w in _WIDTH.items()
+            k: torch.zeros((0, w) if w else (0,), device=dev) for k, w in _WIDTH.items()
         }
         self.adam_m = {k: torch.zeros_like(v) for k, v in self.params.items()}
         self.adam_v = {k: torch.zeros_like(v) for k, v in self.params.items()}
-        self.steps = torch.zeros(0, dtype=torch.long)
-        self.birth_kf = torch.zeros(0, dtype=torch.long)  # keyframe index at insertion
-        self.n_obs = torch.zeros(0, dtype=torch.long)  # keyframes that have seen the Gaussian
+        self.steps = torch.zeros(0, dtype=torch.long, device=dev)
+        self.birth_kf = torch.zeros(0, dtype=torch.long, device=dev)  # keyframe index at insertion
+        self.n_obs = torch.zeros(0, dtype=torch.long, device=dev)  # keyframes that saw it
         self._next_id = 0
-        self._changed: set[int] = set()
+        self._dirty = torch.zeros(0, dtype=torch.bool, device=dev)  # row changed since drain
         self._removed: set[int] = set()
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
+
+    @property
+    def next_id(self) -> int:
+        """The id the next added Gaussian gets (ids only grow: every id below it was issued)."""
+        return self._next_id
+
+    def to(self, device: torch.device | str) -> GaussianMap:
+        """Move every tensor to ``device`` (in place; returns self)."""
+        self.device = dev = torch.device(device)
+        self.ids, self.steps = self.ids.to(dev), self.steps.to(dev)
+        self.birth_kf, self.n_obs = self.birth_kf.to(dev), self.n_obs.to(dev)
+        self._dirty = self._dirty.to(dev)
+        for d in (self.params, self.adam_m, self.adam_v):
+            for k in d:
+                d[k] = d[k].to(dev)
+        return self
 
     def tensors(self) -> GaussianTensors:
         """The whole map as :class:`GaussianTensors` (views, no copy)."""
@@ -72,32 +90,35 @@ class GaussianMap:
                 raise ShapeError(
                     f"values[{k!r}]: expected shape {list(want)}, got {list(values[k].shape)}"
                 )
-        new_ids = torch.arange(self._next_id, self._next_id + n, dtype=torch.long)
+        dev = self.device
+        new_ids = torch.arange(self._next_id, self._next_id + n, dtype=torch.long, device=dev)
         self._next_id += n
         self.ids = torch.cat([self.ids, new_ids])
         for k in PARAM_NAMES:
-            v = values[k].detach().to(torch.float32)
+            v = values[k].detach().to(device=dev, dtype=torch.float32)
             self.params[k] = torch.cat([self.params[k], v])
             self.adam_m[k] = torch.cat([self.adam_m[k], torch.zeros_like(v)])
             self.adam_v[k] = torch.cat([self.adam_v[k], torch.zeros_like(v)])
-        self.steps = torch.cat([self.steps, torch.zeros(n, dtype=torch.long)])
-        self.birth_kf = torch.cat([self.birth_kf, torch.full((n,), birth_kf, dtype=torch.long)])
-        self.n_obs = torch.cat([self.n_obs, torch.zeros(n, dtype=torch.long)])
-        self._changed.update(new_ids.tolist())
+        self.steps = torch.cat([self.steps, torch.zeros(n, dtype=torch.long, device=dev)])
+        self.birth_kf = torch.cat(
+            [self.birth_kf, torch.full((n,), birth_kf, dtype=torch.long, device=dev)]
+        )
+        self.n_obs = torch.cat([self.n_obs, torch.zeros(n, dtype=torch.long, device=dev)])
+        self._dirty = torch.cat([self._dirty, torch.ones(n, dtype=torch.bool, device=dev)])
         return new_ids
 
     def remove(self, mask: torch.Tensor) -> int:
         """Remove the rows where ``mask`` [N] bool is True; returns how many were removed."""
+        mask = mask.to(self.device)
         if mask.shape != self.ids.shape:
             raise ShapeError(f"mask: expected shape [{len(self)}], got {list(mask.shape)}")
         n = int(mask.sum())
         if n == 0:
             return 0
-        gone = self.ids[mask].tolist()
-        self._removed.update(gone)
-        self._changed.difference_update(gone)
+        self._removed.update(self.ids[mask].tolist())
         keep = ~mask
         self.ids = self.ids[keep]
+        self._dirty = self._dirty[keep]
         for k in PARAM_NAMES:
             self.params[k] = self.params[k][keep]
             self.adam_m[k] = self.adam_m[k][keep]
@@ -134,18 +155,27 @@ class GaussianMap:
             shape = (-1,) + (1,) * (g.ndim - 1)
             step = lrs[k] * (m / c1.reshape(shape)) / ((v / c2.reshape(shape)).sqrt() + eps)
             self.params[k][rows] -= step
-        self._changed.update(self.ids[rows].tolist())
+        self._dirty[rows] = True
 
     def mark_changed(self, rows: torch.Tensor) -> None:
-        self._changed.update(self.ids[rows].tolist())
+        self._dirty[rows] = True
+
+    @property
+    def changed_ids(self) -> torch.Tensor:
+        """Ids [M] (ascending) of the rows added or changed since the last drain."""
+        return self.ids[self._dirty]
+
+    def set_changed_ids(self, ids: torch.Tensor) -> None:
+        """Mark exactly the rows with ``ids`` as changed (restoring a checkpoint)."""
+        self._dirty = torch.isin(self.ids, ids.to(self.device))
 
     def drain_changes(self) -> MapChanges:
         """Rows changed since the last call (by id) and ids removed since then; resets the log."""
-        changed = torch.tensor(sorted(self._changed), dtype=torch.long)
-        rows = torch.searchsorted(self.ids, changed) if len(changed) else changed
-        p = {k: self.params[k][rows].numpy().astype(np.float32) for k in PARAM_NAMES}
+        rows = torch.nonzero(self._dirty).flatten()
+        changed = self.ids[rows]
+        p = {k: self.params[k][rows].cpu().numpy().astype(np.float32) for k in PARAM_NAMES}
         out = MapChanges(
-            ids=changed.numpy().astype(np.int64),
+            ids=changed.cpu().numpy().astype(np.int64),
             means=p["means"],
             log_scales=p["log_scales"],
             quats_wxyz=p["quats_wxyz"],
@@ -153,6 +183,6 @@ class GaussianMap:
             colors=p["colors"],
             removed_ids=np.array(sorted(self._removed), dtype=np.int64),
         )
-        self._changed.clear()
+        self._dirty[:] = False
         self._removed.clear()
         return out

@@ -6,17 +6,26 @@ section III-D: the metric, object-consistent depth initialises the Gaussians and
 1. :meth:`GaussianMapper.add_keyframe` renders the current map at the new pose and inserts
    Gaussians where it does not explain the view (:mod:`mogs_node.mapper.insertion`), then updates
    the covisibility window (:mod:`mogs_node.mapper.window`).
-2. :meth:`GaussianMapper.optimize` runs window iterations: each renders the window keyframes plus
-   a few random past keyframes (against forgetting) and minimises
+2. :meth:`GaussianMapper.optimize` runs window iterations: each renders ONE sampled view
+   (MonoGS's one-random-view-per-iteration; the newest keyframe every other iteration, otherwise
+   an older window keyframe or a random past keyframe against forgetting), optionally at a
+   fraction of the resolution (``train_downsample``), and minimises
    ``(1 - lambda_depth) L1(exposure(render), image) + lambda_depth sum(conf |D - d| / d) / n
    + lambda_iso |log s - mean(log s)|`` with per-keyframe affine exposure ``exp(a) c + b``; only the
-   Gaussians the window sees are optimised (sparse Adam in :class:`GaussianMap`), and the window
-   poses optionally too (SE(3) tangents, the oldest window keyframe stays fixed).
+   Gaussians the view's projection keeps (in front, on screen) are rendered and optimised (sparse
+   Adam in :class:`GaussianMap`), and the window poses optionally too (SE(3) tangents, the oldest
+   window keyframe stays fixed). With ``converge_rel > 0`` a round ends early once the newest
+   view's photometric error stops falling.
 3. After each round: pruning of transparent, oversized and unsupported Gaussians (MonoGS) and of
    redundant ones (their summed blending weight over the window views, ``sum_p alpha_i T_i``, is
-   below ``prune_contrib_px`` pixels), and optional gradient-based densification (3DGS clone of
-   small Gaussians with large view-space positional gradients). The policy is the same for every
-   depth source; it depends on the depth only through the (depth, confidence) pair.
+   below ``prune_contrib_px`` pixels; the weights come out of each view's latest forward pass,
+   no extra rendering), and optional gradient-based densification (3DGS clone of small Gaussians
+   with large view-space positional gradients). The policy is the same for every depth source; it
+   depends on the depth only through the (depth, confidence) pair.
+
+``MapperParams.device``: ``"cpu"`` (default; deterministic: the same inputs give the same map bit
+for bit) or ``"cuda"``/``"cuda:N"`` (map, keyframe and optimiser tensors on the GPU, gsplat
+rasterizer); the pixel-grid insertion runs in numpy on the CPU either way.
 
 No I/O and no bus: arrays in, arrays out. The node shell is :mod:`mogs_node.mapper.node`.
 """
@@ -35,11 +44,12 @@ from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap, MapChanges
 from mogs_node.mapper.insertion import InsertionParams, insertion_mask, sample_gaussians
-from mogs_node.mapper.projection import se3_exp_torch
+from mogs_node.mapper.keyframe import KeyframeState
+from mogs_node.mapper.projection import cull_gaussians, se3_exp_torch
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput, render
 from mogs_node.mapper.window import update_window
 
-__all__ = ["GaussianMapper", "KeyframeState", "MapperParams", "export_ply"]
+__all__ = ["GaussianMapper", "KeyframeState", "MapperParams", "export_ply", "resolve_device"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +62,14 @@ class MapperParams:
     insertion: InsertionParams = field(default_factory=InsertionParams)  # insertion settings
     window_size: int = 8  # keyframes in the optimisation window
     overlap_min: float = 0.3  # window keyframes seeing less of the newest one's Gaussians leave
-    n_random_past: int = 2  # random past (non-window) keyframes per iteration, against forgetting
+    n_random_past: int = 2  # random past (non-window) keyframes among the views an iteration
+    # samples from (against forgetting): odd iterations pick uniformly from the older window
+    # keyframes plus this many past keyframes drawn afresh
+    train_downsample: int = 1  # optimise at 1/n of the resolution (area-averaged targets)
+    converge_rel: float = 0.0  # end a round once the newest view's L1 error fell by less than
+    # this fraction since its previous iteration (0: always run every iteration asked for)
+    min_iters: int = 4  # ... but never before this many iterations of the round
+    device: str = "cpu"  # cpu | cuda | cuda:N (cuda: gsplat rasterizer, needs CUDA + gsplat)
     lambda_depth: float = 0.1  # weight of the confidence-weighted relative depth L1
     lambda_iso: float = 0.05  # weight of the isotropic regulariser on log-scales
     lr_means_m: float = 0.002  # Adam step size of positions (metres)
@@ -80,50 +97,32 @@ class MapperParams:
             raise ConfigError("MapperParams: window_size >= 1, n_random_past >= 0")
         if not 0 <= self.lambda_depth <= 1:
             raise ConfigError("MapperParams.lambda_depth: must be in [0, 1]")
+        if self.train_downsample < 1 or self.converge_rel < 0 or self.min_iters < 1:
+            raise ConfigError(
+                "MapperParams: train_downsample >= 1, converge_rel >= 0, min_iters >= 1"
+            )
+        if self.device != "cpu" and not self.device.startswith("cuda"):
+            raise ConfigError(f"MapperParams.device: 'cpu' or 'cuda[:N]', got {self.device!r}")
 
 
-class _SmallAdam:
-    """Adam for one small dense tensor (exposure, pose tangent)."""
-
-    def __init__(self, n: int) -> None:
-        self.m = torch.zeros(n, dtype=torch.float64)
-        self.v = torch.zeros(n, dtype=torch.float64)
-        self.t = 0
-
-    def step(self, grad: torch.Tensor, lr: float) -> torch.Tensor:
-        self.t += 1
-        g = torch.nan_to_num(grad.detach().double())
-        self.m = 0.9 * self.m + 0.1 * g
-        self.v = 0.999 * self.v + 0.001 * g * g
-        mh = self.m / (1 - 0.9**self.t)
-        vh = self.v / (1 - 0.999**self.t)
-        return -lr * mh / (vh.sqrt() + 1e-12)
-
-
-@dataclass
-class KeyframeState:
-    """One keyframe as the mapper keeps it."""
-
-    keyframe_id: int
-    index: int  # insertion order
-    image: torch.Tensor  # [H, W, 3] uint8 as received: a quarter of f32's memory per keyframe
-    # kept for the whole drive; :attr:`image_f32` converts on use (exactly the same values)
-    depth_m: torch.Tensor  # [H, W] f32, 0 = no value
-    confidence: torch.Tensor  # [H, W] f32 in [0, 1]
-    T_cam_world: torch.Tensor  # [4, 4] f64
-    exposure_ab: torch.Tensor = field(default_factory=lambda: torch.zeros(2, dtype=torch.float64))
-    exposure_adam: _SmallAdam = field(default_factory=lambda: _SmallAdam(2))
-    pose_adam: _SmallAdam = field(default_factory=lambda: _SmallAdam(6))
-    visible_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-    @property
-    def T_world_cam(self) -> np.ndarray:
-        return se3_inverse(self.T_cam_world.numpy())
-
-    @property
-    def image_f32(self) -> torch.Tensor:
-        """[H, W, 3] f32 in [0, 1] (u8 / 255 in f32, as the image was stored before)."""
-        return self.image.to(torch.float32) / 255.0
+def resolve_device(name: str) -> torch.device:
+    """The torch device for ``MapperParams.device``; :class:`ConfigError` when CUDA is asked for
+    but this machine has none (or not that index)."""
+    if name == "cpu":
+        return torch.device("cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError as err:
+        raise ConfigError(f"mapper device: not a torch device: {name!r}") from err
+    if dev.type != "cuda":
+        raise ConfigError(f"mapper device: 'cpu' or 'cuda[:N]', got {name!r}")
+    if not torch.cuda.is_available():
+        raise ConfigError(f"mapper device {name!r}: CUDA is not available on this machine")
+    if dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ConfigError(
+            f"mapper device {name!r}: only {torch.cuda.device_count()} CUDA device(s) here"
+        )
+    return dev
 
 
 class GaussianMapper:
@@ -132,9 +131,19 @@ class GaussianMapper:
     def __init__(self, params: MapperParams, K: np.ndarray, width: int, height: int) -> None:
         K = check_array("K", K, shape=(3, 3), finite=True)
         self.params = params
+        self.device = resolve_device(params.device)
         self.K = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
         self.width, self.height = int(width), int(height)
-        self.map = GaussianMap()
+        f = params.train_downsample
+        if self.width // f < 1 or self.height // f < 1:
+            raise ConfigError(
+                f"MapperParams.train_downsample: {f} leaves no pixel of {width}x{height}"
+            )
+        fx, fy, cx, cy = self.K
+        # pixel centres at integer coordinates: block u' covers u = f u' .. f u' + f - 1
+        self.train_K = (fx / f, fy / f, (cx - (f - 1) / 2) / f, (cy - (f - 1) / 2) / f)
+        self.train_size = (self.width // f, self.height // f)
+        self.map = GaussianMap(self.device)
         self.keyframes: list[KeyframeState] = []
         self.window: list[int] = []  # indices into self.keyframes, newest first
         self.iterations = 0
@@ -143,8 +152,8 @@ class GaussianMapper:
         self.n_pruned = 0
         self.n_densified = 0
         self._rng = np.random.default_rng(params.seed)
-        self._grad_accum = torch.zeros(0)
-        self._grad_count = torch.zeros(0)
+        self._grad_accum = torch.zeros(0, device=self.device)
+        self._grad_count = torch.zeros(0, device=self.device)
 
     # ------------------------------------------------------------------------------ rendering
     def render_view(
@@ -154,7 +163,7 @@ class GaussianMapper:
         K: tuple[float, float, float, float] | None = None,
         size: tuple[int, int] | None = None,
     ) -> RenderOutput:
-        """Render the current map (no gradients) from ``T_world_cam`` [4, 4]."""
+        """Render the current map (no gradients) from ``T_world_cam`` [4, 4]; CPU tensors out."""
         T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
         W, H = size or (self.width, self.height)
         with torch.no_grad():
@@ -169,6 +178,11 @@ class GaussianMapper:
             if exposure_ab is not None:
                 out.color = self._expose(out.color, exposure_ab)
         out.color = out.color.clamp(0, 1)
+        if out.color.device.type != "cpu":
+            out = RenderOutput(
+                *(t.cpu() for t in (out.color, out.depth, out.alpha, out.counts)),
+                None if out.weights is None else out.weights.cpu(),
+            )
         return out
 
     @property
@@ -179,6 +193,7 @@ class GaussianMapper:
 
     @staticmethod
     def _expose(color: torch.Tensor, ab: torch.Tensor) -> torch.Tensor:
+        ab = ab.to(color.device)
         return torch.exp(ab[0]).to(color.dtype) * color + ab[1].to(color.dtype)
 
     # ------------------------------------------------------------------------------ keyframes
@@ -193,7 +208,8 @@ class GaussianMapper:
         """Add a keyframe and insert Gaussians where the map does not explain it; returns how many.
 
         ``image_rgb`` [H, W, 3] uint8, ``T_world_cam`` [4, 4], ``depth_m`` [H, W] (0 = no value),
-        ``confidence`` [H, W] in [0, 1].
+        ``confidence`` [H, W] in [0, 1]. The one render of the current map at the new pose
+        decides where to insert and is the new keyframe's first visibility record.
         """
         H, W = self.height, self.width
         img = check_array("image_rgb", image_rgb, shape=(H, W, 3), dtype=np.uint8)
@@ -202,11 +218,20 @@ class GaussianMapper:
         c = check_array("confidence", confidence, shape=(H, W), dtype=np.floating)
         d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
         c = np.clip(np.nan_to_num(c), 0.0, 1.0).astype(np.float32)
+        next_id_before = self.map.next_id
+        seen_ids = np.zeros(0, np.int64)
+        seen_w = np.zeros(0, np.float32)
         if len(self.map):
             r = self.render_view(T)
             alpha = r.alpha.numpy()
             rdepth = (r.depth / r.alpha.clamp_min(1e-6)).numpy()
             rrgb = r.color.numpy()
+            vis = (r.counts > 0).to(self.device)
+            seen_ids = self.map.ids[vis].cpu().numpy()
+            if r.weights is not None:
+                seen_w = r.weights[vis.cpu()].numpy().astype(np.float32)
+            else:  # no weights from this backend: unknown until the view is trained
+                next_id_before = 0
         else:
             alpha = rdepth = rrgb = None
         mask = insertion_mask(
@@ -216,17 +241,20 @@ class GaussianMapper:
         new = sample_gaussians(
             img, d, c, mask, self.K_matrix, T, self.params.insertion, offset=index
         )
-        self.map.add(new, birth_kf=index)
+        new_ids = self.map.add(new, birth_kf=index)
+        dev = self.device
         kf = KeyframeState(
             keyframe_id=int(keyframe_id),
             index=index,
-            image=torch.as_tensor(np.ascontiguousarray(img)),
-            depth_m=torch.as_tensor(d),
-            confidence=torch.as_tensor(c),
+            image=torch.as_tensor(np.ascontiguousarray(img)).to(dev),
+            depth_m=torch.as_tensor(d).to(dev),
+            confidence=torch.as_tensor(c).to(dev),
             T_cam_world=torch.as_tensor(se3_inverse(T)),
+            visible_ids=np.concatenate([seen_ids, new_ids.cpu().numpy()]),
+            visible_weights=seen_w if next_id_before else np.zeros(0, np.float32),
+            weights_next_id=next_id_before,
         )
         self.keyframes.append(kf)
-        self._refresh_visibility([index])
         self.window, dropped = update_window(
             self.window,
             index,
@@ -244,33 +272,15 @@ class GaussianMapper:
         )
         return int(len(new["means"]))
 
-    def _refresh_visibility(self, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Render keyframes ``indices``; store their visible ids; rows seen by any, times seen."""
-        seen = torch.zeros(len(self.map), dtype=torch.bool)
-        obs = torch.zeros(len(self.map), dtype=torch.long)
-        for i in indices:
-            kf = self.keyframes[i]
-            with torch.no_grad():
-                out = render(
-                    self.map.tensors(),
-                    kf.T_cam_world,
-                    self.K,
-                    self.width,
-                    self.height,
-                    params=self.params.raster,
-                )
-            vis = out.counts > 0
-            kf.visible_ids = self.map.ids[vis].numpy()
-            seen |= vis
-            obs += vis.long()
-        return seen, obs
-
     # ------------------------------------------------------------------------------ optimisation
     def optimize(
         self, n_iters: int, should_stop: Callable[[], bool] | None = None
     ) -> dict[str, float]:
-        """Run ``n_iters`` window iterations, then prune (and densify); returns statistics.
+        """Run up to ``n_iters`` window iterations, then prune (and densify); returns statistics.
 
+        One sampled view per iteration (:meth:`_pick_view`). With ``converge_rel > 0`` the round
+        ends early (after at least ``min_iters``) once an iteration of the newest keyframe lowered
+        its L1 photometric error by less than that fraction of the previous one.
         ``should_stop`` is polled before each iteration: a node asked to shut down (SIGINT) ends
         the window early instead of holding the launcher past its stop timeout; the map stays
         consistent (every finished iteration is kept, pruning still runs).
@@ -278,11 +288,8 @@ class GaussianMapper:
         if not self.keyframes or n_iters <= 0:
             return self.stats()
         p = self.params
-        seen, obs = self._refresh_visibility(self.window)
-        self.map.n_obs = torch.maximum(self.map.n_obs, obs)
-        rows = torch.nonzero(seen).flatten()
-        self._grad_accum = torch.zeros(len(rows))
-        self._grad_count = torch.zeros(len(rows))
+        self._grad_accum = torch.zeros(len(self.map), device=self.device)
+        self._grad_count = torch.zeros(len(self.map), device=self.device)
         lrs = {
             "means": p.lr_means_m,
             "colors": p.lr_colors,
@@ -290,160 +297,231 @@ class GaussianMapper:
             "log_scales": p.lr_log_scales,
             "quats_wxyz": p.lr_quats,
         }
+        newest = self.window[0]
         past = [k.index for k in self.keyframes if k.index not in self.window]
         fixed_pose = max(self.window) if len(self.window) == 1 else min(self.window)
-        for _ in range(n_iters):
+        prev_err = None
+        for it in range(n_iters):
             if should_stop is not None and should_stop():
                 break
-            views = list(self.window)
-            if past and p.n_random_past:
-                pick = self._rng.choice(
-                    len(past), size=min(p.n_random_past, len(past)), replace=False
-                )
-                views += [past[i] for i in pick]
-            leaves = {k: self.map.params[k][rows].clone().requires_grad_() for k in PARAM_NAMES}
-            full = GaussianTensors(
-                **{k: self.map.params[k].index_put((rows,), leaves[k]) for k in PARAM_NAMES}
-            )
-            total = torch.zeros(())
-            mse_sum = 0.0
-            tangents: dict[int, torch.Tensor] = {}
-            exposures: dict[int, torch.Tensor] = {}
-            for i in views:
-                kf = self.keyframes[i]
-                xi = None
-                if p.refine_poses and i in self.window and i != fixed_pose:
-                    xi = tangents[i] = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-                out = render(
-                    full,
-                    kf.T_cam_world,
-                    self.K,
-                    self.width,
-                    self.height,
-                    pose_tangent=xi,
-                    params=p.raster,
-                )
-                color = out.color
-                image = kf.image_f32
-                if p.exposure:
-                    ab = exposures[i] = kf.exposure_ab.clone().requires_grad_()
-                    color = self._expose(color, ab)
-                l_rgb = (color - image).abs().mean()
-                dmask = kf.depth_m > 0
-                if p.lambda_depth > 0 and bool(dmask.any()):
-                    rel = (out.depth - kf.depth_m).abs() / kf.depth_m.clamp_min(1e-3)
-                    l_depth = (kf.confidence * rel)[dmask].mean()
-                else:
-                    l_depth = torch.zeros(())
-                total = total + (1 - p.lambda_depth) * l_rgb + p.lambda_depth * l_depth
-                mse_sum += float(((color.detach().clamp(0, 1) - image) ** 2).mean())
-            ls = leaves["log_scales"]
-            if p.lambda_iso > 0 and len(rows):
-                total = total + p.lambda_iso * (ls - ls.mean(1, keepdim=True)).abs().mean()
-            grads = torch.autograd.grad(
-                total,
-                [*leaves.values(), *exposures.values(), *tangents.values()],
-                allow_unused=True,
-            )
-            g_map = dict(zip(leaves.keys(), grads[: len(leaves)], strict=True))
-            if p.densify and g_map["means"] is not None:
-                self._accumulate_densify_stats(rows, g_map["means"])
-            self.map.adam_step(rows, g_map, lrs)
-            self.map.params["colors"][rows] = self.map.params["colors"][rows].clamp(0, 1)
-            off = len(leaves)
-            for j, i in enumerate(exposures):
-                if grads[off + j] is not None:
-                    kf = self.keyframes[i]
-                    kf.exposure_ab = kf.exposure_ab + kf.exposure_adam.step(
-                        grads[off + j], p.lr_exposure
-                    )
-            off += len(exposures)
-            for j, i in enumerate(tangents):
-                if grads[off + j] is not None:
-                    kf = self.keyframes[i]
-                    step = kf.pose_adam.step(grads[off + j], p.lr_pose)
-                    kf.T_cam_world = se3_exp_torch(step) @ kf.T_cam_world
-            self.iterations += 1
-            self.last_loss = float(total.detach()) / len(views)
-            mse = mse_sum / len(views)
-            self.last_psnr_db = -10 * math.log10(max(mse, 1e-12))
+            view = self._pick_view(it, past)
+            err = self._train_step(view, fixed_pose, lrs)
+            if view != newest:
+                continue
+            if (
+                p.converge_rel > 0
+                and prev_err is not None
+                and it + 1 >= p.min_iters
+                and prev_err - err < p.converge_rel * prev_err
+            ):
+                break
+            prev_err = err
         if p.densify:
-            self._densify(rows)
+            self._densify()
         self._prune()
         return self.stats()
 
-    def _accumulate_densify_stats(self, rows: torch.Tensor, g_means: torch.Tensor) -> None:
-        kf = self.keyframes[self.window[0]]
-        R, t = kf.T_cam_world[:3, :3].float(), kf.T_cam_world[:3, 3].float()
-        z = (self.map.params["means"][rows] @ R.T + t)[:, 2].clamp_min(1e-3)
-        self._grad_accum += g_means.norm(dim=1) * z / self.K[0]
-        self._grad_count += 1
+    def _pick_view(self, it: int, past: list[int]) -> int:
+        """Even iterations: the newest keyframe; odd: one of the older window keyframes and
+        ``n_random_past`` past keyframes drawn afresh, uniformly (``self._rng``: deterministic)."""
+        older = list(self.window[1:])
+        if it % 2 == 0 or not (older or past):
+            return self.window[0]
+        pool = older
+        if past and self.params.n_random_past:
+            pick = self._rng.choice(
+                len(past), size=min(self.params.n_random_past, len(past)), replace=False
+            )
+            pool += [past[i] for i in pick]
+        if not pool:
+            return self.window[0]
+        return pool[int(self._rng.integers(len(pool)))]
 
-    def _densify(self, rows: torch.Tensor) -> None:
+    def _visible_rows(self, T_cam_world: torch.Tensor) -> torch.Tensor:
+        """Rows [R] of the Gaussians the training view may draw: a superset of the projection
+        step's cull (in front, opacity above ``alpha_min``, support box on screen;
+        :func:`cull_gaussians`). Rendering only these gives the same image as the whole map."""
+        r = self.params.raster
+        W, H = self.train_size
+        prm = self.map.params
+        valid = cull_gaussians(
+            prm["means"],
+            prm["log_scales"],
+            prm["opacity_logit"],
+            T_cam_world.to(device=self.device, dtype=prm["means"].dtype),
+            self.train_K,
+            W,
+            H,
+            near_m=r.near_m,
+            eps2d_px2=r.eps2d_px2,
+            alpha_min=r.alpha_min,
+            log_scale_range=(r.log_scale_min, r.log_scale_max),
+        )
+        return torch.nonzero(valid).flatten()
+
+    def _train_step(self, i: int, fixed_pose: int, lrs: dict[str, float]) -> float:
+        """One iteration on keyframe ``i``; returns its L1 photometric error (after exposure)."""
+        p = self.params
+        kf = self.keyframes[i]
+        rows = self._visible_rows(kf.T_cam_world)
+        leaves = {k: self.map.params[k][rows].clone().requires_grad_() for k in PARAM_NAMES}
+        xi = None
+        if p.refine_poses and i in self.window and i != fixed_pose:
+            xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        W, H = self.train_size
+        out = render(
+            GaussianTensors(**leaves),
+            kf.T_cam_world,
+            self.train_K,
+            W,
+            H,
+            pose_tangent=xi,
+            params=p.raster,
+        )
+        weights = out.weights
+        if weights is None:  # gsplat: d(sum of a colour channel) / d colour_i = sum_p alpha_i T_i
+            (g_col,) = torch.autograd.grad(
+                out.color[..., 0].sum(), leaves["colors"], retain_graph=True
+            )
+            weights = g_col[:, 0].detach()
+        image, depth_m, conf = kf.targets(p.train_downsample)
+        color = out.color
+        ab = None
+        if p.exposure:
+            ab = kf.exposure_ab.clone().requires_grad_()
+            color = self._expose(color, ab)
+        l_rgb = (color - image).abs().mean()
+        total = (1 - p.lambda_depth) * l_rgb
+        dmask = depth_m > 0
+        if p.lambda_depth > 0 and bool(dmask.any()):
+            rel = (out.depth - depth_m).abs() / depth_m.clamp_min(1e-3)
+            total = total + p.lambda_depth * (conf * rel)[dmask].mean()
+        ls = leaves["log_scales"]
+        if p.lambda_iso > 0 and len(rows):
+            total = total + p.lambda_iso * (ls - ls.mean(1, keepdim=True)).abs().mean()
+        extra = [t for t in (ab, xi) if t is not None]
+        grads = torch.autograd.grad(total, [*leaves.values(), *extra], allow_unused=True)
+        g_map = dict(zip(leaves.keys(), grads[: len(leaves)], strict=True))
+        if p.densify and g_map["means"] is not None:
+            self._accumulate_densify_stats(kf, rows, g_map["means"])
+        # Adam only for the Gaussians this view drew (the others have no photometric gradient:
+        # they neither move nor age)
+        drawn = out.counts > 0
+        g_map = {k: None if g is None else g[drawn] for k, g in g_map.items()}
+        upd = rows[drawn]
+        self.map.adam_step(upd, g_map, lrs)
+        self.map.params["colors"][upd] = self.map.params["colors"][upd].clamp(0, 1)
+        g_extra = list(grads[len(leaves) :])
+        if ab is not None:
+            g_ab = g_extra.pop(0)
+            if g_ab is not None:
+                kf.exposure_ab = kf.exposure_ab + kf.exposure_adam.step(g_ab, p.lr_exposure)
+        if xi is not None and g_extra[0] is not None:
+            step = kf.pose_adam.step(g_extra[0], p.lr_pose)
+            kf.T_cam_world = se3_exp_torch(step) @ kf.T_cam_world
+        # this render is the keyframe's visibility and blending-weight record (for the window and
+        # pruning); weights in full-resolution pixels
+        vis = out.counts > 0
+        kf.visible_ids = self.map.ids[rows[vis]].cpu().numpy()
+        scale = float(p.train_downsample**2)
+        kf.visible_weights = (weights[vis].float() * scale).cpu().numpy()
+        kf.weights_next_id = self.map.next_id
+        self.iterations += 1
+        self.last_loss = float(total.detach())
+        mse = float(((color.detach().clamp(0, 1) - image) ** 2).mean())
+        self.last_psnr_db = -10 * math.log10(max(mse, 1e-12))
+        return float(l_rgb.detach())
+
+    def _accumulate_densify_stats(
+        self, kf: KeyframeState, rows: torch.Tensor, g_means: torch.Tensor
+    ) -> None:
+        T = kf.T_cam_world.to(device=self.device, dtype=torch.float32)
+        z = (self.map.params["means"][rows] @ T[:3, :3].T + T[:3, 3])[:, 2].clamp_min(1e-3)
+        self._grad_accum[rows] += g_means.norm(dim=1) * z / self.K[0]
+        self._grad_count[rows] += 1
+
+    def _densify(self) -> None:
         """3DGS clone: copy Gaussians whose mean view-space gradient exceeds the threshold."""
-        if len(rows) == 0:
+        if len(self._grad_accum) == 0:
             return
+        seen = self._grad_count > 0
         mean_grad = self._grad_accum / self._grad_count.clamp_min(1)
-        pick = rows[mean_grad > self.params.densify_grad_px]
+        pick = torch.nonzero(seen & (mean_grad > self.params.densify_grad_px)).flatten()
         if len(pick) == 0:
             return
         vals = {k: self.map.params[k][pick].clone() for k in PARAM_NAMES}
-        noise = torch.randn(len(pick), 3, generator=torch.Generator().manual_seed(self.iterations))
+        gen = torch.Generator().manual_seed(self.iterations)  # CPU: the same noise on any device
+        noise = torch.randn(len(pick), 3, generator=gen).to(self.device)
         vals["means"] = vals["means"] + noise * torch.exp(vals["log_scales"])
         self.map.add(vals, birth_kf=len(self.keyframes) - 1)
         self.n_densified += len(pick)
 
-    def _contribution(self, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-Gaussian summed blending weight ``sum_p alpha_i T_i`` [N] over keyframes ``indices``
-        and whether its centre lies in front of and inside the image of any of them [N] bool.
+    def _rows_of(self, ids: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows of the Gaussians with ``ids`` that are still in the map, and which ids those are."""
+        t = torch.as_tensor(ids, dtype=torch.long, device=self.device)
+        if len(self.map) == 0 or len(t) == 0:
+            return t[:0], torch.zeros(len(t), dtype=torch.bool, device=self.device)
+        rows = torch.searchsorted(self.map.ids, t).clamp_max(len(self.map) - 1)
+        ok = self.map.ids[rows] == t
+        return rows[ok], ok
 
-        The weight is the gradient of the rendered colour's channel sum with respect to the
-        Gaussian's colour (one backward per view); an occluded Gaussian inside the view has weight
-        0."""
-        contrib = torch.zeros(len(self.map))
-        in_view = torch.zeros(len(self.map), dtype=torch.bool)
+    def _contribution(self, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-Gaussian summed blending weight ``sum_p alpha_i T_i`` [N] over the latest renders
+        of keyframes ``indices`` (full-resolution pixels), and whether it can be judged [N] bool:
+        its centre lies in front of and inside at least one of those views whose render came
+        after the Gaussian's birth (an occluded Gaussian there has weight 0)."""
+        n = len(self.map)
+        contrib = torch.zeros(n, device=self.device)
+        judged = torch.zeros(n, dtype=torch.bool, device=self.device)
         prm = self.map.params
         fx, fy, cx, cy = self.K
         for i in indices:
             kf = self.keyframes[i]
-            colors = prm["colors"].clone().requires_grad_()
-            g = GaussianTensors(**{k: prm[k] for k in PARAM_NAMES if k != "colors"}, colors=colors)
-            out = render(
-                g, kf.T_cam_world, self.K, self.width, self.height, params=self.params.raster
-            )
-            (grad,) = torch.autograd.grad(out.color[..., 0].sum(), colors)
-            contrib += torch.nan_to_num(grad[:, 0].detach())
-            T = kf.T_cam_world.to(prm["means"].dtype)
+            if kf.weights_next_id == 0:
+                continue
+            rows, ok = self._rows_of(kf.visible_ids)
+            if len(kf.visible_weights) == len(kf.visible_ids):
+                w = torch.as_tensor(kf.visible_weights, device=self.device)[ok]
+                contrib.index_add_(0, rows, w.to(contrib.dtype))
+            T = kf.T_cam_world.to(device=self.device, dtype=prm["means"].dtype)
             p_cam = prm["means"] @ T[:3, :3].T + T[:3, 3]
             z = p_cam[:, 2]
             zs = z.clamp_min(1e-6)
             u, v = fx * p_cam[:, 0] / zs + cx, fy * p_cam[:, 1] / zs + cy
-            in_view |= (
+            in_view = (
                 (z > self.params.raster.near_m)
                 & (u >= 0)
                 & (u < self.width)
                 & (v >= 0)
                 & (v < self.height)
             )
-        return contrib, in_view
+            judged |= in_view & (self.map.ids < kf.weights_next_id)
+        return contrib, judged
 
     def _prune(self) -> None:
         p = self.params
         if len(self.map) == 0:
             return
         prm = self.map.params
+        obs = torch.zeros(len(self.map), dtype=torch.long, device=self.device)
+        for i in self.window:
+            rows, _ = self._rows_of(self.keyframes[i].visible_ids)
+            obs[rows] += 1
+        self.map.n_obs = torch.maximum(self.map.n_obs, obs)
         opacity = torch.sigmoid(prm["opacity_logit"])
         newest = self.keyframes[self.window[0]]
-        cam_center = torch.as_tensor(newest.T_world_cam[:3, 3], dtype=torch.float32)
+        cam_center = torch.as_tensor(
+            newest.T_world_cam[:3, 3], dtype=torch.float32, device=self.device
+        )
         dist = (prm["means"] - cam_center).norm(dim=1)
         too_big = torch.exp(prm["log_scales"]).amax(1) > p.prune_size_ratio * dist
         old = self.map.birth_kf <= len(self.keyframes) - 1 - p.support_kfs
         unsupported = old & (self.map.n_obs < p.support_min_obs)
         mask = (opacity < p.prune_opacity) | too_big | unsupported
         if p.prune_contrib_px > 0:
-            contrib, in_view = self._contribution(self.window)
+            contrib, judged = self._contribution(self.window)
             settled = self.map.birth_kf < newest.index
-            mask |= in_view & settled & (contrib < p.prune_contrib_px)
+            mask |= judged & settled & (contrib < p.prune_contrib_px)
         self.n_pruned += self.map.remove(mask)
 
     # ------------------------------------------------------------------------------ outputs
@@ -475,7 +553,7 @@ def export_ply(mapper: GaussianMapper, path: str) -> None:
     """Write ``mapper``'s map as a standard 3DGS PLY (:mod:`mogs_node.mapper.ply`)."""
     from mogs_node.mapper.ply import write_gaussian_ply
 
-    prm = {k: v.numpy() for k, v in mapper.map.params.items()}
+    prm = {k: v.detach().cpu().numpy() for k, v in mapper.map.params.items()}
     write_gaussian_ply(
         path,
         prm["means"],

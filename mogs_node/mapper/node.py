@@ -33,7 +33,7 @@ from mogs_node.mapper.checkpoint import (
     save_checkpoint,
 )
 from mogs_node.mapper.composite import load_cpp_extension
-from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
+from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply, resolve_device
 from mogs_node.mapper.rasterizer import RasterParams
 from mogs_node.node import CATCH_UP_ENV, Node
 
@@ -44,12 +44,19 @@ __all__ = ["KeyframeDepthPairs", "MapperNode", "MapperNodeParams"]
 class MapperNodeParams:
     """Parameters of the mapper node (flat; the mapper core's are :class:`MapperParams`)."""
 
-    iters_per_keyframe: int = 30  # window iterations after each keyframe
+    iters_per_keyframe: int = (
+        30  # window iterations after each keyframe (at most, see converge_rel)
+    )
     iters_when_behind: int = -1  # iterations for a keyframe while more input waits (-1: never
     # fewer than iters_per_keyframe); the iterations saved are run when the input queue is empty
     idle_iters_per_tick: int = 2  # owed iterations run per idle timer tick (0: never run them)
     window_size: int = 8  # keyframes in the optimisation window
-    n_random_past: int = 2  # random past keyframes per iteration
+    n_random_past: int = 2  # random past keyframes among an iteration's candidate views
+    train_downsample: int = 1  # optimise at 1/n of the image resolution
+    converge_rel: float = 0.0  # end a keyframe's iterations once the newest view's L1 error
+    # falls by less than this fraction per iteration of it (0: always iters_per_keyframe)
+    min_iters: int = 4  # ... never before this many
+    device: str = "cpu"  # cpu | cuda[:N]: where the map lives and is optimised (cuda: gsplat)
     lambda_depth: float = 0.1  # weight of the confidence-weighted depth loss
     exposure: bool = True  # per-keyframe affine exposure compensation
     refine_poses: bool = False  # optimise window keyframe poses
@@ -84,6 +91,10 @@ class MapperNodeParams:
             raster=RasterParams(backend=self.backend),
             window_size=self.window_size,
             n_random_past=self.n_random_past,
+            train_downsample=self.train_downsample,
+            converge_rel=self.converge_rel,
+            min_iters=self.min_iters,
+            device=self.device,
             lambda_depth=self.lambda_depth,
             exposure=self.exposure,
             refine_poses=self.refine_poses,
@@ -141,6 +152,7 @@ class MapperNode(Node):
         p: MapperNodeParams = self.params
         if p.threads:
             torch.set_num_threads(p.threads)
+        resolve_device(p.device)  # a missing GPU fails here, with one clear ConfigError
         self.pairs = KeyframeDepthPairs(p.max_pending)
         self.mapper: GaussianMapper | None = None
         self.integrated_keyframe_ids: set[int] = set()  # keyframes in the map (restart catch-up)
@@ -165,7 +177,7 @@ class MapperNode(Node):
                 self.log.info(
                     "resumed from %s: %d keyframes", ck, len(self.integrated_keyframe_ids)
                 )
-        if p.backend in ("auto", "cpp"):
+        if p.backend in ("auto", "cpp") and p.device == "cpu":
             # compile (first run on a machine: ~40 s, minutes under load) before the first
             # keyframe, not inside its handler where heartbeats stop
             load_cpp_extension()
@@ -266,8 +278,8 @@ class MapperNode(Node):
                 p.render_topic,
                 msgs.Render(
                     **kf.result_header(),
-                    image=(r.color.numpy() * 255 + 0.5).astype(np.uint8),
-                    depth=np.nan_to_num(depth_m.numpy()).astype(np.float32),
+                    image=(r.color.cpu().numpy() * 255 + 0.5).astype(np.uint8),
+                    depth=np.nan_to_num(depth_m.cpu().numpy()).astype(np.float32),
                 ),
             )
         ch = m.drain_changes()

@@ -26,6 +26,7 @@ __all__ = [
     "Projected",
     "TileBins",
     "bin_tiles",
+    "cull_gaussians",
     "project_gaussians",
     "quat_wxyz_to_rotmat_torch",
     "se3_exp_torch",
@@ -165,6 +166,54 @@ def project_gaussians(
         valid &= (u + ext[:, 0] >= 0) & (u - ext[:, 0] <= width - 1)
         valid &= (v + ext[:, 1] >= 0) & (v - ext[:, 1] <= height - 1)
     return Projected(torch.stack([u, v], -1), conics, z, opacity, valid, ext)
+
+
+@torch.no_grad()
+def cull_gaussians(
+    means: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logit: torch.Tensor,
+    T_cam_world: torch.Tensor,
+    K: tuple[float, float, float, float],
+    width: int,
+    height: int,
+    *,
+    near_m: float,
+    eps2d_px2: float,
+    alpha_min: float,
+    log_scale_range: tuple[float, float],
+    fov_clamp: float = 1.3,
+) -> torch.Tensor:
+    """[N] bool, a superset of :func:`project_gaussians`'s ``valid`` from centres and the largest
+    scale only (no rotations, no 2D covariances): the cheap visibility test of a training view.
+
+    The EWA support half-width ``sqrt(2 ln(o / alpha_min) Sigma_2d[0, 0])`` is bounded with
+    ``Sigma_2d[0, 0] <= |J_0|^2 s_max^2 + eps`` and ``|J_0|^2 <= fx^2 (1 + lim_x^2) / z^2`` (the
+    clamped view direction of :func:`project_gaussians`), with 0.1 % slack for rounding."""
+    fx, fy, cx, cy = (float(v) for v in K)
+    dt = means.dtype
+    p_cam = means @ T_cam_world[:3, :3].to(dt).T + T_cam_world[:3, 3].to(dt)
+    z = p_cam[:, 2]
+    in_front = z > near_m
+    zs = torch.where(in_front, z, torch.ones_like(z))
+    u = fx * p_cam[:, 0] / zs + cx
+    v = fy * p_cam[:, 1] / zs + cy
+    lim_x = fov_clamp * max(cx + 0.5, width - 0.5 - cx) / fx
+    lim_y = fov_clamp * max(cy + 0.5, height - 0.5 - cy) / fy
+    s2 = torch.exp(2.0 * log_scales.amax(1).clamp(*log_scale_range))
+    opacity = torch.sigmoid(opacity_logit)
+    ln2 = 2.0 * torch.log((opacity / alpha_min).clamp_min(1.0))
+    bx = (ln2 * (fx * fx * (1 + lim_x * lim_x) * s2 / (zs * zs) + eps2d_px2)).sqrt() * 1.001
+    by = (ln2 * (fy * fy * (1 + lim_y * lim_y) * s2 / (zs * zs) + eps2d_px2)).sqrt() * 1.001
+    bx, by = bx + 0.01, by + 0.01
+    return (
+        in_front
+        & (opacity >= alpha_min)
+        & (u + bx >= 0)
+        & (u - bx <= width - 1)
+        & (v + by >= 0)
+        & (v - by <= height - 1)
+    )
 
 
 @dataclass

@@ -72,6 +72,7 @@ def render_reference(
     Tr = torch.ones(pix.shape[0], dtype=dt)
     done = torch.zeros(pix.shape[0], dtype=torch.bool)
     counts = torch.zeros(n, dtype=torch.int32)
+    weights = torch.zeros(n, dtype=dt)
     for i in torch.argsort(z.detach(), stable=True).tolist():
         if not bool(front[i]) or float(opacity[i].detach()) < params.alpha_min:
             continue
@@ -90,10 +91,12 @@ def render_reference(
         alpha_acc = alpha_acc + w
         Tr = Tr * (1 - a)
         counts[i] = int(use.sum())
+        weights[i] = w.detach().sum()
     color = color + Tr[:, None] * bg
     return RenderOutput(
         color.reshape(height, width, 3),
         depth.reshape(height, width),
         alpha_acc.reshape(height, width),
         counts,
+        weights,
     )

@@ -76,12 +76,15 @@ class GaussianTensors:
 class RenderOutput:
     """``color`` [H, W, 3], ``depth`` [H, W] (z-depth weighted by alpha, not normalised: divide
     by ``alpha`` for the expected depth of the covered part), ``alpha`` [H, W] accumulated opacity,
-    ``counts`` [N] int32 number of pixels each Gaussian contributed to (visibility)."""
+    ``counts`` [N] int32 number of pixels each Gaussian contributed to (visibility), ``weights``
+    [N] each Gaussian's summed blending weight ``sum_p alpha_i T_i`` over the image (pixels; no
+    gradient), ``None`` where the backend does not produce it (gsplat)."""
 
     color: torch.Tensor
     depth: torch.Tensor
     alpha: torch.Tensor
     counts: torch.Tensor
+    weights: torch.Tensor | None = None
 
 
 def check_gaussians(g: GaussianTensors) -> None:
@@ -130,8 +133,12 @@ def render(
     if pose_tangent is not None:
         if tuple(pose_tangent.shape) != (6,):
             raise ShapeError("pose_tangent: expected shape [6]")
-        T = se3_exp_torch(pose_tangent.to(dt)) @ T
-    bg = torch.zeros(3, dtype=dt, device=dev) if background is None else background.to(dt)
+        T = se3_exp_torch(pose_tangent.to(dtype=dt, device=dev)) @ T
+    bg = (
+        torch.zeros(3, dtype=dt, device=dev)
+        if background is None
+        else background.to(dtype=dt, device=dev)
+    )
     backend = params.backend
     if backend == "gsplat" or (backend == "auto" and dev.type == "cuda"):
         from mogs_node.mapper.raster_gsplat import gsplat_available, render_gsplat
@@ -160,7 +167,7 @@ def render(
     ones = torch.ones_like(proj.depths_m)[:, None]
     feats = torch.cat([gaussians.colors, proj.depths_m[:, None], ones], 1)
     bg5 = torch.cat([bg, torch.zeros(2, dtype=dt, device=dev)])
-    out, _, counts = composite(
+    out, _, counts, weights = composite(
         proj.means2d_px,
         proj.conics,
         proj.opacity,
@@ -172,4 +179,4 @@ def render(
         (params.alpha_min, params.alpha_max, params.t_min),
         backend="torch" if backend == "torch" else "auto",
     )
-    return RenderOutput(out[..., :3], out[..., 3], out[..., 4], counts)
+    return RenderOutput(out[..., :3], out[..., 3], out[..., 4], counts, weights)

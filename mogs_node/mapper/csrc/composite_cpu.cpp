@@ -6,6 +6,8 @@
 // d = mean - pixel; skip when opacity * exp(power) < alpha_min; alpha = min(alpha_max, ...);
 // stop (without this Gaussian) when T * (1 - alpha) < t_min; out += f * alpha * T.
 // The backward pass walks each pixel's list back to front (3DGS backward), recovering T by division.
+// The forward also returns each list entry's summed blending weight sum_p alpha T over the tile's
+// pixels (entry_w, one slot per entry, so no float atomics); the caller sums them per Gaussian.
 // Gradients are accumulated in per-thread buffers and summed at the end (no atomics on floats);
 // the backward hands tiles to threads in a fixed round-robin order (schedule(static, 1)), so a
 // given thread count gives bitwise the same gradients on every run (dynamic scheduling did not).
@@ -102,7 +104,7 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
                     const torch::Tensor& ext, int64_t W, int64_t H, int64_t tile, int64_t tiles_x,
                     double alpha_min, double alpha_max, double t_min, int nthreads,
                     torch::Tensor& out, torch::Tensor& final_T, torch::Tensor& n_contrib,
-                    torch::Tensor& counts) {
+                    torch::Tensor& counts, torch::Tensor& entry_w) {
   const int64_t C = feats.size(1);
   const int64_t n_tiles = tile_offsets.size(0) - 1;
   const int64_t* offs = tile_offsets.data_ptr<int64_t>();
@@ -117,6 +119,7 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
   scalar_t* Tp = final_T.data_ptr<scalar_t>();
   int32_t* ncp = n_contrib.data_ptr<int32_t>();
   int32_t* cnt = counts.data_ptr<int32_t>();
+  scalar_t* ewp = entry_w.data_ptr<scalar_t>();
   const scalar_t amax = static_cast<scalar_t>(alpha_max);
   const scalar_t amin = static_cast<scalar_t>(alpha_min);
   const scalar_t tmin = static_cast<scalar_t>(t_min);
@@ -146,6 +149,7 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
         int64_t y0, y1, x0, x1;
         row_range(p, py0, py1, y0, y1);
         int32_t used = 0;
+        scalar_t w_sum = 0;
         for (int64_t y = y0; y <= y1; ++y) {
           if (!col_range(p, y, px0, px1, x0, x1)) continue;
           const scalar_t dy = p.my - static_cast<scalar_t>(y);
@@ -170,9 +174,11 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
             T[i] = test_T;
             last[i] = static_cast<int32_t>(k + 1);
             ++used;
+            w_sum += w;
           }
         }
         if (used) __atomic_fetch_add(cnt + p.id, used, __ATOMIC_RELAXED);
+        ewp[offs[t] + k] = w_sum;  // one slot per list entry: no float atomics, deterministic
       }
       for (int64_t y = py0; y < py1; ++y) {
         for (int64_t x = px0; x < px1; ++x) {
@@ -330,12 +336,13 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor tile_offsets, torch::
   auto final_T = torch::empty({H, W}, feats.options());
   auto n_contrib = torch::empty({H, W}, feats.options().dtype(torch::kInt32));
   auto counts = torch::zeros({means2d.size(0)}, feats.options().dtype(torch::kInt32));
+  auto entry_w = torch::zeros({gauss_ids.size(0)}, feats.options());
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "composite_forward", [&] {
     forward_kernel<scalar_t>(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext, W, H, tile,
                              tiles_x, alpha_min, alpha_max, t_min, static_cast<int>(nthreads), out,
-                             final_T, n_contrib, counts);
+                             final_T, n_contrib, counts, entry_w);
   });
-  return {out, final_T, n_contrib, counts};
+  return {out, final_T, n_contrib, counts, entry_w};
 }
 
 torch::Tensor composite_backward(torch::Tensor tile_offsets, torch::Tensor gauss_ids,

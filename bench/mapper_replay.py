@@ -1,0 +1,208 @@
+"""Benchmark: the mapper core replayed on a recorded run (its journal), CPU time and map quality.
+
+Feeds the keyframes and metrized depth a pipeline run recorded (``runs/<ts>/journal/journal.log``
+of ``make demo``) to the pure :class:`~mogs_node.mapper.mapper.GaussianMapper` exactly as the
+mapper node does (``add_keyframe`` then ``optimize(iters_per_keyframe)``, parameters from the
+launch file's mapper section), one process, no bus. Measures per keyframe the CPU time (process
+time, all threads: meaningful on a shared machine) of insertion and of optimisation, and at the
+end renders the final map at
+
+- every keyframe (with its exposure), and
+- the held-out frames: camera images that were not keyframes, at the frontend's odometry pose
+  (``/frontend/odometry``), exposure of the nearest keyframe,
+
+scoring PSNR and SSIM (:mod:`mogs_node.mapper.image_metrics`). ``--profile`` prints the cProfile
+table (cumulative) of the whole replay.
+
+    .venv/bin/python bench/mapper_replay.py runs/<ts>/journal/journal.log --json /tmp/replay.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import pstats
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mogs_node import msgs
+from mogs_node.eval.report import REPO_ROOT, write_json
+from mogs_node.journal.store import JournalStore
+from mogs_node.launch import load_launch_file
+from mogs_node.mapper.image_metrics import psnr_db, ssim
+from mogs_node.mapper.mapper import GaussianMapper, export_ply
+from mogs_node.mapper.node import MapperNodeParams, depth_for_keyframe
+
+
+def read_journal(path: Path) -> dict[str, list[Any]]:
+    """Decoded messages of the topics the replay needs, in arrival order."""
+    # a copy: opening a journal a node still writes would truncate its unfinished last record
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / "journal.log"
+        shutil.copyfile(path, copy)
+        store = JournalStore(copy, fresh=False)
+        topics = ("/frontend/keyframe", "/metrizer/depth", "/camera/image", "/frontend/odometry")
+        out: dict[str, list[Any]] = {t: [] for t in topics}
+        for i in store.select(topics):
+            env = msgs.decode(store.read(i))
+            out[env.topic].append(env.msg)
+        store.close()
+    return out
+
+
+def mapper_params(launch: str, overrides: dict[str, Any]) -> MapperNodeParams:
+    spec = next(n for n in load_launch_file(launch).nodes if n.name == "mapper")
+    kw = {k: v for k, v in spec.params.items() if k in MapperNodeParams.__dataclass_fields__}
+    kw.update(overrides)
+    kw.pop("ply_path", None)
+    return MapperNodeParams(**kw)
+
+
+def replay(
+    data: dict[str, list[Any]], p: MapperNodeParams, max_keyframes: int = 0
+) -> tuple[GaussianMapper, list[dict[str, float]]]:
+    """Map every keyframe in order (the first ``max_keyframes``, 0: all); returns the mapper and
+    per-keyframe CPU times (printed as they come)."""
+    depth = {d.keyframe_id: d for d in data["/metrizer/depth"]}
+    mapper: GaussianMapper | None = None
+    per_kf = []
+    for kf in data["/frontend/keyframe"]:
+        if kf.keyframe_id not in depth or (max_keyframes and len(per_kf) >= max_keyframes):
+            continue
+        rgb = kf.rgb()
+        H, W = rgb.shape[:2]
+        if mapper is None:
+            mapper = GaussianMapper(p.mapper_params(), kf.K, W, H)
+        d, c = depth_for_keyframe(depth[kf.keyframe_id], W, H)
+        c0 = time.process_time()
+        n_new = mapper.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
+        c1 = time.process_time()
+        st = mapper.optimize(p.iters_per_keyframe)
+        c2 = time.process_time()
+        k = {
+            "keyframe_id": kf.keyframe_id,
+            "insert_cpu_s": c1 - c0,
+            "optimize_cpu_s": c2 - c1,
+            "inserted": n_new,
+            "gaussians": st["n_gaussians"],
+            "iterations": st["iterations"],
+        }
+        per_kf.append(k)
+        print(
+            f"kf {k['keyframe_id']:4d}: insert {k['insert_cpu_s']:.2f} s, optimise "
+            f"{k['optimize_cpu_s']:.2f} s CPU, +{k['inserted']} -> {int(k['gaussians'])} "
+            f"Gaussians, {int(k['iterations'])} iterations",
+            flush=True,
+        )
+    if mapper is None:
+        raise SystemExit("the journal holds no keyframe with its metrized depth")
+    return mapper, per_kf
+
+
+def score(mapper: GaussianMapper, data: dict[str, list[Any]]) -> dict[str, float]:
+    """PSNR/SSIM of the final map at the keyframes and at held-out (non-keyframe) frames."""
+    kf_stamps = {kf.stamp_ns for kf in data["/frontend/keyframe"]}
+    last = max(kf.keyframe_id for kf in mapper.keyframes)
+    t_end = next(kf.stamp_ns for kf in data["/frontend/keyframe"] if kf.keyframe_id == last)
+    odo = {o.stamp_ns: o.T_world_cam for o in data["/frontend/odometry"]}
+    kf_psnr, kf_ssim = [], []
+    for kf in mapper.keyframes:
+        gt = kf.image_f32.numpy()
+        r = mapper.render_view(kf.T_world_cam, kf.exposure_ab).color.numpy()
+        kf_psnr.append(psnr_db(r, gt))
+        kf_ssim.append(ssim(r, gt))
+    # frames after the first keyframe (the map exists) with an odometry pose, not keyframes
+    t0 = min(kf_stamps)
+    held = [m for m in data["/camera/image"] if m.stamp_ns in odo and m.stamp_ns not in kf_stamps]
+    held = [m for m in held if t0 < m.stamp_ns < t_end]  # inside the mapped part of the drive
+    mapped = {k.keyframe_id for k in mapper.keyframes}
+    kfs = [kf for kf in data["/frontend/keyframe"] if kf.keyframe_id in mapped]
+    stamps = np.array([kf.stamp_ns for kf in kfs])
+    by_stamp = {kf.stamp_ns: kf.keyframe_id for kf in kfs}
+    ho_psnr, ho_ssim = [], []
+    for m in held:
+        img = m.data if m.data.ndim == 3 else np.repeat(m.data[..., None], 3, 2)
+        if m.encoding.lower().startswith("bgr"):
+            img = img[..., ::-1]
+        nearest = by_stamp[int(stamps[np.argmin(np.abs(stamps - m.stamp_ns))])]
+        ab = next(k.exposure_ab for k in mapper.keyframes if k.keyframe_id == nearest)
+        r = mapper.render_view(odo[m.stamp_ns], ab).color.numpy()
+        gt = img.astype(np.float32) / 255.0
+        ho_psnr.append(psnr_db(r, gt))
+        ho_ssim.append(ssim(r, gt))
+    nan = float("nan")
+    return {
+        "keyframe_psnr_db": float(np.mean(kf_psnr)),
+        "keyframe_ssim": float(np.mean(kf_ssim)),
+        "heldout_psnr_db": float(np.mean(ho_psnr)) if ho_psnr else nan,
+        "heldout_ssim": float(np.mean(ho_ssim)) if ho_ssim else nan,
+        "heldout_frames": len(ho_psnr),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("journal", help="runs/<ts>/journal/journal.log of a pipeline run")
+    ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
+    ap.add_argument("--set", action="append", default=[], help="mapper param=JSON value")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--max-keyframes", type=int, default=0, help="map only the first n (0: all)")
+    ap.add_argument("--profile", action="store_true", help="print the cProfile table")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--ply", default=None, help="also write the final map here (3DGS PLY)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    overrides = {}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        overrides[k] = json.loads(v)
+    p = mapper_params(args.launch, overrides)
+    data = read_journal(Path(args.journal))
+    prof = cProfile.Profile() if args.profile else None
+    c0 = time.process_time()
+    if prof:
+        prof.enable()
+    mapper, per_kf = replay(data, p, args.max_keyframes)
+    if prof:
+        prof.disable()
+    cpu_total = time.process_time() - c0
+    if args.ply:
+        export_ply(mapper, args.ply)
+    q = score(mapper, data)
+    per = [k["insert_cpu_s"] + k["optimize_cpu_s"] for k in per_kf]
+    figures = {
+        "keyframes": len(per_kf),
+        "iterations": int(mapper.iterations),
+        "gaussians": len(mapper.map),
+        "mapper_cpu_s_per_keyframe_mean": cpu_total / len(per_kf),
+        "mapper_cpu_s_per_keyframe_median": statistics.median(per),
+        "insert_cpu_s_per_keyframe_mean": statistics.mean(k["insert_cpu_s"] for k in per_kf),
+        "optimize_cpu_s_per_keyframe_mean": statistics.mean(k["optimize_cpu_s"] for k in per_kf),
+        **q,
+        "params": {k: getattr(p, k) for k in MapperNodeParams.__dataclass_fields__},
+    }
+    for k, v in figures.items():
+        if k != "params":
+            print(f"{k}: {v:.4g}" if isinstance(v, float) else f"{k}: {v}")
+    if prof:
+        s = io.StringIO()
+        pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(35)
+        print(s.getvalue())
+    if args.json:
+        write_json(args.json, figures)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
