@@ -356,10 +356,15 @@ def compute_dense_prior(
         road_d, road_e = _road(
             grey, K, Tk, references, road_references, flow, flow_params, road_params
         )
+        # the plane checked against the flow depth as the warped sources are (a wrong up direction
+        # or a poor pose moves the whole plane): the local disagreement raises its error
+        road_e, r_road = _verify(road_d, road_e, cands_d[0], cands_e[0], params)
         cands_d.append(road_d)
         cands_e.append(road_e)
         names.append("road")
     stats: dict[str, float] = {}
+    if len(names) > 1:
+        stats["road_disagreement"] = r_road
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
     warped = _warped(grey, Tk, K, earlier_depth, previous_prior, flow_params, params)
     for name, d_w, e_w in warped:
