@@ -43,7 +43,7 @@ from mogs_node.metrizer.association import (
     prepare_labels,
     region_adjacency,
 )
-from mogs_node.metrizer.cdr_rows import geo_rows, local_anchor_target
+from mogs_node.metrizer.cdr_rows import FeatureRows, SampleRows, geo_rows, local_anchor_target
 from mogs_node.metrizer.compose import compose
 from mogs_node.metrizer.consensus import fit_objects
 from mogs_node.metrizer.frame import (
@@ -308,25 +308,9 @@ def metrize(
     tm.lap("propagate")
 
     # ---- cross-object depth refinement, eqs. (6)-(11) (III-C)
-    geo = geo_rows(
-        mok,
-        sg,
-        sx,
-        sc,
-        mdepth,
-        conf_g,
-        kind_g,
-        feat_g,
-        fx,
-        fc * f_consistent,
-        ft,
-        w,
-        n_feat_g,
-        G,
-        p,
-        prior_kind,
-        sky,
-    )
+    samples = SampleRows(sidx, sg, sx, sc, mdepth, mok)
+    features = FeatureRows(fx, fc * f_consistent, ft, w)
+    geo = geo_rows(fr, samples, features, kind_g, conf_g)
     if p.local_anchor:
         snorm = local_anchor_target(fr, sidx, mok, mdepth, d_glob, fd_glob, snorm)
     nfc_w = sc / np.maximum(np.bincount(sg, sc, minlength=G), 1e-12)[sg]
