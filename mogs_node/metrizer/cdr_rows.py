@@ -4,6 +4,8 @@ eq. (8) anchor target (the locally aligned prior, departure 13)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -11,7 +13,7 @@ from mogs_node.metrizer.alignment import space_from_depth
 from mogs_node.metrizer.fill import smooth_field
 from mogs_node.metrizer.frame import Frame
 
-__all__ = ["geo_rows", "local_anchor_target"]
+__all__ = ["FeatureRows", "SampleRows", "geo_rows", "local_anchor_target"]
 
 F64 = NDArray[np.float64]
 
@@ -52,20 +54,53 @@ def local_anchor_target(fr: Frame, sidx, mok, mdepth, d_glob, fd_glob, snorm) ->
     return space_from_depth(d, fr.prior_kind)
 
 
-def geo_rows(
-    mok, sg, sx, sc, mdepth, conf_g, kind_g, feat_g, fx, fc, ft, w, n_feat_g, G, p, prior_kind, sky
-):
-    """Rows of eq. (7): model pixels of accepted shapes, else the object's sparse features.
+@dataclass(frozen=True)
+class SampleRows:
+    """The CDR sample pixels outside sky objects ``[P]`` and MSC's model depth there."""
 
-    Model pixels weigh ``C_k`` (eq. 5) times the prior confidence, features ``omega`` times the
-    prior confidence times ``min(1, n_k / n_min)``; each object's weights are normalised to a mean.
+    idx: NDArray[np.intp]  # flat pixel
+    obj: NDArray[np.intp]  # object (after merging and absorption)
+    x: F64  # prior value
+    conf: F64  # prior confidence
+    model_depth_m: F64  # ray-shape intersection of the object's accepted shape (inf: none)
+    model_ok: NDArray[np.bool_]  # the model depth passes the eq.-(7) gate
+
+
+@dataclass(frozen=True)
+class FeatureRows:
+    """The sparse features ``[N]`` in the prior's space (eq. 7 targets)."""
+
+    x: F64  # prior value at the feature
+    conf: F64  # prior confidence there, 0 for a feature inconsistent with the global alignment
+    t: F64  # the feature's depth in the prior's space (inverse depth or depth)
+    w: F64  # omega
+
+
+def geo_rows(
+    fr: Frame,
+    samples: SampleRows,
+    features: FeatureRows,
+    kind_g: NDArray[np.int8],
+    conf_g: F64,
+) -> tuple[NDArray[np.intp], F64, F64, F64]:
+    """Rows of eq. (7) ``(object, prior value, target, weight)``: model pixels of accepted shapes
+    (``kind_g > 0``), else the object's sparse features (objects, sky and parameters from
+    ``fr``).
+
+    Model pixels weigh ``C_k`` (eq. 5, ``conf_g``) times the prior confidence, features
+    ``omega`` times the prior confidence times ``min(1, n_k / n_min)``; each object's weights
+    are normalised to a mean.
     """
-    mo, mx, mc = sg[mok], sx[mok], sc[mok]
-    mt = space_from_depth(mdepth[mok], prior_kind)
+    G, feat_g, sky = fr.G, fr.feat_g, fr.sky
+    mok = samples.model_ok
+    mo, mx, mc = samples.obj[mok], samples.x[mok], samples.conf[mok]
+    mt = space_from_depth(samples.model_depth_m[mok], fr.prior_kind)
     mw = mc / np.maximum(np.bincount(mo, mc, minlength=G), 1e-12)[mo] * conf_g[mo]
+    fc = features.conf
     use = (kind_g[feat_g] == 0) & (fc > 0) & ~sky[feat_g]
-    fo, fxx, ftt, fw = feat_g[use], fx[use], ft[use], (w * fc)[use]
-    support = np.minimum(1.0, n_feat_g / p.n_min)
+    fo, fxx, ftt = feat_g[use], features.x[use], features.t[use]
+    fw = (features.w * fc)[use]
+    support = np.minimum(1.0, fr.n_feat_g / fr.p.n_min)
     fw = fw / np.maximum(np.bincount(fo, fw, minlength=G), 1e-12)[fo] * support[fo]
     return (
         np.concatenate([mo, fo]).astype(np.intp),

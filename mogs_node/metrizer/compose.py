@@ -120,7 +120,7 @@ def model_output(fr: Frame, depth: NDArray[np.float32], special) -> tuple:
 N_PARAMS = np.array([2, 5, 7, 11])
 
 
-def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, featureless: bool) -> int:
+def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, untestable: bool) -> int:
     """Per-object fallback to the global affine (the ``no_msc_cdr`` result), in place.
 
     An object keeps its own result (calibrated prior, model output, residual field) only when it
@@ -130,9 +130,9 @@ def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, featureless: bo
     ``p`` the object's fitted parameters (2 for its affine of eq. 6, plus those of its shape).
     ``RSS / (n - p)`` is the unbiased residual variance of a fit with ``p`` parameters; the
     global affine's two parameters are shared by all features of the frame. An object with
-    ``n <= p`` cannot show that it beats the baseline and falls back. With ``featureless``,
-    objects without features fall back too (else they keep what CDR's anchor and smoothness
-    gave them). Returns the number of objects that fell back.
+    ``n <= p`` (no feature at all included) cannot be tested: it keeps what CDR's anchor and
+    smoothness gave it, unless ``untestable`` (then it falls back too). Returns the number of
+    objects that fell back.
     """
     G, theta0, kind = fr.G, fr.theta0, fr.prior_kind
     fpix, z = fr.fpix, fr.z
@@ -147,11 +147,13 @@ def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, featureless: bo
     l_obj = np.bincount(g, e_obj, minlength=G)
     l_glob = np.bincount(g, e_glob, minlength=G)
     dof = n - N_PARAMS[np.clip(fr.kind_g, 0, 3)]
+    testable = dof > 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        keep = (dof > 0) & (l_obj * n / np.where(dof > 0, dof, 1.0) < l_glob)
-    fall = ~keep & ~fr.sky
-    if not featureless:
-        fall &= fr.n_feat_g > 0
+        better = l_obj * n / np.where(testable, dof, 1.0) < l_glob
+    fall = testable & ~better
+    if untestable:
+        fall |= ~testable
+    fall &= ~fr.sky
     if not fall.any():
         return 0
     pix = fr.per_pixel(fall) & fr.has_prior
@@ -312,7 +314,7 @@ def compose(fr: Frame, tm: StageTimer, global_only: bool) -> MetrizedDepth:
     n_fallback = 0
     if p.fallback_global and not global_only:
         thin = stats["n_features_global"] < p.fallback_min_features
-        n_fallback = fallback_to_global(fr, depth, featureless=p.fallback_featureless or thin)
+        n_fallback = fallback_to_global(fr, depth, untestable=p.fallback_untestable or thin)
     stats["n_fallback_objects"] = n_fallback
     tm.lap("residual")
 

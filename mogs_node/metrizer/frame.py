@@ -21,6 +21,7 @@ from mogs_node.metrizer.params import MetrizerParams
 
 __all__ = [
     "Frame",
+    "ShapeModels",
     "StageTimer",
     "f32_below",
     "far_and_norm",
@@ -33,6 +34,48 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
+
+
+@dataclass
+class ShapeModels:
+    """The accepted shape of every object (Algorithm 1; kind 0 = none), camera frame.
+
+    Quadric ``x^T A x + b^T x + c = 0``; the model depth is used within ``[zlo, zhi]`` (the
+    inlier depths widened by ``model_extrapolation``).
+    """
+
+    kind: NDArray[np.int8]  # [G] 0 none, 1 plane, 2 cylinder, 3 ellipsoid
+    conf: F64  # [G] eq. (5) confidence
+    A: F64  # [G, 3, 3]
+    b: F64  # [G, 3]
+    c: F64  # [G]
+    zlo: F64  # [G]
+    zhi: F64  # [G]
+
+    @classmethod
+    def none(cls, G: int) -> ShapeModels:
+        """No shape for ``G`` objects."""
+        return cls(
+            np.zeros(G, np.int8),
+            np.zeros(G),
+            np.zeros((G, 3, 3)),
+            np.zeros((G, 3)),
+            np.zeros(G),
+            np.zeros(G),
+            np.zeros(G),
+        )
+
+    def take(self, ids: NDArray[np.intp]) -> ShapeModels:
+        """The models of objects ``ids`` (renumbered ``0..len(ids)-1``)."""
+        return ShapeModels(
+            self.kind[ids],
+            self.conf[ids],
+            self.A[ids],
+            self.b[ids],
+            self.c[ids],
+            self.zlo[ids],
+            self.zhi[ids],
+        )
 
 
 @dataclass

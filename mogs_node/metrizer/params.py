@@ -34,8 +34,8 @@ class MetrizerParams:
     hole_model_extrapolation: float = 1.25  # the same f for pixels without prior (no gate there)
     fallback_global: bool = True  # per object: the global affine where the object's own result
     # does not explain its features better (degrees-of-freedom corrected, see _fallback_to_global)
-    fallback_featureless: bool = False  # ... and objects without features always
-    fallback_min_features: int = 18  # ... objects without features also when the frame has fewer
+    fallback_untestable: bool = False  # ... and objects with too few features to test always
+    fallback_min_features: int = 18  # ... untestable objects also when the frame has fewer
     # features with a prior than this (their calibration follows thin neighbouring evidence)
     hole_model_radius: float = 0.05  # a pixel without prior takes its object's model depth only
     # within this fraction of the image width of one of the object's own features

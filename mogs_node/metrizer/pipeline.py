@@ -43,11 +43,12 @@ from mogs_node.metrizer.association import (
     prepare_labels,
     region_adjacency,
 )
-from mogs_node.metrizer.cdr_rows import geo_rows, local_anchor_target
+from mogs_node.metrizer.cdr_rows import FeatureRows, SampleRows, geo_rows, local_anchor_target
 from mogs_node.metrizer.compose import compose
 from mogs_node.metrizer.consensus import fit_objects
 from mogs_node.metrizer.frame import (
     Frame,
+    ShapeModels,
     StageTimer,
     far_and_norm,
     model_agrees,
@@ -217,47 +218,16 @@ def metrize(
         return compose(fr, tm, global_only=True)
 
     # ---- shape consensus, Algorithm 1 (III-B)
-    kind_g = np.zeros(G, np.int8)
-    conf_g = np.zeros(G)
-    Am, bm, cm = np.zeros((G, 3, 3)), np.zeros((G, 3)), np.zeros(G)
-    zlo, zhi = np.zeros(G), np.zeros(G)
-    n_skipped = n_tried = n_degenerate = 0
-    # T_s(z) = t_abs + t_rel z: the absolute term (set for street scenes) shrinks with the scene:
-    # at most t_abs_m * median feature depth / t_abs_ref_depth_m (departure 14)
-    cons = p.consensus
-    if len(z):
-        t_abs = cons.t_abs_m * min(1.0, float(np.median(z)) / p.t_abs_ref_depth_m)
-        if t_abs < cons.t_abs_m:
-            cons = replace(cons, t_abs_m=t_abs)
-    if mode == "full" and len(z):
-        rng = np.random.default_rng(p.seed)
-        Xf = np.stack(
-            [(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], 1
-        )
-        order = np.argsort(feat_g, kind="stable")
-        starts = np.concatenate([[0], np.cumsum(n_feat_g)])
-        fits = fit_objects(Xf, w, feat_g, G, rng, cons)
-        for g, fit in fits.items():
-            n_tried += 1
-            n_skipped += int(fit.skipped_costly)
-            n_degenerate += int(fit.degenerate)
-            if fit.kind == shapes.KIND_NONE:
-                continue
-            kind_g[g], conf_g[g] = fit.kind, fit.confidence
-            Am[g], bm[g], cm[g] = fit.A, fit.b, fit.c
-            zi = z[order[starts[g] : starts[g + 1]]][fit.inliers]
-            zlo[g] = max(zi.min() / p.model_extrapolation, p.d_min_m)
-            zhi[g] = min(zi.max() * p.model_extrapolation, p.d_max_m)
-    fr.t_abs_m = cons.t_abs_m
+    models, Xf, counts = _fit_shapes(fr, uv, w, mode)
     tm.lap("consensus")
     n_absorbed = 0
     obj_to_g = group  # [n_obj] object -> group (after absorption in mode full)
-    if mode == "full" and p.absorb and (kind_g > 0).any():
+    if mode == "full" and p.absorb and (models.kind > 0).any():
         remap = absorb_groups(
             fr,
             group,
             (adj_k, adj_l),
-            (kind_g, Am, bm, cm, zlo, zhi),
+            (models.kind, models.A, models.b, models.c, models.zlo, models.zhi),
             Xf,
             (grid, gg_grid, norm_grid),
         )
@@ -268,30 +238,25 @@ def metrize(
             obj_to_g = remap[group]
             gg_grid, feat_g = remap[gg_grid], remap[feat_g]
             n_feat_g = np.bincount(feat_g, minlength=G)
-            sky, kind_g, conf_g = sky[keep_ids], kind_g[keep_ids], conf_g[keep_ids]
-            Am, bm, cm, zlo, zhi = (
-                Am[keep_ids],
-                bm[keep_ids],
-                cm[keep_ids],
-                zlo[keep_ids],
-                zhi[keep_ids],
-            )
+            sky, models = sky[keep_ids], models.take(keep_ids)
             fr.G, fr.feat_g, fr.n_feat_g, fr.sky = G, feat_g, n_feat_g, sky
     if fr.gobj is None:
         fr.gobj = object_map(obj_to_g, obj_i)
     gobj = fr.gobj
+    kind_g, conf_g = models.kind, models.conf
+    Am, bm, cm, zlo, zhi = models.A, models.b, models.c, models.zlo, models.zhi
     stats.update(
         n_objects=G,
         absorbed=n_absorbed,
-        objects_tried=n_tried,
-        skipped_costly=n_skipped,
+        objects_tried=counts["tried"],
+        skipped_costly=counts["skipped"],
         models={
             "plane": int((kind_g == 1).sum()),
             "cylinder": int((kind_g == 2).sum()),
             "ellipsoid": int((kind_g == 3).sum()),
         },
-        rejected=int(n_tried - (kind_g > 0).sum()),
-        rejected_degenerate=n_degenerate,
+        rejected=int(counts["tried"] - (kind_g > 0).sum()),
+        rejected_degenerate=counts["degenerate"],
     )
     tm.lap("absorb")
 
@@ -308,25 +273,9 @@ def metrize(
     tm.lap("propagate")
 
     # ---- cross-object depth refinement, eqs. (6)-(11) (III-C)
-    geo = geo_rows(
-        mok,
-        sg,
-        sx,
-        sc,
-        mdepth,
-        conf_g,
-        kind_g,
-        feat_g,
-        fx,
-        fc * f_consistent,
-        ft,
-        w,
-        n_feat_g,
-        G,
-        p,
-        prior_kind,
-        sky,
-    )
+    samples = SampleRows(sidx, sg, sx, sc, mdepth, mok)
+    features = FeatureRows(fx, fc * f_consistent, ft, w)
+    geo = geo_rows(fr, samples, features, kind_g, conf_g)
     if p.local_anchor:
         snorm = local_anchor_target(fr, sidx, mok, mdepth, d_glob, fd_glob, snorm)
     nfc_w = sc / np.maximum(np.bincount(sg, sc, minlength=G), 1e-12)[sg]
@@ -376,3 +325,45 @@ def metrize(
     fr.theta, fr.kind_g, fr.conf_g = theta, kind_g, conf_g
     fr.Am, fr.bm, fr.cm, fr.zlo, fr.zhi = Am, bm, cm, zlo, zhi
     return compose(fr, tm, global_only=False)
+
+
+def _fit_shapes(
+    fr: Frame, uv: F64, w: F64, mode: str
+) -> tuple[ShapeModels, F64 | None, dict[str, int]]:
+    """Stage 5, Algorithm 1 (III-B) for every object of ``fr`` (mode ``full`` only): plane,
+    cylinder, ellipsoid by RANSAC with the residual of eq. (2), best by eq. (5), accepted with at
+    least ``tau |F_k|`` inliers (consensus.py). Sets ``fr.t_abs_m``.
+
+    Returns the accepted models, the features' 3D points ``[N, 3]`` (None when not fitted) and
+    the counts ``tried`` / ``skipped`` (costly models skipped) / ``degenerate``.
+    """
+    p, z, G, K = fr.p, fr.z, fr.G, fr.K
+    models = ShapeModels.none(G)
+    counts = {"tried": 0, "skipped": 0, "degenerate": 0}
+    # T_s(z) = t_abs + t_rel z: the absolute term (set for street scenes) shrinks with the scene:
+    # at most t_abs_m * median feature depth / t_abs_ref_depth_m (departure 14)
+    cons = p.consensus
+    if len(z):
+        t_abs = cons.t_abs_m * min(1.0, float(np.median(z)) / p.t_abs_ref_depth_m)
+        if t_abs < cons.t_abs_m:
+            cons = replace(cons, t_abs_m=t_abs)
+    fr.t_abs_m = cons.t_abs_m
+    if mode != "full" or not len(z):
+        return models, None, counts
+    rng = np.random.default_rng(p.seed)
+    Xf = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], 1)
+    order = np.argsort(fr.feat_g, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(fr.n_feat_g)])
+    fits = fit_objects(Xf, w, fr.feat_g, G, rng, cons)
+    for g, fit in fits.items():
+        counts["tried"] += 1
+        counts["skipped"] += int(fit.skipped_costly)
+        counts["degenerate"] += int(fit.degenerate)
+        if fit.kind == shapes.KIND_NONE:
+            continue
+        models.kind[g], models.conf[g] = fit.kind, fit.confidence
+        models.A[g], models.b[g], models.c[g] = fit.A, fit.b, fit.c
+        zi = z[order[starts[g] : starts[g + 1]]][fit.inliers]
+        models.zlo[g] = max(zi.min() / p.model_extrapolation, p.d_min_m)
+        models.zhi[g] = min(zi.max() * p.model_extrapolation, p.d_max_m)
+    return models, Xf, counts
