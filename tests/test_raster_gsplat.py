@@ -69,3 +69,21 @@ def test_gsplat_gradients_match_cpu_backend() -> None:
     for a, b in zip(*grads, strict=True):
         cos = torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)
         assert float(cos) > 0.99
+
+
+def test_gsplat_renders_an_empty_map_as_the_cpu_backend_does() -> None:
+    empty = scene(0, 0)
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    K = (100.0, 100.0, 79.5, 47.5)
+    cpu = render(empty, torch.eye(4), K, 160, 96, background=bg, params=RasterParams(backend="cpp"))
+    gpu = render(
+        to(empty, "cuda"),
+        torch.eye(4),
+        K,
+        160,
+        96,
+        background=bg.cuda(),
+        params=RasterParams(backend="gsplat"),
+    )
+    assert torch.equal(gpu.color.cpu(), cpu.color) and torch.equal(gpu.alpha.cpu(), cpu.alpha)
+    assert torch.equal(gpu.depth.cpu(), cpu.depth) and gpu.counts.numel() == 0

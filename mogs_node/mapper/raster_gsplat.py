@@ -46,6 +46,13 @@ def render_gsplat(
 
     g = gaussians
     dev, dt = g.means.device, torch.float32
+    if g.means.shape[0] == 0:
+        # gsplat's launch configuration divides by the Gaussian count (SIGFPE on an empty map)
+        zeros = torch.zeros(height, width, dtype=g.means.dtype, device=dev)
+        color = background.to(device=dev, dtype=g.means.dtype).expand(height, width, 3).clone()
+        return RenderOutput(
+            color, zeros, zeros.clone(), torch.zeros(0, dtype=torch.int32, device=dev)
+        )
     fx, fy, cx, cy = (float(v) for v in K)
     # our pixel centres lie at integer coordinates, gsplat's at +0.5: shift the principal point
     cx, cy = cx + 0.5, cy + 0.5
