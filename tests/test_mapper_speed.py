@@ -282,3 +282,13 @@ def test_property_cheap_cull_is_a_superset_of_the_projection_cull(
     valid = project_gaussians(means, quats, log_scales, opacity_logit, T, Kt, W, H, **kw).valid
     cheap = cull_gaussians(means, log_scales, opacity_logit, T, Kt, W, H, **kw)
     assert bool((valid <= cheap).all())
+
+
+def test_optimising_an_empty_map_is_a_no_op() -> None:
+    # the first keyframes of a drive often have no depth: nothing is inserted, nothing to fit
+    m = GaussianMapper(MapperParams(), K, W, H)
+    img, T, _, c = view(0)
+    m.add_keyframe(0, img, T, np.zeros((H, W), np.float32), c)
+    assert len(m.map) == 0
+    m.optimize(5)
+    assert len(m.map) == 0 and m.iterations == 0

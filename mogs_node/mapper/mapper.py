@@ -285,8 +285,8 @@ class GaussianMapper:
         the window early instead of holding the launcher past its stop timeout; the map stays
         consistent (every finished iteration is kept, pruning still runs).
         """
-        if not self.keyframes or n_iters <= 0:
-            return self.stats()
+        if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
+            return self.stats()  # an empty map (first keyframes without depth) has nothing to fit
         p = self.params
         self._grad_accum = torch.zeros(len(self.map), device=self.device)
         self._grad_count = torch.zeros(len(self.map), device=self.device)
