@@ -107,6 +107,8 @@ def test_wrong_player_path_ends_the_run_with_the_path_in_the_last_line(tmp_path:
     assert str(missing) in last
     assert "respawning" not in r.stdout
     assert "[launch] all processes stopped" in r.stdout
+    # the nodes stopped while still importing exit quietly, not as configuration errors
+    assert r.stdout.count("cannot start") == 1, r.stdout
 
 
 def test_mapper_parameter_typo_exits_non_zero_without_a_respawn_loop(tmp_path: Path) -> None:
