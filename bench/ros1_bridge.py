@@ -239,6 +239,12 @@ def main(argv: list[str] | None = None) -> int:
 | ATE difference | | {fig["ate_difference_pct_of_path"]:.2f} % of the {path_m:.1f} m path |
 | camera message -> its odometry on the graph, p50 / p95 | | {fig["bridge_latency_p50_ms"]:.0f} / {fig["bridge_latency_p95_ms"]:.0f} ms |
 | frames dropped by the bridge / without odometry | | {dropped} / {fig["bridge_frames_without_odometry"]} |
+
+Frames without odometry are those before the frontend's static initialisation: no pose, nothing
+sent on ROS. The latency is the wall time between a rospy listener receiving a camera message and
+receiving its odometry (one host; 2 cores shared with other work: the figures of a loaded machine).
+Both runs use the mapper's pure-PyTorch compositor and insert keyframes without optimising them
+(the trajectory is measured here, not the map).
 """
         update_markdown_section("ros1-bridge", body)
     return 0
