@@ -141,9 +141,9 @@ def test_pixels_without_prior_take_model_depth_or_fill():
     kw["prior_confidence"] = conf
     out = metrize_depth(**kw)
     hole = (conf == 0) & np.isfinite(gt)
-    # 400 features over the image: nearly every hole pixel has one of its object's features
-    # within hole_model_radius (a pixel whose nearest feature lies on another object stays 0)
-    assert np.mean(out.depth_m[hole] > 0) > 0.99
+    # 400 features over the image (one per ~7 px): most hole pixels have one of their object's
+    # features within hole_model_radius (3% of the width, 5.8 px); the others stay 0
+    assert np.mean(out.depth_m[hole] > 0) > 0.9
     assert _absrel(np.where(hole, out.depth_m, 0), np.where(hole, gt, np.inf)) < 0.03
     assert out.stats["n_hole_px_model"] > 0
     assert np.all(out.confidence[hole] <= 0.5)  # model-only pixels: 0.5 C at most

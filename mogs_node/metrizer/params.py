@@ -37,7 +37,7 @@ class MetrizerParams:
     fallback_untestable: bool = False  # ... and objects with too few features to test always
     fallback_min_features: int = 18  # ... untestable objects also when the frame has fewer
     # features with a prior than this (their calibration follows thin neighbouring evidence)
-    hole_model_radius: float = 0.05  # a pixel without prior takes its object's model depth only
+    hole_model_radius: float = 0.03  # a pixel without prior takes its object's model depth only
     # within this fraction of the image width of one of the object's own features
     hole_fill_radius: float = 0.02  # ... the edge-aware fill of the features only within this
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
