@@ -210,12 +210,9 @@ def metrize(
         feat_g=feat_g,
         n_feat_g=n_feat_g,
         sky=sky,
-        theta=np.tile(theta0, (G, 1)),
-        kind_g=np.zeros(G, np.int8),
-        conf_g=np.zeros(G),
     )
     if mode == "no_msc_cdr":
-        return compose(fr, tm, global_only=True)
+        return compose(fr, tm, ShapeModels.none(G), np.tile(theta0, (G, 1)), global_only=True)
 
     # ---- shape consensus, Algorithm 1 (III-B)
     models, Xf, counts = _fit_shapes(fr, uv, w, mode)
@@ -242,7 +239,7 @@ def metrize(
             fr.G, fr.feat_g, fr.n_feat_g, fr.sky = G, feat_g, n_feat_g, sky
     if fr.gobj is None:
         fr.gobj = object_map(obj_to_g, obj_i)
-    kind_g, conf_g = models.kind, models.conf
+    kind_g = models.kind
     Am, bm, cm, zlo, zhi = models.A, models.b, models.c, models.zlo, models.zhi
     stats.update(
         n_objects=G,
@@ -277,9 +274,7 @@ def metrize(
     theta, n_rows = _refine(fr, samples, features, models, pairs, snorm, d_glob, fd_glob)
     stats.update(n_rows)
     tm.lap("refine")
-    fr.theta, fr.kind_g, fr.conf_g = theta, kind_g, conf_g
-    fr.Am, fr.bm, fr.cm, fr.zlo, fr.zhi = Am, bm, cm, zlo, zhi
-    return compose(fr, tm, global_only=False)
+    return compose(fr, tm, models, theta, global_only=False)
 
 
 def _fit_shapes(
