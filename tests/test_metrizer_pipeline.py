@@ -126,7 +126,9 @@ def test_local_anchor_calibrates_featureless_objects_better_under_a_warp():
             feature_depth_m=kw["feature_depth_m"][keep], feature_weight=kw["feature_weight"][keep]
         )
         for local in (True, False):
-            p = MetrizerParams(local_anchor=local, residual_field=False)
+            # featureless objects keep their CDR result (else they fall back to the global
+            # affine by default, never-worse rule 2 in docs/metrizer.md)
+            p = MetrizerParams(local_anchor=local, residual_field=False, fallback_untestable=False)
             d = metrize_depth(**k2, params=p).depth_m[ids == obj]
             err[local].append(np.abs(d - gt[ids == obj]) / gt[ids == obj])
     on, off = np.concatenate(err[True]).mean(), np.concatenate(err[False]).mean()

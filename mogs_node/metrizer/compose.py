@@ -122,7 +122,7 @@ N_PARAMS = np.array([2, 5, 7, 11])
 
 
 def fallback_to_global(
-    fr: Frame, models: ShapeModels, depth: NDArray[np.float32], *, untestable: bool
+    fr: Frame, models: ShapeModels, depth: NDArray[np.float32], *, untestable: bool, thin: bool
 ) -> int:
     """Per-object fallback to the global affine (the ``no_msc_cdr`` result), in place.
 
@@ -134,8 +134,11 @@ def fallback_to_global(
     ``RSS / (n - p)`` is the unbiased residual variance of a fit with ``p`` parameters; the
     global affine's two parameters are shared by all features of the frame. An object with
     ``n <= p`` (no feature at all included) cannot be tested: it keeps what CDR's anchor and
-    smoothness gave it, unless ``untestable`` (then it falls back too). Returns the number of
-    objects that fell back.
+    smoothness gave it, unless ``untestable``, or more than ``fallback_failed_share`` of the
+    tested objects failed (then it falls back too). With ``thin`` (the frame has fewer than
+    ``fallback_min_features`` features with a prior) every object falls back: an in-sample test
+    on a handful of features, one of them perhaps an outlier, validates nothing. Returns the
+    number of objects that fell back.
     """
     G, theta0, kind = fr.G, fr.theta0, fr.prior_kind
     fpix, z = fr.fpix, fr.z
@@ -154,8 +157,12 @@ def fallback_to_global(
     with np.errstate(divide="ignore", invalid="ignore"):
         better = l_obj * n / np.where(testable, dof, 1.0) < l_glob
     fall = testable & ~better
-    if untestable:
+    # many tested objects failing: the frame's calibration is unreliable (CDR couples objects by
+    # eq. 9, so the untested neighbours of failed objects were pulled by them too)
+    if untestable or fall.sum() > fr.p.fallback_failed_share * max(int(testable.sum()), 1):
         fall |= ~testable
+    if thin:  # too few features in the frame to validate any object's departure from it
+        fall[:] = True
     fall &= ~fr.sky
     if not fall.any():
         return 0
@@ -325,7 +332,9 @@ def compose(
     n_fallback = 0
     if p.fallback_global and not global_only:
         thin = stats["n_features_global"] < p.fallback_min_features
-        n_fallback = fallback_to_global(fr, models, depth, untestable=p.fallback_untestable or thin)
+        n_fallback = fallback_to_global(
+            fr, models, depth, untestable=p.fallback_untestable, thin=thin
+        )
     stats["n_fallback_objects"] = n_fallback
     tm.lap("residual")
 
