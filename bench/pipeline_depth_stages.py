@@ -7,6 +7,7 @@ frontend poses | flow on ground-truth poses | simulated LFM) and masks (graph | 
 docs/benchmarks.md.
 
     python bench/pipeline_depth_stages.py [--seed S] [--launch launch/demo.yaml] [--json OUT]
+        [--no-docs]  (without it the section of docs/benchmarks.md is rewritten)
 """
 
 from __future__ import annotations

@@ -126,7 +126,9 @@ def test_local_anchor_calibrates_featureless_objects_better_under_a_warp():
             feature_depth_m=kw["feature_depth_m"][keep], feature_weight=kw["feature_weight"][keep]
         )
         for local in (True, False):
-            p = MetrizerParams(local_anchor=local, residual_field=False)
+            # featureless objects keep their CDR result (else they fall back to the global
+            # affine by default, never-worse rule 2 in docs/metrizer.md)
+            p = MetrizerParams(local_anchor=local, residual_field=False, fallback_untestable=False)
             d = metrize_depth(**k2, params=p).depth_m[ids == obj]
             err[local].append(np.abs(d - gt[ids == obj]) / gt[ids == obj])
     on, off = np.concatenate(err[True]).mean(), np.concatenate(err[False]).mean()
@@ -141,9 +143,9 @@ def test_pixels_without_prior_take_model_depth_or_fill():
     kw["prior_confidence"] = conf
     out = metrize_depth(**kw)
     hole = (conf == 0) & np.isfinite(gt)
-    # 400 features over the image: nearly every hole pixel has one of its object's features
-    # within hole_model_radius (a pixel whose nearest feature lies on another object stays 0)
-    assert np.mean(out.depth_m[hole] > 0) > 0.99
+    # 400 features over the image (one per ~7 px): most hole pixels have one of their object's
+    # features within hole_model_radius (3% of the width, 5.8 px); the others stay 0
+    assert np.mean(out.depth_m[hole] > 0) > 0.9
     assert _absrel(np.where(hole, out.depth_m, 0), np.where(hole, gt, np.inf)) < 0.03
     assert out.stats["n_hole_px_model"] > 0
     assert np.all(out.confidence[hole] <= 0.5)  # model-only pixels: 0.5 C at most

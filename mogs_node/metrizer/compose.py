@@ -14,6 +14,7 @@ from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.fill import consistent_seeds, edge_aware_fill, smooth_field
 from mogs_node.metrizer.frame import (
     Frame,
+    ShapeModels,
     StageTimer,
     f32_below,
     far_and_norm,
@@ -27,7 +28,7 @@ __all__ = ["compose", "fallback_to_global", "fill_holes", "model_output", "neare
 F64 = NDArray[np.float64]
 
 
-def model_output(fr: Frame, depth: NDArray[np.float32], special) -> tuple:
+def model_output(fr: Frame, models: ShapeModels, depth: NDArray[np.float32], special) -> tuple:
     """Replace the calibrated prior by the model depth where they agree (gate), in place.
 
     Planes are evaluated on the full image at once: their inverse depth is affine in the
@@ -38,8 +39,8 @@ def model_output(fr: Frame, depth: NDArray[np.float32], special) -> tuple:
     """
     p: MetrizerParams = fr.p
     H, W, G, K = fr.H, fr.W, fr.G, fr.K
-    gobj, kind_g, conf_g = fr.gobj, fr.kind_g, fr.conf_g
-    Am, bm, cm, zlo, zhi = fr.Am, fr.bm, fr.cm, fr.zlo, fr.zhi
+    gobj, kind_g, conf_g = fr.gobj, models.kind, models.conf
+    Am, bm, cm, zlo, zhi = models.A, models.b, models.c, models.zlo, models.zhi
     trusted = (conf_g >= p.model_edge_min_conf) & (kind_g > 0)
     # the prior's edge band is looked up only where the wide gate matters
     use_band = p.model_edge_gate > p.model_output_gate and bool(trusted.any())
@@ -120,7 +121,9 @@ def model_output(fr: Frame, depth: NDArray[np.float32], special) -> tuple:
 N_PARAMS = np.array([2, 5, 7, 11])
 
 
-def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, untestable: bool) -> int:
+def fallback_to_global(
+    fr: Frame, models: ShapeModels, depth: NDArray[np.float32], *, untestable: bool, thin: bool
+) -> int:
     """Per-object fallback to the global affine (the ``no_msc_cdr`` result), in place.
 
     An object keeps its own result (calibrated prior, model output, residual field) only when it
@@ -131,8 +134,11 @@ def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, untestable: boo
     ``RSS / (n - p)`` is the unbiased residual variance of a fit with ``p`` parameters; the
     global affine's two parameters are shared by all features of the frame. An object with
     ``n <= p`` (no feature at all included) cannot be tested: it keeps what CDR's anchor and
-    smoothness gave it, unless ``untestable`` (then it falls back too). Returns the number of
-    objects that fell back.
+    smoothness gave it, unless ``untestable``, or more than ``fallback_failed_share`` of the
+    tested objects failed (then it falls back too). With ``thin`` (the frame has fewer than
+    ``fallback_min_features`` features with a prior) every object falls back: an in-sample test
+    on a handful of features, one of them perhaps an outlier, validates nothing. Returns the
+    number of objects that fell back.
     """
     G, theta0, kind = fr.G, fr.theta0, fr.prior_kind
     fpix, z = fr.fpix, fr.z
@@ -146,13 +152,17 @@ def fallback_to_global(fr: Frame, depth: NDArray[np.float32], *, untestable: boo
     n = np.bincount(g, minlength=G).astype(np.float64)
     l_obj = np.bincount(g, e_obj, minlength=G)
     l_glob = np.bincount(g, e_glob, minlength=G)
-    dof = n - N_PARAMS[np.clip(fr.kind_g, 0, 3)]
+    dof = n - N_PARAMS[np.clip(models.kind, 0, 3)]
     testable = dof > 0
     with np.errstate(divide="ignore", invalid="ignore"):
         better = l_obj * n / np.where(testable, dof, 1.0) < l_glob
     fall = testable & ~better
-    if untestable:
+    # many tested objects failing: the frame's calibration is unreliable (CDR couples objects by
+    # eq. 9, so the untested neighbours of failed objects were pulled by them too)
+    if untestable or fall.sum() > fr.p.fallback_failed_share * max(int(testable.sum()), 1):
         fall |= ~testable
+    if thin:  # too few features in the frame to validate any object's departure from it
+        fall[:] = True
     fall &= ~fr.sky
     if not fall.any():
         return 0
@@ -183,7 +193,11 @@ def nearest_seed(
 
 
 def fill_holes(
-    fr: Frame, holes: NDArray[np.bool_], depth: NDArray[np.float32], out_conf: NDArray[np.float32]
+    fr: Frame,
+    models: ShapeModels,
+    holes: NDArray[np.bool_],
+    depth: NDArray[np.float32],
+    out_conf: NDArray[np.float32],
 ) -> tuple[int, int]:
     """Depth for pixels without prior (and not sky), in place; returns the pixel counts
     ``(model depth, edge-aware fill)``.
@@ -197,7 +211,7 @@ def fill_holes(
     far points into a region without any evidence (a textureless car or pillar close to the
     camera) gave errors of several hundred percent (docs/metrizer.md, pixels without prior).
     """
-    p, H, W, gobj, kind_g = fr.p, fr.H, fr.W, fr.gobj, fr.kind_g
+    p, H, W, gobj, kind_g = fr.p, fr.H, fr.W, fr.gobj, models.kind
     hole_idx = np.flatnonzero(holes)
     v, u = np.divmod(fr.fpix, W)
     good = consistent_seeds(
@@ -212,12 +226,12 @@ def fill_holes(
     hi = hole_idx[same & (kind_g[gobj[hole_idx]] > 0) & (dist <= p.hole_model_radius * W)]
     if len(hi):  # no prior, accepted shape, own features near: the model depth
         g = gobj[hi]
-        d = model_depth(hi, g, kind_g, fr.Am, fr.bm, fr.cm, W, fr.K)
+        d = model_depth(hi, g, kind_g, models.A, models.b, models.c, W, fr.K)
         # no prior to gate the model against: a tighter extrapolation range
         f = p.hole_model_extrapolation / p.model_extrapolation
-        ok = np.isfinite(d) & (d >= fr.zlo[g] / f) & (d <= fr.zhi[g] * f)
+        ok = np.isfinite(d) & (d >= models.zlo[g] / f) & (d <= models.zhi[g] * f)
         depth[hi[ok]] = d[ok]
-        out_conf[hi[ok]] = 0.5 * fr.conf_g[g[ok]]
+        out_conf[hi[ok]] = 0.5 * models.conf[g[ok]]
         n_model = int(ok.sum())
     sel = same & (dist <= p.hole_fill_radius * W)
     sel[sel] = depth[hole_idx[sel]] == 0
@@ -249,13 +263,17 @@ def fill_holes(
     return n_model, n_fill
 
 
-def compose(fr: Frame, tm: StageTimer, global_only: bool) -> MetrizedDepth:
-    """Full-resolution output: calibrated prior per object, model depth, sky, holes, confidence."""
+def compose(
+    fr: Frame, tm: StageTimer, models: ShapeModels, theta: F64, global_only: bool
+) -> MetrizedDepth:
+    """Full-resolution output from the stage results: the per-object affine ``theta`` ``[G, 2]``
+    of eq. (6) (CDR, or the global one) and the accepted shapes ``models`` (Algorithm 1):
+    calibrated prior per object, model depth, sky, holes, confidence."""
     p: MetrizerParams = fr.p
     H, W, G = fr.H, fr.W, fr.G
     gobj, prior, conf, has_prior = fr.gobj, fr.prior, fr.conf, fr.has_prior
-    kind, theta, theta0, sky = fr.prior_kind, fr.theta, fr.theta0, fr.sky
-    kind_g, conf_g, n_feat_g, stats = fr.kind_g, fr.conf_g, fr.n_feat_g, fr.stats
+    kind, theta0, sky = fr.prior_kind, fr.theta0, fr.sky
+    kind_g, conf_g, n_feat_g, stats = models.kind, models.conf, fr.n_feat_g, fr.stats
     z, fpix = fr.z, fr.fpix
 
     if global_only:
@@ -282,7 +300,7 @@ def compose(fr: Frame, tm: StageTimer, global_only: bool) -> MetrizedDepth:
     tm.lap("compose")
     used, used_idx, used_ratio = None, np.zeros(0, np.intp), np.zeros(0)
     if p.model_output and (kind_g > 0).any() and not global_only:
-        used, used_idx, used_ratio = model_output(fr, depth, special)
+        used, used_idx, used_ratio = model_output(fr, models, depth, special)
         n_model_px = int(np.count_nonzero(used))
     tm.lap("model_output")
 
@@ -314,7 +332,9 @@ def compose(fr: Frame, tm: StageTimer, global_only: bool) -> MetrizedDepth:
     n_fallback = 0
     if p.fallback_global and not global_only:
         thin = stats["n_features_global"] < p.fallback_min_features
-        n_fallback = fallback_to_global(fr, depth, untestable=p.fallback_untestable or thin)
+        n_fallback = fallback_to_global(
+            fr, models, depth, untestable=p.fallback_untestable, thin=thin
+        )
     stats["n_fallback_objects"] = n_fallback
     tm.lap("residual")
 
@@ -332,7 +352,7 @@ def compose(fr: Frame, tm: StageTimer, global_only: bool) -> MetrizedDepth:
         depth[holes] = 0.0
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
-            n_model_fill, n_edge_fill = fill_holes(fr, holes, depth, out_conf)
+            n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
     stats.update(
         n_model_output_px=n_model_px, n_hole_px_model=n_model_fill, n_hole_px_fill=n_edge_fill
     )

@@ -102,14 +102,6 @@ class Frame:
     feat_g: NDArray[np.intp] | None = None  # [N] object per feature
     n_feat_g: NDArray[np.int64] | None = None  # [G]
     sky: NDArray[np.bool_] | None = None  # [G]
-    theta: F64 | None = None  # [G, 2] per-object affine (eq. 6)
-    kind_g: NDArray[np.int8] | None = None  # [G] accepted model kind
-    conf_g: F64 | None = None  # [G] eq. (5) confidence of the accepted model
-    Am: F64 | None = None  # [G, 3, 3] quadric of the accepted model (camera frame)
-    bm: F64 | None = None  # [G, 3]
-    cm: F64 | None = None  # [G]
-    zlo: F64 | None = None  # [G] model depth valid range
-    zhi: F64 | None = None  # [G]
     run_label: NDArray[np.intp] | None = None  # [R] object of each raster run of gobj
     run_len: NDArray[np.intp] | None = None  # [R] its length in pixels
     edges: NDArray[np.uint8] | None = None  # quarter-resolution depth-edge band of the prior

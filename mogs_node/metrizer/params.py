@@ -34,10 +34,12 @@ class MetrizerParams:
     hole_model_extrapolation: float = 1.25  # the same f for pixels without prior (no gate there)
     fallback_global: bool = True  # per object: the global affine where the object's own result
     # does not explain its features better (degrees-of-freedom corrected, see _fallback_to_global)
-    fallback_untestable: bool = False  # ... and objects with too few features to test always
+    fallback_untestable: bool = True  # ... and objects with too few features to test always
+    fallback_failed_share: float = 0.5  # ... also when more than this share of the tested
+    # objects fell back
     fallback_min_features: int = 18  # ... untestable objects also when the frame has fewer
     # features with a prior than this (their calibration follows thin neighbouring evidence)
-    hole_model_radius: float = 0.05  # a pixel without prior takes its object's model depth only
+    hole_model_radius: float = 0.03  # a pixel without prior takes its object's model depth only
     # within this fraction of the image width of one of the object's own features
     hole_fill_radius: float = 0.02  # ... the edge-aware fill of the features only within this
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
