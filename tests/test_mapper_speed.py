@@ -222,6 +222,7 @@ def test_every_map_and_keyframe_tensor_lives_on_the_mapper_device() -> None:
     assert g.to("cpu") is g and all(t.device.type == "cpu" for t in g.params.values())
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (and gsplat)")
 def test_mapper_on_cuda_maps_exports_and_checkpoints(tmp_path) -> None:
     pytest.importorskip("gsplat")

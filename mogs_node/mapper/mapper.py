@@ -246,7 +246,7 @@ class GaussianMapper:
         kf = KeyframeState(
             keyframe_id=int(keyframe_id),
             index=index,
-            image=torch.as_tensor(np.ascontiguousarray(img)).to(dev),
+            image=torch.as_tensor(np.array(img, copy=True)).to(dev),  # own, writable copy
             depth_m=torch.as_tensor(d).to(dev),
             confidence=torch.as_tensor(c).to(dev),
             T_cam_world=torch.as_tensor(se3_inverse(T)),
