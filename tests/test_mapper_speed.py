@@ -283,3 +283,22 @@ def test_property_cheap_cull_is_a_superset_of_the_projection_cull(
     valid = project_gaussians(means, quats, log_scales, opacity_logit, T, Kt, W, H, **kw).valid
     cheap = cull_gaussians(means, log_scales, opacity_logit, T, Kt, W, H, **kw)
     assert bool((valid <= cheap).all())
+
+
+def test_checkpoint_right_after_insertion_keeps_the_weight_records(tmp_path) -> None:
+    """A keyframe that got no iteration yet (iters_when_behind 0) has a record aligned with its
+    ids; the checkpoint round trip keeps it, and the restored mapper prunes the same."""
+    from mogs_node.mapper.checkpoint import load_checkpoint, save_checkpoint
+
+    m = build(2, 2, prune_contrib_px=1.0)
+    m.add_keyframe(5, *view(2))
+    kf = m.keyframes[-1]
+    assert len(kf.visible_weights) == len(kf.visible_ids) > 0
+    save_checkpoint(m, tmp_path / "m.ckpt")
+    back = load_checkpoint(tmp_path / "m.ckpt")
+    for a, b in zip(m.keyframes, back.keyframes, strict=True):
+        np.testing.assert_array_equal(a.visible_weights, b.visible_weights)
+        assert a.weights_next_id == b.weights_next_id
+    m.optimize(2)
+    back.optimize(2)
+    assert torch.equal(m.map.ids, back.map.ids)
