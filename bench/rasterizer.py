@@ -82,7 +82,8 @@ def time_render(
 
 
 def mapper_iterations_per_s(width: int, height: int, n_iters: int = 10) -> tuple[float, int]:
-    """Window iterations per second of the mapper core on 5 keyframes of a synthetic street."""
+    """Window iterations (one sampled view each) per second of the mapper core on 5 keyframes
+    of a synthetic street."""
     import numpy as np
 
     from mogs_node.mapper.mapper import GaussianMapper, MapperParams
@@ -155,7 +156,7 @@ def main() -> int:
             its, n = mapper_iterations_per_s(w, h)
             figures[f"mapper_{w}x{h}_iterations_per_s"] = its
             figures[f"mapper_{w}x{h}_n_gaussians"] = n
-            print(f"mapper {w}x{h}: {its:.2f} iterations/s ({n} Gaussians, window 4 + 1 random)")
+            print(f"mapper {w}x{h}: {its:.2f} iterations/s ({n} Gaussians, one view per iteration)")
     write_json(args.json, figures)
     if args.write_docs:
         lines = [

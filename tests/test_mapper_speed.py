@@ -222,6 +222,7 @@ def test_every_map_and_keyframe_tensor_lives_on_the_mapper_device() -> None:
     assert g.to("cpu") is g and all(t.device.type == "cpu" for t in g.params.values())
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (and gsplat)")
 def test_mapper_on_cuda_maps_exports_and_checkpoints(tmp_path) -> None:
     pytest.importorskip("gsplat")
@@ -292,3 +293,22 @@ def test_optimising_an_empty_map_is_a_no_op() -> None:
     assert len(m.map) == 0
     m.optimize(5)
     assert len(m.map) == 0 and m.iterations == 0
+
+
+def test_checkpoint_right_after_insertion_keeps_the_weight_records(tmp_path) -> None:
+    """A keyframe that got no iteration yet (iters_when_behind 0) has a record aligned with its
+    ids; the checkpoint round trip keeps it, and the restored mapper prunes the same."""
+    from mogs_node.mapper.checkpoint import load_checkpoint, save_checkpoint
+
+    m = build(2, 2, prune_contrib_px=1.0)
+    m.add_keyframe(5, *view(2))
+    kf = m.keyframes[-1]
+    assert len(kf.visible_weights) == len(kf.visible_ids) > 0
+    save_checkpoint(m, tmp_path / "m.ckpt")
+    back = load_checkpoint(tmp_path / "m.ckpt")
+    for a, b in zip(m.keyframes, back.keyframes, strict=True):
+        np.testing.assert_array_equal(a.visible_weights, b.visible_weights)
+        assert a.weights_next_id == b.weights_next_id
+    m.optimize(2)
+    back.optimize(2)
+    assert torch.equal(m.map.ids, back.map.ids)

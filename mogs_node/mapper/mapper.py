@@ -231,6 +231,7 @@ class GaussianMapper:
             if r.weights is not None:
                 seen_w = r.weights[vis.cpu()].numpy().astype(np.float32)
             else:  # no weights from this backend: unknown until the view is trained
+                seen_w = np.zeros(len(seen_ids), np.float32)
                 next_id_before = 0
         else:
             alpha = rdepth = rrgb = None
@@ -246,12 +247,14 @@ class GaussianMapper:
         kf = KeyframeState(
             keyframe_id=int(keyframe_id),
             index=index,
-            image=torch.as_tensor(np.ascontiguousarray(img)).to(dev),
+            image=torch.as_tensor(np.array(img, copy=True)).to(dev),  # own, writable copy
             depth_m=torch.as_tensor(d).to(dev),
             confidence=torch.as_tensor(c).to(dev),
             T_cam_world=torch.as_tensor(se3_inverse(T)),
             visible_ids=np.concatenate([seen_ids, new_ids.cpu().numpy()]),
-            visible_weights=seen_w if next_id_before else np.zeros(0, np.float32),
+            # aligned with visible_ids; the new Gaussians' 0 is never read as a measurement:
+            # their ids are >= weights_next_id, so this record does not judge them
+            visible_weights=np.concatenate([seen_w, np.zeros(len(new_ids), np.float32)]),
             weights_next_id=next_id_before,
         )
         self.keyframes.append(kf)
