@@ -33,13 +33,18 @@ def test_collector_matches_depth_to_ground_truth_in_any_order_and_pools() -> Non
     c.add_keyframe(7, 700, np.eye(4))
     c.add_keyframe(8, 800, np.eye(4))
     c.add_gt_depth(800, gt)
-    c.add_depth(8, np.full((2, 2), 4.0), np.ones((2, 2)))
+    d8 = np.full((2, 2), 4.0)
+    d8[0, 0] = 0.0  # one pixel without depth: coverage 0.75
+    c.add_depth(8, d8, np.ones((2, 2)))
     assert [s.keyframe_id for s in c.depth_scores] == [7, 8]
     assert not c.complete  # nothing reached the mapper yet
     c.mapped.update({7, 8})
     assert c.complete
     fig = summarise(c)
-    assert fig["depth"]["absrel"] == pytest.approx(0.125)  # pooled: (4 * 0.25 + 4 * 0) / 8
+    assert fig["depth"]["absrel"] == pytest.approx(1 / 7)  # pooled: (4 * 0.25 + 3 * 0) / 7
+    assert fig["depth"]["min_keyframe_coverage"] == pytest.approx(0.75)
+    c.mapped.discard(8)  # only what reached the mapper counts
+    assert summarise(c)["depth"]["min_keyframe_coverage"] == pytest.approx(1.0)
     assert fig["keyframes_with_depth"] == 2 and fig["keyframes_mapped"] == 2
 
 

@@ -138,6 +138,12 @@ def summarise(c: RunCollector) -> dict[str, Any]:
             "rmse": math.sqrt(sum(s.sum_sq for s in c.depth_scores) / n),
             "delta1": sum(s.n_delta1 for s in c.depth_scores) / n,
             "coverage": float(np.mean([s.coverage for s in c.depth_scores])),
+            # the worst keyframe the mapper got (issue 16: none may be left mostly empty)
+            "min_keyframe_coverage": float(
+                min(s.coverage for s in c.depth_scores if s.keyframe_id in c.mapped)
+                if any(s.keyframe_id in c.mapped for s in c.depth_scores)
+                else min(s.coverage for s in c.depth_scores)
+            ),
         }
     stamps = sorted(s for s in c.odometry if s in c.gt_poses)
     if len(stamps) >= 3:
