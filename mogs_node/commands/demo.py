@@ -70,14 +70,22 @@ def command(args: argparse.Namespace) -> int:
         f"{figures['keyframes_mapped']} mapped)"
     ]
     if "depth" in figures:
-        parts.append(f"depth AbsRel {figures['depth']['absrel']:.3f}")
+        d = figures["depth"]
+        parts.append(f"depth AbsRel {d['absrel']:.3f} at coverage {d['coverage']:.2f}")
     traj = figures.get("trajectory", {})
     if "ate_se3_rmse_m" in traj:
         parts.append(f"ATE {traj['ate_se3_rmse_m']:.2f} m over {traj['path_length_m']:.0f} m")
     if "mapper" in figures:
         parts.append(f"{figures['mapper'].get('n_gaussians', 0)} Gaussians")
+    held = figures.get("map", {})
+    if held.get("heldout_frames"):
+        parts.append(
+            f"held-out views {held['heldout_psnr_db']:.1f} dB PSNR, SSIM {held['heldout_ssim']:.2f}"
+            f" ({held['heldout_frames']} frames)"
+        )
     print(f"demo finished in {dt:.0f} s: " + ", ".join(parts))
     print(
-        f"outputs in {out}: report.md, summary.json, trajectory_*.tum|kitti, map.ply, depth/, renders/"
+        f"outputs in {out}: report.md, summary.json, trajectory_*.tum|kitti, map.ply, depth/, "
+        "renders/ (the final map at held-out frames and keyframes), snapshots/"
     )
     return code
