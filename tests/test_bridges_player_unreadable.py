@@ -71,11 +71,12 @@ def test_a_truncated_frame_is_skipped_counted_and_logged_once(
 
 def _player_and_report(tmp_path: Path, drive: Path, report_dir: Path) -> Path:
     """launch/kitti.yaml's player (as fast as possible, waiting for no pipeline node) and its
-    report node, on ``drive``."""
+    report node, on ``drive``; the player waits for the report only."""
     kitti = load_launch_file(REPO / "launch" / "kitti.yaml")
     player = next(s for s in kitti.nodes if s.name == "player")
-    params = {k: v for k, v in player.params.items() if k != "wait_for_nodes"}
-    params.update(path=str(drive), rate=0.0, wait_for_subscriber_s=0.0)
+    params = dict(player.params)
+    # the report (which imports the rasterizer: slow to start) must hear the whole drive
+    params.update(path=str(drive), rate=0.0, wait_for_subscriber_s=0.0, wait_for_nodes=["report"])
     launch = {
         "name": "trunc",
         "exit_when": ["report"],

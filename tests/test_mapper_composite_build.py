@@ -29,8 +29,10 @@ def _build_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
 
 def test_first_build_prints_one_line(fresh_extension: Path, caplog) -> None:
     with caplog.at_level(logging.INFO, logger=composite.log.name):
-        assert composite.load_cpp_extension() == "loaded:" + composite._NAME
-        assert composite.load_cpp_extension() == "loaded:" + composite._NAME  # cached in-process
+        assert composite.load_cpp_extension() == "loaded:" + composite.extension_name()
+        assert (
+            composite.load_cpp_extension() == "loaded:" + composite.extension_name()
+        )  # cached in-process
     (line,) = _build_lines(caplog)
     assert str(fresh_extension) in line
 
@@ -38,9 +40,9 @@ def test_first_build_prints_one_line(fresh_extension: Path, caplog) -> None:
 def test_a_cached_build_prints_nothing(fresh_extension: Path, caplog) -> None:
     import torch
 
-    d = fresh_extension / f"mogs_torch{torch.__version__}" / composite._NAME
+    d = fresh_extension / f"mogs_torch{torch.__version__}" / composite.extension_name()
     d.mkdir(parents=True)
-    (d / f"{composite._NAME}.so").write_bytes(b"")
+    (d / f"{composite.extension_name()}.so").write_bytes(b"")
     with caplog.at_level(logging.INFO, logger=composite.log.name):
-        assert composite.load_cpp_extension() == "loaded:" + composite._NAME
+        assert composite.load_cpp_extension() == "loaded:" + composite.extension_name()
     assert _build_lines(caplog) == []

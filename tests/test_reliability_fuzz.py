@@ -48,6 +48,7 @@ TOPIC_TYPES: dict[str, type[msgs.Message]] = {
     "/frontend/odometry": msgs.Odometry,
     "/mapper/stats": msgs.MapStats,
     "/mapper/render": msgs.Render,
+    "/mapper/gaussians": msgs.GaussianUpdate,
     "/groundtruth/pose": msgs.PoseStamped,
     "/groundtruth/depth": msgs.DepthMap,
     "/diagnostics": msgs.Diagnostics,
@@ -85,6 +86,8 @@ NODES: dict[str, tuple[str, dict, tuple[str, ...]]] = {
             "/metrizer/depth",
             "/mapper/stats",
             "/mapper/render",
+            "/mapper/gaussians",
+            "/camera/image",
             "/groundtruth/pose",
             "/groundtruth/depth",
             "/diagnostics",
@@ -148,15 +151,15 @@ def _sample(cls: type[msgs.Message], rng: np.random.Generator) -> msgs.Message:
     if cls is msgs.Diagnostics:
         return msgs.Diagnostics(**base, node="n", pid=1, uptime_s=1.0, status="ok")
     if cls is msgs.GaussianUpdate:
-        z = np.zeros((0, 3), np.float32)
+        z = np.zeros((2, 3), np.float32)  # two Gaussians: arrays for the bad_array fuzz
         return msgs.GaussianUpdate(
             **base,
             keyframe_id=1,
-            ids=np.zeros(0, np.int64),
+            ids=np.arange(2, dtype=np.int64),
             means=z,
             log_scales=z,
-            quats_wxyz=np.zeros((0, 4), np.float32),
-            opacity_logit=np.zeros(0, np.float32),
+            quats_wxyz=np.tile(np.array([1, 0, 0, 0], np.float32), (2, 1)),
+            opacity_logit=np.zeros(2, np.float32),
             colors_rgb=z,
             removed_ids=np.zeros(0, np.int64),
         )

@@ -39,12 +39,18 @@ _EXT_LOCK = threading.Lock()
 
 
 _NAME = "mogs_composite_cpu"
+_SOURCE = Path(__file__).with_name("csrc") / "composite_cpu.cpp"
 
 
 def _source_tag(src: Path) -> str:
     """Short hash of the C++ source: each version of it builds into its own cached module, so
     checkouts with different sources on one machine never rebuild over each other."""
     return hashlib.sha1(src.read_bytes()).hexdigest()[:10]
+
+
+def extension_name() -> str:
+    """The cached module's name: ``mogs_composite_cpu_<hash of the C++ source>``."""
+    return f"{_NAME}_{_source_tag(_SOURCE)}"
 
 
 @contextlib.contextmanager
@@ -85,11 +91,11 @@ def load_cpp_extension() -> ModuleType | None:
         try:
             from torch.utils.cpp_extension import get_default_build_root, load
 
-            src = Path(__file__).with_name("csrc") / "composite_cpu.cpp"
-            name = f"{_NAME}_{_source_tag(src)}"
+            src = _SOURCE
+            name = extension_name()
             build_dir = Path(get_default_build_root()) / f"mogs_torch{torch.__version__}" / name
             build_dir.mkdir(parents=True, exist_ok=True)
-            if not (build_dir / f"{_NAME}.so").exists():  # first use: say why start-up waits
+            if not (build_dir / f"{name}.so").exists():  # first use: say why start-up waits
                 log.info("building the C++ compositing extension (once, ~20-40 s) in %s", build_dir)
             with _build_lock(build_dir):
                 _EXT = load(
