@@ -42,7 +42,11 @@ def keyframe(kid: int, T: np.ndarray) -> tuple[msgs.Keyframe, np.ndarray]:
 def test_flow_node_publishes_prior_per_keyframe(inproc_bus, wired_node) -> None:
     bus, ctx = inproc_bus
     node = DepthPriorNode(
-        "prior", {"flow": {"far_baseline_m": 0.0}}, bus, context=ctx, diagnostics_period_s=0
+        "prior",
+        {"flow": {"far_baseline_m": 0.0}, "metrized_topic": ""},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
     )
     w = wired_node(node, ("/frontend/keyframe",), "/prior/depth")
     poses = [np.eye(4), make_T(so3_exp(np.array([0.0, 0.01, 0.0])), np.array([0.05, 0, 0.5]))]
@@ -152,3 +156,48 @@ def test_flow_node_carries_metrized_depth_into_a_standstill_keyframe(
     assert m.mean() > 0.95
     np.testing.assert_allclose(second.depth[m], depth[m], rtol=1e-4)
     assert node.counters["handler_errors"] == 0
+
+
+@pytest.mark.parametrize("metrized_arrives", [True, False])
+def test_a_keyframe_waits_for_the_previous_keyframes_metrized_depth(
+    inproc_bus, wired_node, metrized_arrives: bool
+) -> None:
+    """Keyframe 8's prior is computed only once keyframe 7's metrized depth is in (so it does not
+    depend on which message came first), or, when it never comes, after ``metrized_wait_s``
+    (counted); keyframes keep their order."""
+    bus, ctx = inproc_bus
+    wait_s = 30.0 if metrized_arrives else 0.5
+    node = DepthPriorNode(
+        "prior",
+        {"flow": {"far_baseline_m": 0.0}, "metrized_wait_s": wait_s},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
+    w = wired_node(node, ("/frontend/keyframe", "/metrizer/depth"), "/prior/depth")
+    kf7, depth7 = keyframe(7, np.eye(4))
+    w.pub.publish("/frontend/keyframe", kf7)
+    assert [m.keyframe_id for m in w.collect(1, 20)] == [7]  # nothing before it to wait for
+    for kid in (8, 9):
+        w.pub.publish("/frontend/keyframe", keyframe(kid, np.eye(4))[0])  # standing still
+    if metrized_arrives:
+        assert w.collect(1, 1.0) == []  # held back: 7's metrized depth is not in
+        w.pub.publish("/metrizer/depth", _metrized(7, depth7))
+        (eight,) = w.collect(1, 20)
+        assert eight.keyframe_id == 8 and (eight.confidence > 0).mean() > 0.95  # 7's depth in
+        assert w.collect(1, 1.0) == []  # 9 now waits for 8's metrized depth
+        w.pub.publish("/metrizer/depth", _metrized(8, depth7))
+        assert [m.keyframe_id for m in w.collect(1, 20)] == [9]
+        assert node.counters.get("metrized_wait_timeouts", 0) == 0
+    else:
+        got = w.collect(2, 20)
+        assert [m.keyframe_id for m in got] == [8, 9]
+        assert node.counters["metrized_wait_timeouts"] == 2
+    assert node.counters["handler_errors"] == 0
+
+
+def test_metrized_wait_must_be_finite_and_non_negative(inproc_bus) -> None:
+    bus, ctx = inproc_bus
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="metrized_wait_s"):
+            DepthPriorNode("prior", {"metrized_wait_s": bad}, bus, context=ctx)

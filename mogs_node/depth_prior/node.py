@@ -15,6 +15,9 @@ metrized depth are metric too); the ONNX prior has the kind declared in its para
 
 from __future__ import annotations
 
+import math
+import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,8 +49,15 @@ class DepthPriorParams:
     in_topic: str = "/frontend/keyframe"  # keyframes
     out_topic: str = "/prior/depth"  # priors, keyed by keyframe id
     metrized_topic: str = "/metrizer/depth"  # metrized depth of earlier keyframes ("" = off)
+    metrized_wait_s: float = 5.0  # a keyframe waits at most this long for the previous one's
+    # metrized depth (0: never): the prior then does not depend on which arrived first, so the
+    # same drive gives the same prior on every run whenever the pipeline keeps up
 
     def __post_init__(self) -> None:
+        if not math.isfinite(self.metrized_wait_s) or self.metrized_wait_s < 0:
+            raise ConfigError(
+                f"depth_prior.metrized_wait_s: must be >= 0, got {self.metrized_wait_s}"
+            )
         if self.backend not in BACKENDS:
             raise ConfigError(
                 f"depth_prior.backend: expected one of {BACKENDS}, got {self.backend!r}"
@@ -81,6 +91,11 @@ class DepthPriorNode(Node):
                 p.metrized_topic, self.on_metrized, reliable=True, msg_type=msgs.DepthMap
             )
             inputs += (p.metrized_topic,)
+        # keyframes held back (in order) until the previous keyframe's metrized depth is in
+        self._waiting: deque[tuple[msgs.Keyframe, float]] = deque()
+        self._waits_timed_out = 0
+        if p.metrized_topic and self.net is None and p.metrized_wait_s > 0:
+            self.every(0.05, self._release_waiting)
         self.catch_up(inputs, (p.out_topic,))  # after a restart: the keyframes missed
 
     def on_metrized(self, msg: msgs.DepthMap) -> None:
@@ -92,8 +107,32 @@ class DepthPriorNode(Node):
             return
         if not self.sequence.add_metrized(msg.keyframe_id, msg.depth, msg.confidence):
             self.log.debug("metrized depth of keyframe %d not kept", msg.keyframe_id)
+        self._release_waiting()
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
+        p: DepthPriorParams = self.params
+        done = self.already_published(p.out_topic, kf.keyframe_id)
+        if p.metrized_topic and self.net is None and p.metrized_wait_s > 0 and not done:
+            self._waiting.append((kf, time.monotonic()))
+            self._release_waiting()
+        else:
+            self._process(kf)
+
+    def _release_waiting(self) -> None:
+        """Compute the held-back keyframes, in order, whose predecessor's metrized depth is in
+        (or whose wait is over: the prior then goes without it, and the wait is counted)."""
+        while self._waiting:
+            kf, t_in = self._waiting[0]
+            last = self.sequence.history[-1] if self.sequence.history else None
+            if last is not None and last.metrized is None:
+                if time.monotonic() - t_in < self.params.metrized_wait_s:
+                    return
+                self._waits_timed_out += 1
+                self.counters["metrized_wait_timeouts"] = self._waits_timed_out
+            self._waiting.popleft()
+            self._process(kf)
+
+    def _process(self, kf: msgs.Keyframe) -> None:
         if self.already_published(self.params.out_topic, kf.keyframe_id):
             if self.net is None:  # done before a restart: only a reference for the flow prior
                 self.sequence.remember(kf.keyframe_id, kf.image, kf.K, kf.T_world_cam)
