@@ -111,8 +111,7 @@ class DepthPriorNode(Node):
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
         p: DepthPriorParams = self.params
-        done = self.already_published(p.out_topic, kf.keyframe_id)
-        if p.metrized_topic and self.net is None and p.metrized_wait_s > 0 and not done:
+        if p.metrized_topic and self.net is None and p.metrized_wait_s > 0:
             self._waiting.append((kf, time.monotonic()))
             self._release_waiting()
         else:
@@ -133,10 +132,10 @@ class DepthPriorNode(Node):
             self._process(kf)
 
     def _process(self, kf: msgs.Keyframe) -> None:
-        if self.already_published(self.params.out_topic, kf.keyframe_id):
-            if self.net is None:  # done before a restart: only a reference for the flow prior
-                self.sequence.remember(kf.keyframe_id, kf.image, kf.K, kf.T_world_cam)
-            return
+        if self.already_published(self.params.out_topic, kf.keyframe_id) and self.net is not None:
+            return  # done before a restart; the learned prior keeps no state
+        # the flow prior recomputes a keyframe done before a restart (publish() suppresses the
+        # duplicate): the carried prior and warped depth of the next keyframes depend on it
         if self.net is not None:
             rgb = kf.rgb()
             out = self.net.infer(np.ascontiguousarray(rgb))
