@@ -152,17 +152,7 @@ class FixedView:
         elif topic == "/mapper/stats":
             self.iterations = int(m.iterations)
         elif topic == "/mapper/gaussians":
-            self.replica.apply(
-                m.ids,
-                m.removed_ids,
-                {
-                    "means": m.means,
-                    "quats_wxyz": m.quats_wxyz,
-                    "log_scales": m.log_scales,
-                    "opacity_logit": m.opacity_logit,
-                    "colors_rgb": m.colors_rgb,
-                },
-            )
+            self.replica.apply_update(m)
             self._decide()
             if self.stamp is not None:
                 self._evaluate(now)

@@ -159,17 +159,7 @@ class RunReportNode(Node):
 
     def on_gaussians(self, m: msgs.GaussianUpdate) -> None:
         self._touch()
-        self.c.final_map.apply(
-            m.ids,
-            m.removed_ids,
-            {
-                "means": m.means,
-                "quats_wxyz": m.quats_wxyz,
-                "log_scales": m.log_scales,
-                "opacity_logit": m.opacity_logit,
-                "colors_rgb": m.colors_rgb,
-            },
-        )
+        self.c.final_map.apply_update(m)
         self.c.map_updated.add(m.keyframe_id)
 
     def on_depth(self, m: msgs.DepthMap) -> None:

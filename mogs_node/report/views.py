@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import torch
 
+from mogs_node import msgs
 from mogs_node.errors import ShapeError
 from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.image_metrics import psnr_db, ssim
@@ -64,6 +65,10 @@ class MapReplica:
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
+
+    def apply_update(self, msg: msgs.GaussianUpdate) -> None:
+        """:meth:`apply` of one ``/mapper/gaussians`` message."""
+        self.apply(msg.ids, msg.removed_ids, {name: getattr(msg, name) for name in FIELDS})
 
     def apply(
         self, ids: np.ndarray, removed_ids: np.ndarray, values: dict[str, np.ndarray]
