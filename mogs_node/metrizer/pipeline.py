@@ -142,6 +142,14 @@ def metrize(
     fx, fc = prior[fpix].astype(np.float64), conf[fpix].astype(np.float64)
     ft = space_from_depth(z, prior_kind)
     theta0, n_global = fit_global_affine(fx, ft, w * fc, prior_kind, p.global_huber)
+    unanchored = prior_kind != "metric" and 0 < n_global < p.min_anchor_features
+    if prior_kind != "metric" and n_global < p.min_anchor_features:
+        # a relative prior that (almost) no metric point anchors has no metric meaning: its
+        # pixels get no depth (only the sparse evidence near features below), not a guessed
+        # scale (the identity, or an affine through 1-4 points: AbsRel 0.3-0.9 on the demo)
+        conf = np.zeros_like(conf)
+        has_prior, all_prior, fc = conf > 0, False, np.zeros_like(fc)
+        theta0, n_global = np.array([1.0, 0.0]), 0
     _, f_norm = far_and_norm(theta0[0] * fx + theta0[1], prior_kind, p)
     fd_glob = depth_from_space(f_norm, prior_kind, p.d_min_m, p.d_max_m)
     f_consistent = (fc > 0) & (np.abs(np.log(z / fd_glob)) <= np.log1p(p.feature_prior_gate))
@@ -152,6 +160,7 @@ def metrize(
         "n_features": int(len(z)),
         "n_features_global": int(n_global),
         "global_affine": [float(theta0[0]), float(theta0[1])],
+        "prior_unanchored": bool(unanchored),
     }
     tm.lap("global")
 
