@@ -25,38 +25,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from mogs_node import msgs  # noqa: E402
 from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     calibration_bins,
     prior_params,
     run_priors,
     score_priors,
 )
-from mogs_node.eval.pipeline_stages import demo_params, prepare_keyframes  # noqa: E402
+from mogs_node.eval.pipeline_stages import (  # noqa: E402
+    demo_params,
+    graph_masks,
+    prepare_keyframes,
+)
 from mogs_node.eval.report import machine_line, update_markdown_section  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BEFORE = "flow only, references from 0.3 m (main)"
 AFTER = "flow + road + carried + warped metrized depth (default)"
-
-
-def graph_masks(kfs, params) -> list[msgs.Masks]:
-    from mogs_node.node import parse_params
-    from mogs_node.segmentation.graph import GraphSegParams, segment_graph
-    from mogs_node.segmentation.node import SegmentationParams
-
-    seg = parse_params(SegmentationParams, params.get("segmentation", {}), where="segmentation")
-    gp = parse_params(GraphSegParams, seg.graph, where="segmentation.graph")
-    return [
-        msgs.Masks(
-            stamp_ns=s.keyframe.stamp_ns,
-            frame_id="world",
-            keyframe_id=s.keyframe.keyframe_id,
-            labels=np.asarray(segment_graph(s.keyframe.rgb(), gp), np.int32),
-            backend="graph",
-        )
-        for s in kfs
-    ]
 
 
 def plot(bins: list[dict], path: Path, title: str) -> None:

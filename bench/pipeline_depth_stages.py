@@ -7,7 +7,12 @@ frontend poses | flow on ground-truth poses | simulated LFM) and masks (graph | 
 docs/benchmarks.md.
 
     python bench/pipeline_depth_stages.py [--seed S] [--launch launch/demo.yaml] [--json OUT]
-        [--no-docs]  (without it the section of docs/benchmarks.md is rewritten)
+        [--live] [--no-docs]  (without it the section of docs/benchmarks.md is rewritten)
+
+``--live`` also runs the pipeline itself (``mogs demo``, one OS process per node) with the demo
+launch file and with ``launch/demo_lfm.yaml`` (the simulated LFM as prior, evaluation only) and
+reads their ``summary.json``: the figures a user sees (JSON keys ``live_absrel``,
+``live_coverage``, ``live_min_keyframe_coverage``, ``live_lfm_absrel``, ``live_lfm_coverage``).
 """
 
 from __future__ import annotations
@@ -15,7 +20,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -40,6 +47,9 @@ PRIOR_NAME = {
     "lfm": "simulated LFM",
 }
 MASK_NAME = {"graph": "graph masks", "oracle": "oracle masks"}
+REPO = Path(__file__).resolve().parents[1]
+LFM_LAUNCH = "launch/demo_lfm.yaml"
+LIVE_ANCHOR = 'What each stage costs and what is inherent: docs/bridges.md, "Pipeline end to end".'
 
 
 def markdown(fig: dict, info: dict, command: str) -> str:
@@ -96,12 +106,44 @@ def markdown(fig: dict, info: dict, command: str) -> str:
     return "\n".join(lines)
 
 
+def live(launch: str) -> dict:
+    """``mogs demo --launch LAUNCH`` in a temporary folder; its ``summary.json`` depth figures."""
+    with tempfile.TemporaryDirectory(prefix="mogs-live-") as tmp:
+        cmd = [sys.executable, "-m", "mogs_node.cli", "demo", "--launch", launch, "--out", tmp]
+        logging.info("running %s", " ".join(cmd))
+        subprocess.run(cmd, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+        summary = json.loads((Path(tmp) / "summary.json").read_text())
+    return summary["depth"]
+
+
+def live_markdown(fig: dict) -> list[str]:
+    rows = [
+        "",
+        "The running pipeline (`mogs demo`, one process per node; `--live`), its `summary.json`:",
+        "",
+        "| launch file | prior | AbsRel | delta1 | coverage | min keyframe coverage |",
+        "| --- | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for key, launch, prior in (
+        ("live", "launch/demo.yaml", "weight-free dense prior (default)"),
+        ("live_lfm", "launch/demo_lfm.yaml", "simulated LFM (evaluation only)"),
+    ):
+        d = fig.get(f"{key}_depth")
+        if d:
+            rows.append(
+                f"| `{launch}` | {prior} | {d['absrel']:.3f} | {d['delta1']:.3f} | "
+                f"{d['coverage']:.3f} | {d['min_keyframe_coverage']:.3f} |"
+            )
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
     ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
     ap.add_argument("--json", default=None, help="also write the figures here")
     ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    ap.add_argument("--live", action="store_true", help="also run the pipeline (two mogs demo)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     t0 = time.perf_counter()
@@ -111,11 +153,20 @@ def main() -> None:
     fig = evaluate_stages(kfs, inputs, params)
     info.pop("K_sim", None)
     fig["info"] = info
+    if args.live:
+        for key, launch in (("live", args.launch or "launch/demo.yaml"), ("live_lfm", LFM_LAUNCH)):
+            d = live(launch)
+            fig[f"{key}_depth"] = d
+            fig[f"{key}_absrel"] = d["absrel"]
+            fig[f"{key}_coverage"] = d["coverage"]
+            fig[f"{key}_min_keyframe_coverage"] = d["min_keyframe_coverage"]
     fig["wall_s"] = time.perf_counter() - t0
     command = "python bench/pipeline_depth_stages.py" + "".join(
         f" {a}" for a in sys.argv[1:] if a != "--no-docs"
     )
     md = markdown(fig, info, command)
+    if args.live:
+        md = md.replace(LIVE_ANCHOR, "\n".join(live_markdown(fig)) + "\n\n" + LIVE_ANCHOR)
     print(md)
     if args.json:
         Path(args.json).write_text(json.dumps(fig, indent=1, default=float))

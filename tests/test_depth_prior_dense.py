@@ -174,6 +174,52 @@ def test_zbuffer_keeps_the_occluder() -> None:
     assert fx * 0.5 / 5.0 == pytest.approx(30.0, rel=0.01)
 
 
+def test_background_does_not_show_through_a_magnified_occluder() -> None:
+    """Approaching a near box from 4 m to 1.6 m magnifies it 2.5x: its points land 2-3 px apart
+    and the far wall's points, visible in the source around the box, land in the gaps. Every
+    target pixel inside the box's new outline holds the box's depth or nothing."""
+    d = np.full(HW, 40.0, np.float32)
+    d[70:90, 230:270] = 4.0
+    T_k_j = se3_inverse(make_T(np.eye(3), np.array([0.0, 0.0, 2.4])))
+    dk, _ = forward_warp_depth(d, None, K, T_k_j)
+    fx, cx, cy = K[0, 0], K[0, 2], K[1, 2]
+    u0, u1 = (np.array([230, 269]) - cx) * 2.5 + cx, (np.array([70, 89]) - cy) * 2.5 + cy
+    inner = dk[int(u1[0]) + 2 : int(u1[1]) - 2, int(u0[0]) + 2 : int(u0[1]) - 2]
+    assert inner.size > 1000
+    assert np.all((inner == 0) | (np.abs(inner - 1.6) < 0.01))
+    assert np.mean(inner > 0) > 0.9
+    assert fx > 0
+    # without the footprint test (occlusion_rel = inf) the wall leaks into the box
+    leak, _ = forward_warp_depth(d, None, K, T_k_j, occlusion_rel=np.inf)
+    inner_leak = leak[int(u1[0]) + 2 : int(u1[1]) - 2, int(u0[0]) + 2 : int(u0[1]) - 2]
+    assert np.any(inner_leak > 30.0)
+
+
+def test_carried_depth_contradicted_by_the_flow_is_dropped(views) -> None:
+    """A carried depth twice the truth predicts matches the DIS flow does not find: rejected
+    where the flow can tell; the true depth carried the same way passes the same test."""
+    (g0, _, T0), (g1, d1, T1) = views
+    conf = np.full(HW, 0.9, np.float32)
+    kw = dict(flow_params=FLOW, road_params=RoadPriorParams(enabled=False))
+    stats = {}
+    for name, depth in (("true", d1), ("wrong", 2.0 * d1)):
+        carried = (depth.astype(np.float32), conf, T1, g1)  # same pose and image: photo passes
+        p = compute_dense_prior(g1, K, T1, [(g0, T0)], [carried], **kw)
+        stats[name] = p.stats["warp_flow_rejected"]
+    assert stats["true"] < 0.05
+    assert stats["wrong"] > 0.4
+    off = compute_dense_prior(
+        g1,
+        K,
+        T1,
+        [(g0, T0)],
+        [(2.0 * d1, conf, T1, g1)],
+        params=FusionParams(flow_check=False),
+        **kw,
+    )
+    assert off.stats["warp_flow_rejected"] == 0.0
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     bad=st.sampled_from([np.nan, np.inf, -np.inf, -1.0, 0.0]),

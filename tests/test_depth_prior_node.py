@@ -201,3 +201,42 @@ def test_metrized_wait_must_be_finite_and_non_negative(inproc_bus) -> None:
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match="metrized_wait_s"):
             DepthPriorNode("prior", {"metrized_wait_s": bad}, bus, context=ctx)
+
+
+def test_sim_lfm_backend_waits_for_the_truth_and_is_affine_in_inverse_depth(
+    inproc_bus, wired_node
+) -> None:
+    """Evaluation backend: a keyframe published before its ground truth waits for it; the prior
+    is the truth's inverse depth up to the LFM's affine map and warp (correlation ~1), with full
+    confidence, deterministic per keyframe."""
+    bus, ctx = inproc_bus
+    node = DepthPriorNode("prior", {"backend": "sim_lfm"}, bus, context=ctx, diagnostics_period_s=0)
+    w = wired_node(node, ("/frontend/keyframe", "/groundtruth/depth"), "/prior/depth")
+    kf, depth = keyframe(3, np.eye(4))
+    w.pub.publish("/frontend/keyframe", kf)
+    gt = msgs.DepthMap(
+        stamp_ns=kf.stamp_ns,
+        frame_id="cam",
+        keyframe_id=-1,
+        kind="metric",
+        depth=depth.astype(np.float32),
+        confidence=np.ones_like(depth, np.float32),
+        source="groundtruth",
+    )
+    w.pub.publish("/groundtruth/depth", gt)
+    (got,) = w.collect(1, 20)
+    assert got.keyframe_id == 3 and got.kind == "relative_inverse_depth"
+    assert np.all(got.confidence == 1.0)
+    assert np.corrcoef(got.depth.ravel(), 1.0 / depth.ravel())[0, 1] > 0.9
+    from mogs_node.depth_prior.sim_lfm import lfm_from_truth
+
+    again, _ = lfm_from_truth(depth, 3)
+    np.testing.assert_array_equal(got.depth, again)
+    with pytest.raises(ConfigError, match="sim_lfm"):
+        DepthPriorNode(
+            "p",
+            {"backend": "sim_lfm", "sim_lfm": {"sed": 1}},
+            bus,
+            context=ctx,
+            diagnostics_period_s=0,
+        )

@@ -173,6 +173,33 @@ def test_relative_depth_prior_and_metric_prior():
     assert _absrel(metrize_depth(**kw_m).depth_m, gt) < 0.01
 
 
+@pytest.mark.parametrize("n_feat", [0, 1, 4])
+def test_unanchored_relative_prior_gives_no_guessed_scale(n_feat):
+    """A relative prior with fewer than min_anchor_features metric points has no metric scale:
+    its pixels get no depth in every mode (only sparse evidence near the points), while a metric
+    prior without any point is kept as it is (the identity)."""
+    kw, gt = _inputs(3, n_feat=max(n_feat, 1))
+    kw = dict(
+        kw,
+        feature_uv_px=kw["feature_uv_px"][:n_feat],
+        feature_depth_m=kw["feature_depth_m"][:n_feat],
+        feature_weight=kw["feature_weight"][:n_feat],
+    )
+    for mode in MODES:
+        out = metrize_depth(**kw, mode=mode)
+        assert (out.depth_m > 0).mean() < 0.05, mode
+        assert out.stats["n_features_global"] == 0
+        assert out.stats["prior_unanchored"] == (n_feat > 0)
+    metric = np.where(np.isfinite(gt), gt, 0).astype(np.float32)
+    kw_m = dict(kw, prior=metric, prior_kind="metric", prior_confidence=(metric > 0) * 1.0)
+    out = metrize_depth(**kw_m)
+    m = metric > 0
+    assert (out.depth_m[m] > 0).mean() > 0.95
+    assert _absrel(out.depth_m, gt) < (1e-3 if n_feat == 0 else 0.03)  # 0: the identity
+    enough = dict(kw, **{k: v for k, v in _inputs(3, n_feat=5)[0].items() if "feature" in k})
+    assert (metrize_depth(**enough).depth_m > 0).mean() > 0.5
+
+
 def test_deterministic():
     kw, _ = _inputs(3)
     a, b = metrize_depth(**kw), metrize_depth(**kw)

@@ -17,7 +17,11 @@ import sys
 from mogs_node.errors import ConfigError
 from mogs_node.eval.report import write_json
 
-DEPTH_DATASETS = {"sim": "mogs_node.eval.depth_sim", "kitti78": "mogs_node.eval.depth_kitti78"}
+DEPTH_DATASETS = {
+    "sim": "mogs_node.eval.depth_sim",
+    "kitti78": "mogs_node.eval.depth_kitti78",
+    "demo": "mogs_node.eval.depth_demo",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     depth.add_argument(
         "--viz", default=None, metavar="DIR", help="write image|masks|prior|depth|error strips"
+    )
+    depth.add_argument(
+        "--launch", default=None, help="demo: its launch file (default launch/demo.yaml)"
     )
     depth.add_argument(
         "--json", default=None, metavar="PATH", help="also write the figures as JSON"

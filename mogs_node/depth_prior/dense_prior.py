@@ -46,7 +46,7 @@ from mogs_node.depth_prior.flow_prior import (
     _pixel_rays,
     compute_flow_prior,
 )
-from mogs_node.depth_prior.road import RoadPriorParams, road_prior, up_in_camera
+from mogs_node.depth_prior.road import RoadPriorParams, project_depth, road_prior, up_in_camera
 from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import check_array, se3_inverse
@@ -77,12 +77,15 @@ class FusionParams:
     warp_sources: int = 2  # at most this many earlier metrized depths are warped in
     carry: bool = True  # the previous keyframe's own prior, warped in, is a source too
     carry_growth: float = 1.25  # ... with its predicted error times this (pose error, aging)
-    warp_max_grey_diff: float = 20.0  # warped grey level vs the keyframe's: larger -> dropped
+    warp_max_grey_diff: float = 3  # warped grey level vs the keyframe's: larger -> dropped
     verify_warp: bool = True  # warped sources checked against this keyframe's measurements
     verify_max_err: float = 0.05  # measurements (flow / road) predicted better than this
     verify_min_pixels: int = 200  # fewer overlapping measurements: no check
     verify_window_px: int = 41  # window of the local disagreement
+    flow_check: bool = True  # warped sources contradicted by this keyframe's DIS flow are dropped
+    flow_check_px: float = 1.5  # ... when the flow (fb-consistent) ends farther than this
     agree_sigmas: float = 2.0  # agreement: |d_i - d_lead| <= this * (e_i + e_lead) * d_lead
+    min_confidence: float = 0.0  # fused pixels less confident than this get no prior
     conflict_ratio: float = 2.0  # a disagreeing candidate with e_i <= this * e_lead is a conflict
 
     def __post_init__(self) -> None:
@@ -179,6 +182,10 @@ def _warp_in(
     depth = np.zeros((H, W), np.float32)
     conf = np.zeros((H, W), np.float32)
     gk = cv2.GaussianBlur(grey_k, (0, 0), 1.5).astype(np.float32)
+    # the range of k's grey levels within one pixel: a warp that lands within a pixel of the
+    # right place passes on texture too, a warp onto another surface does not
+    box = np.ones((3, 3), np.uint8)
+    gk_lo, gk_hi = cv2.erode(gk, box), cv2.dilate(gk, box)
     for i, item in enumerate(earlier):
         d_j, c_j, T_j = item[:3]
         T_j = check_array(f"{name}[{i}].T_world_cam", T_j, shape=(4, 4), finite=True)
@@ -195,7 +202,9 @@ def _warp_in(
         d_w, v_w = forward_warp_depth(np.where(keep, d_j, 0.0), np.stack(vals, -1), K, Tk_inv @ T_j)
         c_w = v_w[..., 0]
         if grey_j is not None:
-            c_w = np.where(np.abs(v_w[..., 1] - gk) <= params.warp_max_grey_diff, c_w, 0.0)
+            g_w = v_w[..., 1]
+            diff = np.maximum(np.maximum(g_w - gk_hi, gk_lo - g_w), 0.0)
+            c_w = np.where(diff <= params.warp_max_grey_diff, c_w, 0.0)
         take = (d_w > 0) & (d_w <= max_depth_m) & (c_w > conf)
         depth = np.where(take, d_w, depth)
         conf = np.where(take, c_w, conf)
@@ -230,6 +239,47 @@ def _verify(
     local = n >= max(1.0, params.verify_min_pixels / 16)
     r = np.where(local, g / np.maximum(n, 1.0), np.float32(r_img)).astype(np.float32)
     return np.sqrt(e_w * e_w + r * r).astype(np.float32), r_img
+
+
+def _flow_check(
+    d_c: NDArray[np.float32],
+    e_c: NDArray[np.float32],
+    flow: FlowPrior,
+    K: NDArray[np.float64],
+    T_r_k: Sequence[NDArray[np.float64]],
+    params: FusionParams,
+) -> tuple[NDArray[np.float32], float]:
+    """Drop a warped candidate where this keyframe's own DIS flow contradicts it.
+
+    A carried or warped depth is a hypothesis about where each pixel lands in a reference (as the
+    road plane is, :mod:`mogs_node.depth_prior.road`). Where the flow to that reference is
+    forward-backward consistent and the hypothesis is discriminative (it moves at least 1 px when
+    the depth shrinks by 20 %), a flow end point farther than ``min(flow_check_px, disc / 2)``
+    from the predicted one rejects it: typically background depth warped onto a near object that
+    had no depth in the earlier keyframe (a forward warp cannot know an occluder it was not given),
+    whose flow is many pixels larger. The flow pixels without a triangulated depth (low parallax,
+    epipolar error) still carry this test. Returns the errors (inf where rejected) and the
+    rejected share of the candidate's pixels.
+    """
+    has = (d_c > 0) & np.isfinite(e_c)
+    if not params.flow_check or not has.any():
+        return e_c, 0.0
+    H, W = d_c.shape
+    _, _, rays = _pixel_rays(K, H, W)
+    u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    z = np.where(has, d_c, 1.0).astype(np.float32)
+    bad = np.zeros((H, W), bool)
+    for pair, T in zip(flow.pairs, T_r_k, strict=False):
+        if pair.flow_px is None:
+            continue
+        u_p, v_p, ok = project_depth(z, rays, K, T)
+        u_n, v_n, ok_n = project_depth(0.8 * z, rays, K, T)
+        disc = np.hypot(u_n - u_p, v_n - v_p)
+        res = np.hypot(u + pair.flow_px[..., 0] - u_p, v + pair.flow_px[..., 1] - v_p)
+        test = has & ok & ok_n & (pair.fb_error_px < 1.0) & (disc >= 1.0)
+        bad |= test & (res > np.minimum(np.float32(params.flow_check_px), 0.5 * disc))
+    share = float(bad.sum() / max(1, has.sum()))
+    return np.where(bad, np.float32(np.inf), e_c).astype(np.float32), share
 
 
 def _road(
@@ -367,7 +417,9 @@ def compute_dense_prior(
         stats["road_disagreement"] = r_road
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
     warped = _warped(grey, Tk, K, earlier_depth, previous_prior, flow_params, params)
+    T_r_k = [se3_inverse(np.asarray(T, np.float64)) @ Tk for _, T in references]
     for name, d_w, e_w in warped:
+        e_w, stats[f"{name}_flow_rejected"] = _flow_check(d_w, e_w, flow, K, T_r_k, params)
         e_w, r = _verify(d_w, e_w, d_meas, e_meas, params)
         stats[f"{name}_disagreement"] = r
         cands_d.append(d_w)
@@ -377,6 +429,10 @@ def compute_dense_prior(
     depth[flow.sky] = 0.0
     err[flow.sky] = np.inf
     conf = confidence_from_error(err, params.rel_err_ref)
+    refused = conf < params.min_confidence
+    depth[refused] = 0.0
+    err[refused] = np.inf
+    conf[refused] = 0.0
     source = np.zeros((H, W), np.int8)
     for i, n in enumerate(names):
         source[(lead == i) & (conf > 0)] = SOURCES[n]

@@ -34,7 +34,8 @@ from mogs_node.node import Node, parse_params
 
 __all__ = ["DepthPriorNode", "DepthPriorParams"]
 
-BACKENDS = ("flow", "depth_anything")
+SIM_LFM_QUEUE = 64  # sim_lfm: ground-truth depths kept, keyframes waiting for theirs
+BACKENDS = ("flow", "depth_anything", "sim_lfm")
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,10 @@ class DepthPriorParams:
     road: dict[str, Any] = field(default_factory=dict)  # RoadPriorParams fields
     fusion: dict[str, Any] = field(default_factory=dict)  # FusionParams fields
     onnx: dict[str, Any] = field(default_factory=dict)  # DepthAnythingParams fields (model_path)
+    # evaluation only (launch/demo_lfm.yaml): the simulated LFM made from the player's ground
+    # truth; {"seed": int, "lfm": LfmParams fields}
+    sim_lfm: dict[str, Any] = field(default_factory=dict)
+    gt_depth_topic: str = "/groundtruth/depth"  # the sim_lfm backend's ground truth
     in_topic: str = "/frontend/keyframe"  # keyframes
     out_topic: str = "/prior/depth"  # priors, keyed by keyframe id
     metrized_topic: str = "/metrizer/depth"  # metrized depth of earlier keyframes ("" = off)
@@ -77,6 +82,10 @@ class DepthPriorNode(Node):
             self.net = DepthAnythingOnnx(
                 parse_params(DepthAnythingParams, p.onnx, where=f"{self.name}.onnx")
             )
+        self._lfm = None
+        if p.backend == "sim_lfm":
+            self._setup_sim_lfm()
+            return
         self.sequence = PriorSequence(
             self.flow_params,
             parse_params(RoadPriorParams, p.road, where=f"{self.name}.road"),
@@ -98,6 +107,33 @@ class DepthPriorNode(Node):
             self.every(0.05, self._release_waiting)
         self.catch_up(inputs, (p.out_topic,))  # after a restart: the keyframes missed
 
+    def _setup_sim_lfm(self) -> None:
+        """Evaluation backend: keyframes wait (in order, at most ``SIM_LFM_QUEUE``) for the
+        ground-truth depth at their stamp; no history, no metrized feedback."""
+        from mogs_node.sim import LfmParams
+
+        p: DepthPriorParams = self.params
+        cfg = dict(p.sim_lfm)
+        unknown = set(cfg) - {"seed", "lfm"}
+        if unknown:
+            raise ConfigError(f"{self.name}.sim_lfm: unknown parameter(s) {sorted(unknown)}")
+        lfm = parse_params(LfmParams, cfg.get("lfm", {}), where=f"{self.name}.sim_lfm.lfm")
+        self._lfm = (int(cfg.get("seed", 7)), lfm)
+        self._gt: dict[int, np.ndarray] = {}
+        self._lfm_waiting: deque[msgs.Keyframe] = deque()
+        self.subscribe(p.gt_depth_topic, self.on_gt_depth, msg_type=msgs.DepthMap)
+        self.subscribe(
+            p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe, idempotent=True
+        )
+
+    def on_gt_depth(self, msg: msgs.DepthMap) -> None:
+        """Keep the latest ground-truth depths by stamp; release the keyframes waiting for one."""
+        self._gt[int(msg.stamp_ns)] = np.asarray(msg.depth)
+        while len(self._gt) > SIM_LFM_QUEUE:
+            self._gt.pop(min(self._gt))
+        while self._lfm_waiting and int(self._lfm_waiting[0].stamp_ns) in self._gt:
+            self._process(self._lfm_waiting.popleft())
+
     def on_metrized(self, msg: msgs.DepthMap) -> None:
         """Keep an earlier keyframe's metric depth to warp into later keyframes."""
         if msg.kind != "metric":
@@ -111,6 +147,18 @@ class DepthPriorNode(Node):
 
     def on_keyframe(self, kf: msgs.Keyframe) -> None:
         p: DepthPriorParams = self.params
+        if self._lfm is not None:
+            if int(kf.stamp_ns) in self._gt and not self._lfm_waiting:
+                self._process(kf)
+                return
+            self._lfm_waiting.append(kf)
+            if len(self._lfm_waiting) > SIM_LFM_QUEUE:
+                dropped = self._lfm_waiting.popleft()
+                self.counters["sim_lfm_no_truth"] = self.counters.get("sim_lfm_no_truth", 0) + 1
+                self.log.warning(
+                    "keyframe %d: no ground-truth depth came, no prior", dropped.keyframe_id
+                )
+            return
         if p.metrized_topic and self.net is None and p.metrized_wait_s > 0:
             self._waiting.append((kf, time.monotonic()))
             self._release_waiting()
@@ -136,7 +184,15 @@ class DepthPriorNode(Node):
             return  # done before a restart; the learned prior keeps no state
         # the flow prior recomputes a keyframe done before a restart (publish() suppresses the
         # duplicate): the carried prior and warped depth of the next keyframes depend on it
-        if self.net is not None:
+        if self._lfm is not None:
+            from mogs_node.depth_prior.sim_lfm import lfm_from_truth
+
+            seed, lfm = self._lfm
+            depth, conf = lfm_from_truth(
+                self._gt[int(kf.stamp_ns)], kf.keyframe_id, seed=seed, lfm=lfm
+            )
+            kind, extra = "relative_inverse_depth", {}
+        elif self.net is not None:
             rgb = kf.rgb()
             out = self.net.infer(np.ascontiguousarray(rgb))
             depth, conf, kind, extra = out.value, out.confidence, out.kind, {}

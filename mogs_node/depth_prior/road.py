@@ -46,6 +46,7 @@ __all__ = [
     "RoadPriorParams",
     "plane_depth",
     "plane_relative_error",
+    "project_depth",
     "road_prior",
     "up_in_camera",
 ]
@@ -143,7 +144,7 @@ def plane_relative_error(
     return np.sqrt(np.float32(params.height_rel_err) ** 2 + e_n * e_n).astype(np.float32)
 
 
-def _project(
+def project_depth(
     z: NDArray[np.float32], rays_xy: NDArray[np.float32], K: NDArray, T_r_k: NDArray
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     """Pixel in the reference of the point at depth ``z`` on each ray; ``ok`` where in front."""
@@ -223,8 +224,8 @@ def road_prior(
         grey_r, T_r_k, flow, fb = reference
         T = check_array("T_r_k", T_r_k, shape=(4, 4), finite=True)
         zc = np.where(below, z, 1.0).astype(np.float32)
-        u_p, v_p, ok = _project(zc, rays_xy, K, T)
-        u_n, v_n, ok_n = _project(0.8 * zc, rays_xy, K, T)
+        u_p, v_p, ok = project_depth(zc, rays_xy, K, T)
+        u_n, v_n, ok_n = project_depth(0.8 * zc, rays_xy, K, T)
         inside = ok & (u_p >= 0) & (u_p <= W - 1) & (v_p >= 0) & (v_p <= H - 1)
         disc_px = np.hypot(u_n - u_p, v_n - v_p)
         disc = disc_px >= params.min_discrimination_px

@@ -31,6 +31,7 @@ __all__ = [
     "CONFIDENCE_EDGES",
     "PriorRun",
     "calibration_bins",
+    "metrizer_params",
     "prior_params",
     "run_priors",
     "score_priors",
@@ -62,7 +63,8 @@ def prior_params(
     )
 
 
-def _metrizer(params: dict[str, dict[str, Any]]):
+def metrizer_params(params: dict[str, dict[str, Any]]):
+    """The metrizer node's ``(MetrizerParams, mode)`` from a launch file's ``metrizer`` section."""
     from mogs_node.metrizer.consensus import ConsensusParams
     from mogs_node.metrizer.node import MetrizerNodeParams
     from mogs_node.metrizer.pipeline import MetrizerParams
@@ -93,7 +95,7 @@ def run_priors(
     if lag < 1:
         raise ValueError(f"lag: must be >= 1, got {lag}")
     metrize = masks is not None and params is not None
-    mparams, mode = _metrizer(params) if metrize else (None, None)
+    mparams, mode = metrizer_params(params) if metrize else (None, None)
     seq = PriorSequence(flow, road, fusion)
     run = PriorRun([], [], [])
     for i, kf in enumerate(keyframes):

@@ -47,6 +47,7 @@ __all__ = [
     "StageKeyframe",
     "demo_params",
     "evaluate_stages",
+    "graph_masks",
     "prepare_keyframes",
     "stage_inputs",
 ]
@@ -132,6 +133,26 @@ def prepare_keyframes(
         "K_sim": seq.camera.K,
     }
     return kfs, info
+
+
+def graph_masks(kfs: list[StageKeyframe], params: dict[str, dict[str, Any]]) -> list[msgs.Masks]:
+    """The demo segmentation node's masks of each keyframe (its launch parameters)."""
+    from mogs_node.node import parse_params
+    from mogs_node.segmentation.graph import GraphSegParams, segment_graph
+    from mogs_node.segmentation.node import SegmentationParams
+
+    seg = parse_params(SegmentationParams, params.get("segmentation", {}), where="segmentation")
+    gp = parse_params(GraphSegParams, seg.graph, where="segmentation.graph")
+    return [
+        msgs.Masks(
+            stamp_ns=s.keyframe.stamp_ns,
+            frame_id="world",
+            keyframe_id=s.keyframe.keyframe_id,
+            labels=np.asarray(segment_graph(s.keyframe.rgb(), gp), np.int32),
+            backend="graph",
+        )
+        for s in kfs
+    ]
 
 
 def _flow_priors(kfs: list[StageKeyframe], prior: dict[str, Any], *, gt_pose: bool) -> list:

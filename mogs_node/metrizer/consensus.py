@@ -273,10 +273,47 @@ def fit_objects(
     todo = np.flatnonzero(counts >= max(3, p.min_points_plane))
     if len(todo) == 0:
         return {}
+    pad = _pad_objects(X, w, obj, counts, todo, p)
+    best = _plane_ransac(pad, rng, p)
+    _refit_planes(pad, best, p)
+    return _collect_fits(X, w, pad, best, rng, p)
+
+
+@dataclass
+class _Padded:
+    """The objects' points in padded ``[M, N_max]`` arrays (one row per object), normalised."""
+
+    todo: NDArray[np.intp]  # [M] object id of each row
+    order: NDArray[np.intp]  # [N] stable sort of the points by object
+    starts: NDArray[np.int64]  # [n_obj + 1] first point of each object in ``order``
+    n: F64  # [M] points per row
+    P: F64  # [M, N_max, 3] points (camera frame, metres)
+    V: NDArray[np.bool_]  # [M, N_max] valid entries
+    Wt: F64  # [M, N_max] weights
+    mu: F64  # [M, 3] centroid
+    sc: F64  # [M] RMS radius (normalisation)
+    Pn: F64  # [M, N_max, 3] normalised points
+    ts_m: F64  # [M, N_max] T_s(z) in metres
+    ts_n: F64  # [M, N_max] T_s in normalised units
+
+
+@dataclass
+class _BestPlanes:
+    """Per row: the best plane so far (normalised frame) with its eq.-(5) score and inliers."""
+
+    conf: F64  # [M]
+    n: F64  # [M, 3]
+    d: F64  # [M]
+    inl: NDArray[np.bool_]  # [M, N_max]
+
+
+def _pad_objects(
+    X: F64, w: F64, obj: NDArray[np.intp], counts: NDArray, todo: NDArray, p: ConsensusParams
+) -> _Padded:
     order = np.argsort(obj, kind="stable")
     starts = np.concatenate([[0], np.cumsum(counts)])
     M, Nmax = len(todo), int(counts[todo].max())
-    row_of = np.full(n_obj, -1)
+    row_of = np.full(len(counts), -1)
     row_of[todo] = np.arange(M)
     so = obj[order]
     rank = np.arange(len(order)) - starts[so]
@@ -296,15 +333,18 @@ def fit_objects(
     Pn = D / sc[:, None, None]
     ts_m = p.t_abs_m + p.t_rel * np.abs(P[..., 2])
     ts_n = np.where(V, ts_m / sc[:, None], 1.0)
+    return _Padded(todo, order, starts, n, P, V, Wt, mu, sc, Pn, ts_m, ts_n)
 
-    best_conf = np.full(M, -1.0)
-    best_n, best_d = np.zeros((M, 3)), np.zeros(M)
-    best_inl = np.zeros((M, Nmax), bool)
+
+def _plane_ransac(pad: _Padded, rng: np.random.Generator, p: ConsensusParams) -> _BestPlanes:
+    """Batched plane RANSAC with the adaptive iteration count, all rows at once."""
+    n, Pn, V, ts_n = pad.n, pad.Pn, pad.V, pad.ts_n
+    M, Nmax = V.shape
+    best = _BestPlanes(np.full(M, -1.0), np.zeros((M, 3)), np.zeros(M), np.zeros((M, Nmax), bool))
     cap = _needed(p.tau, 3, p.success_prob, p.max_iters)
     needed = np.full(M, cap)
     done = np.zeros(M, int)
     active = np.arange(M)
-    ar = np.arange(M)
     while len(active):
         Hb = min(p.batch, p.max_iters)
         idx = (rng.random((len(active), Hb, 3)) * n[active, None, None]).astype(np.intp)
@@ -329,23 +369,29 @@ def fit_objects(
         h = np.argmax(conf, axis=1)
         ai = np.arange(len(active))
         c = conf[ai, h]
-        better = c > best_conf[active]
+        better = c > best.conf[active]
         upd = active[better]
-        best_conf[upd] = c[better]
-        best_n[upd] = nrm[ai[better], h[better]]
-        best_d[upd] = d[ai[better], h[better]]
-        best_inl[upd] = inl[ai[better], h[better]]
-        ratio = best_inl[active].sum(1) / n[active]
+        best.conf[upd] = c[better]
+        best.n[upd] = nrm[ai[better], h[better]]
+        best.d[upd] = d[ai[better], h[better]]
+        best.inl[upd] = inl[ai[better], h[better]]
+        ratio = best.inl[active].sum(1) / n[active]
         with np.errstate(divide="ignore", invalid="ignore"):
             need = np.ceil(np.log(1 - p.success_prob) / np.log(1 - ratio**3))
         need = np.where(ratio >= 1.0, 0, np.where(ratio > 0, need, cap))
         needed[active] = np.minimum(np.nan_to_num(need, nan=cap), cap)
         done[active] += Hb
         active = active[done[active] < needed[active]]
-    for _ in range(p.refit_rounds):  # weighted least-squares plane on the inliers (batched)
-        Wi = Wt * best_inl
+    return best
+
+
+def _refit_planes(pad: _Padded, best: _BestPlanes, p: ConsensusParams) -> None:
+    """Weighted least-squares plane on the inliers (batched), kept where it scores no worse."""
+    Pn, V, ts_n, n = pad.Pn, pad.V, pad.ts_n, pad.n
+    for _ in range(p.refit_rounds):
+        Wi = pad.Wt * best.inl
         sw = Wi.sum(1)
-        ok = best_inl.sum(1) >= 3
+        ok = best.inl.sum(1) >= 3
         mw = (Wi[..., None] * Pn).sum(1) / np.maximum(sw, 1e-300)[:, None]
         Dw = Pn - mw[:, None]
         C = np.einsum("mn,mni,mnj->mij", Wi, Dw, Dw)
@@ -354,35 +400,48 @@ def fit_objects(
         valid = ok & (ev[:, 1] > 1e-12 * np.maximum(ev[:, 2], 1e-300))
         d = -np.einsum("mk,mk->m", nrm, mw)
         conf, inl = _plane_scores(nrm[:, None], d[:, None], valid[:, None], Pn, V, ts_n, n, p.beta)
-        take = valid & (conf[:, 0] >= best_conf)
-        best_conf[take], best_n[take], best_d[take] = conf[take, 0], nrm[take], d[take]
-        best_inl[take] = inl[take, 0]
+        take = valid & (conf[:, 0] >= best.conf)
+        best.conf[take], best.n[take], best.d[take] = conf[take, 0], nrm[take], d[take]
+        best.inl[take] = inl[take, 0]
+
+
+def _collect_fits(
+    X: F64,
+    w: F64,
+    pad: _Padded,
+    best: _BestPlanes,
+    rng: np.random.Generator,
+    p: ConsensusParams,
+) -> dict[int, ObjectFit]:
+    """Planes confident enough to skip the costly models (with the spread test) become fits;
+    the other objects go on to :func:`fit_object` with their plane result, in row order."""
+    P, n, best_inl, best_conf = pad.P, pad.n, best.inl, best.conf
     # spread test (metric): RMS along the inliers' 2nd principal axis vs the mean T_s
     ci = best_inl.sum(1)
     mi = (best_inl[..., None] * P).sum(1) / np.maximum(ci, 1)[:, None]
     Di = (P - mi[:, None]) * best_inl[..., None]
     lam = np.linalg.eigvalsh(np.einsum("mni,mnj->mij", Di, Di) / np.maximum(ci, 1)[:, None, None])
-    ts_mean = (ts_m * best_inl).sum(1) / np.maximum(ci, 1)
+    ts_mean = (pad.ts_m * best_inl).sum(1) / np.maximum(ci, 1)
     spread_ok = (ci >= 3) & (np.sqrt(np.maximum(lam[:, 1], 0.0)) >= p.min_spread * ts_mean)
     # camera-frame plane: n . (x - mu) / s + d = 0
-    b_cam = best_n / sc[:, None]
-    c_cam = best_d - np.einsum("mk,mk->m", b_cam, mu)
+    b_cam = best.n / pad.sc[:, None]
+    c_cam = best.d - np.einsum("mk,mk->m", b_cam, pad.mu)
     accepted = (best_conf > 0) & (ci >= p.tau * n)
     skip = accepted & (best_conf >= p.skip_confidence)
     out: dict[int, ObjectFit] = {}
-    for r in ar:
-        k = int(todo[r])
+    for r in range(len(pad.todo)):
+        k = int(pad.todo[r])
         N = int(n[r])
         inl = best_inl[r, :N].copy()
         if not skip[r]:
-            pts_idx = order[starts[k] : starts[k + 1]]
+            pts_idx = pad.order[pad.starts[k] : pad.starts[k + 1]]
             plane = None
             if best_conf[r] > -1.0:
                 plane = (
                     float(best_conf[r]),
                     np.zeros((3, 3)),
-                    best_n[r].copy(),
-                    float(best_d[r]),
+                    best.n[r].copy(),
+                    float(best.d[r]),
                     inl,
                 )
             out[k] = fit_object(X[pts_idx], w[pts_idx], rng, p, plane=plane)

@@ -37,6 +37,8 @@ class MetrizerParams:
     fallback_untestable: bool = True  # ... and objects with too few features to test always
     fallback_failed_share: float = 0.5  # ... also when more than this share of the tested
     # objects fell back
+    min_anchor_features: int = 5  # a non-metric prior with fewer features (with a prior) that
+    # anchor its global affine gives no metric depth at all (it would be a guessed scale)
     fallback_min_features: int = 18  # ... untestable objects also when the frame has fewer
     # features with a prior than this (their calibration follows thin neighbouring evidence)
     hole_model_radius: float = 0.03  # a pixel without prior takes its object's model depth only

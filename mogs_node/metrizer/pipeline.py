@@ -28,7 +28,7 @@ sparse features); ``no_msc_cdr`` (the globally aligned prior). See docs/metrizer
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -127,9 +127,6 @@ def metrize(
         c.uv, c.z, c.w, c.prior, c.conf, p.d_min_m, p.d_max_m, H, W, prior_kind
     )
     obj2d, n_obj, unmasked = prepare_labels(labels)
-    obj = obj2d.ravel()
-    has_prior = conf > 0
-    all_prior = bool(has_prior.all())
     tm.lap("prepare")
 
     feat_obj = associate_features(obj2d, uv, p.border_vote_radius)
@@ -138,55 +135,21 @@ def metrize(
     fpix = fv * W + fu
     tm.lap("associate")
 
-    # ---- global affine alignment: the anchor of eq. (8) and the no_msc_cdr result
-    fx, fc = prior[fpix].astype(np.float64), conf[fpix].astype(np.float64)
-    ft = space_from_depth(z, prior_kind)
-    theta0, n_global = fit_global_affine(fx, ft, w * fc, prior_kind, p.global_huber)
-    _, f_norm = far_and_norm(theta0[0] * fx + theta0[1], prior_kind, p)
-    fd_glob = depth_from_space(f_norm, prior_kind, p.d_min_m, p.d_max_m)
-    f_consistent = (fc > 0) & (np.abs(np.log(z / fd_glob)) <= np.log1p(p.feature_prior_gate))
+    ga = _align_global(p, prior, conf, z, w, fpix, prior_kind)
+    conf = ga.conf
     stats: dict[str, Any] = {
         "mode": mode,
         "n_masks": int(n_obj - unmasked.sum()),
         "n_unmasked_regions": int(unmasked.sum()),
         "n_features": int(len(z)),
-        "n_features_global": int(n_global),
-        "global_affine": [float(theta0[0]), float(theta0[1])],
+        "n_features_global": int(ga.n_global),
+        "global_affine": [float(ga.theta0[0]), float(ga.theta0[1])],
+        "prior_unanchored": ga.unanchored,
     }
     tm.lap("global")
 
-    # ---- multi-scale merging (III-B)
-    pairs = boundary_pairs(obj2d) if mode != "no_msc_cdr" else None
-    if mode == "full":
-        adj_k, adj_l, _ = region_adjacency(obj2d, n_obj, pairs)
-        group, n_merges = merge_undersupported(
-            n_obj, adj_k, adj_l, feat_obj, z, p.n_min, p.rho_contiguity
-        )
-    else:
-        group, n_merges = np.arange(n_obj), 0
-    G = int(group.max()) + 1 if n_obj else 0
-    # intp indices: np.take with int32 indices is several times slower (index conversion); the
-    # full-resolution object map is built once, after the last merge (absorption in mode full)
-    obj_i = obj.astype(np.intp)
-    group = group.astype(np.intp, copy=False)
-    feat_g = group[feat_obj]
-    n_feat_g = np.bincount(feat_g, minlength=G)
-    # CDR sample pixels: a strided grid plus every pixel of objects the grid misses
-    s = p.sample_stride
-    grid = (np.arange(0, H, s)[:, None] * W + np.arange(0, W, s)[None, :]).ravel()
-    missing = np.bincount(group[obj_i[grid]], minlength=G) == 0
-    if missing.any():
-        grid = np.concatenate([grid, np.flatnonzero(np.take(missing[group], obj_i))])
-    grid = grid[has_prior[grid]]
-    gg_grid = group[obj_i[grid]]
-    y_grid = theta0[0] * prior[grid].astype(np.float64) + theta0[1]
-    far_grid, norm_grid = far_and_norm(y_grid, prior_kind, p)
-    n_prior_g = np.bincount(gg_grid, minlength=G)
-    n_far_g = np.bincount(gg_grid[far_grid], minlength=G)
-    # sky needs the metric global alignment (no feature with a prior: "far" means nothing)
-    sky = (n_feat_g == 0) & (n_prior_g > 0) & (n_far_g >= p.sky_far_fraction * n_prior_g)
-    sky &= n_global > 0
-    stats.update(n_objects=G, merges=int(n_merges), n_sky_objects=int(sky.sum()))
+    ms = _merge_and_sample(p, mode, obj2d, n_obj, feat_obj, z, prior, conf, ga, prior_kind)
+    stats.update(n_objects=ms.G, merges=ms.n_merges, n_sky_objects=int(ms.sky.sum()))
     tm.lap("merge")
 
     fr = Frame(
@@ -197,52 +160,32 @@ def metrize(
         prior_kind=prior_kind,
         prior=prior,
         conf=conf,
-        has_prior=has_prior,
-        all_prior=all_prior,
+        has_prior=conf > 0,
+        all_prior=bool((conf > 0).all()),
         image=image,
         z=z,
         fpix=fpix,
-        f_consistent=f_consistent,
-        theta0=theta0,
+        f_consistent=ga.f_consistent,
+        theta0=ga.theta0,
         stats=stats,
-        G=G,
-        gobj=None if mode == "full" else object_map(group, obj_i),
-        feat_g=feat_g,
-        n_feat_g=n_feat_g,
-        sky=sky,
+        G=ms.G,
+        gobj=None if mode == "full" else object_map(ms.group, ms.obj_i),
+        feat_g=ms.feat_g,
+        n_feat_g=ms.n_feat_g,
+        sky=ms.sky,
     )
     if mode == "no_msc_cdr":
-        return compose(fr, tm, ShapeModels.none(G), np.tile(theta0, (G, 1)), global_only=True)
+        return compose(
+            fr, tm, ShapeModels.none(ms.G), np.tile(ga.theta0, (ms.G, 1)), global_only=True
+        )
 
-    # ---- shape consensus, Algorithm 1 (III-B)
+    # ---- shape consensus, Algorithm 1 (III-B), then absorption
     models, Xf, counts = _fit_shapes(fr, uv, w, mode)
     tm.lap("consensus")
-    n_absorbed = 0
-    obj_to_g = group  # [n_obj] object -> group (after absorption in mode full)
-    if mode == "full" and p.absorb and (models.kind > 0).any():
-        remap = absorb_groups(
-            fr,
-            group,
-            (adj_k, adj_l),
-            (models.kind, models.A, models.b, models.c, models.zlo, models.zhi),
-            Xf,
-            (grid, gg_grid, norm_grid),
-        )
-        if remap is not None:
-            keep_ids, remap = remap
-            n_absorbed = G - len(keep_ids)
-            G = len(keep_ids)
-            obj_to_g = remap[group]
-            gg_grid, feat_g = remap[gg_grid], remap[feat_g]
-            n_feat_g = np.bincount(feat_g, minlength=G)
-            sky, models = sky[keep_ids], models.take(keep_ids)
-            fr.G, fr.feat_g, fr.n_feat_g, fr.sky = G, feat_g, n_feat_g, sky
-    if fr.gobj is None:
-        fr.gobj = object_map(obj_to_g, obj_i)
+    models, gg_grid, n_absorbed = _absorb(fr, ms, models, Xf, mode)
     kind_g = models.kind
-    Am, bm, cm, zlo, zhi = models.A, models.b, models.c, models.zlo, models.zhi
     stats.update(
-        n_objects=G,
+        n_objects=fr.G,
         absorbed=n_absorbed,
         objects_tried=counts["tried"],
         skipped_costly=counts["skipped"],
@@ -256,25 +199,194 @@ def metrize(
     )
     tm.lap("absorb")
 
-    # ---- propagation: model depth by ray-shape intersection at the CDR samples
-    keep = ~sky[gg_grid]
-    sidx, sg, snorm = grid[keep], gg_grid[keep], norm_grid[keep]
-    sx, sc = prior[sidx].astype(np.float64), conf[sidx].astype(np.float64)
-    mdepth = np.full(len(sidx), np.inf)
-    mi = np.flatnonzero(kind_g[sg] > 0)
-    if len(mi):
-        mdepth[mi] = model_depth(sidx[mi], sg[mi], kind_g, Am, bm, cm, W, K)
-    d_glob = depth_from_space(snorm, prior_kind, p.d_min_m, p.d_max_m)
-    mok = model_agrees(mdepth, zlo[sg], zhi[sg], d_glob, p.model_prior_gate)
+    samples, snorm, d_glob = _propagate(fr, models, ms.grid, gg_grid, ms.norm_grid)
     tm.lap("propagate")
 
     # ---- cross-object depth refinement, eqs. (6)-(11) (III-C)
-    samples = SampleRows(sidx, sg, sx, sc, mdepth, mok)
-    features = FeatureRows(fx, fc * f_consistent, ft, w)
-    theta, n_rows = _refine(fr, samples, features, models, pairs, snorm, d_glob, fd_glob)
+    features = FeatureRows(ga.fx, ga.fc * ga.f_consistent, ga.ft, w)
+    theta, n_rows = _refine(fr, samples, features, models, ms.pairs, snorm, d_glob, ga.fd_glob)
     stats.update(n_rows)
     tm.lap("refine")
     return compose(fr, tm, models, theta, global_only=False)
+
+
+@dataclass
+class _GlobalFit:
+    """Stage 3: the global affine alignment of the prior to all features."""
+
+    theta0: F64  # [2] (a, b) of the prior's space
+    n_global: int  # features with a prior that entered the fit (0: unanchored)
+    fx: F64  # [N] prior value at each feature
+    fc: F64  # [N] prior confidence at each feature (0 when unanchored)
+    ft: F64  # [N] feature depth in the prior's space
+    fd_glob: F64  # [N] globally aligned prior depth at each feature
+    f_consistent: NDArray[np.bool_]  # [N] feature within feature_prior_gate of it
+    conf: NDArray[np.float32]  # [HW] prior confidence (all 0 when unanchored)
+    unanchored: bool  # a relative prior with 1-4 features: dropped
+
+
+def _align_global(
+    p: MetrizerParams,
+    prior: NDArray,
+    conf: NDArray,
+    z: F64,
+    w: F64,
+    fpix: NDArray[np.intp],
+    prior_kind: str,
+) -> _GlobalFit:
+    """One robust affine fit of the prior to every feature: the anchor of eq. (8) and the
+    ``no_msc_cdr`` result. A relative prior that (almost) no metric point anchors has no metric
+    meaning: its pixels get no depth (only the sparse evidence near features), not a guessed
+    scale (the identity, or an affine through 1-4 points: AbsRel 0.3-0.9 on the demo)."""
+    fx, fc = prior[fpix].astype(np.float64), conf[fpix].astype(np.float64)
+    ft = space_from_depth(z, prior_kind)
+    theta0, n_global = fit_global_affine(fx, ft, w * fc, prior_kind, p.global_huber)
+    unanchored = prior_kind != "metric" and 0 < n_global < p.min_anchor_features
+    if prior_kind != "metric" and n_global < p.min_anchor_features:
+        conf = np.zeros_like(conf)
+        fc = np.zeros_like(fc)
+        theta0, n_global = np.array([1.0, 0.0]), 0
+    _, f_norm = far_and_norm(theta0[0] * fx + theta0[1], prior_kind, p)
+    fd_glob = depth_from_space(f_norm, prior_kind, p.d_min_m, p.d_max_m)
+    f_consistent = (fc > 0) & (np.abs(np.log(z / fd_glob)) <= np.log1p(p.feature_prior_gate))
+    return _GlobalFit(
+        theta0, int(n_global), fx, fc, ft, fd_glob, f_consistent, conf, bool(unanchored)
+    )
+
+
+@dataclass
+class _Merged:
+    """Stage 4: groups after multi-scale merging, the CDR sample grid and the sky groups."""
+
+    group: NDArray[np.intp]  # [n_obj] object -> group
+    obj_i: NDArray[np.intp]  # [HW] object of each pixel
+    G: int  # number of groups
+    n_merges: int
+    pairs: Any  # boundary pixel pairs (None in mode no_msc_cdr)
+    adjacency: tuple | None  # (adj_k, adj_l) region adjacency, mode full
+    feat_g: NDArray[np.intp]  # [N] group of each feature
+    n_feat_g: NDArray[np.int64]  # [G]
+    grid: NDArray[np.intp]  # [S] CDR sample pixels (with a prior)
+    gg_grid: NDArray[np.intp]  # [S] their group
+    norm_grid: F64  # [S] globally aligned prior at them, normalised space
+    sky: NDArray[np.bool_]  # [G]
+
+
+def _merge_and_sample(
+    p: MetrizerParams,
+    mode: str,
+    obj2d: NDArray,
+    n_obj: int,
+    feat_obj: NDArray[np.intp],
+    z: F64,
+    prior: NDArray,
+    conf: NDArray,
+    ga: _GlobalFit,
+    prior_kind: str,
+) -> _Merged:
+    """Multi-scale merging (III-B, mode full), the CDR sample pixels (a strided grid plus every
+    pixel of objects the grid misses) and sky: featureless groups whose prior is mostly far."""
+    H, W = obj2d.shape
+    pairs = boundary_pairs(obj2d) if mode != "no_msc_cdr" else None
+    adjacency = None
+    if mode == "full":
+        adj_k, adj_l, _ = region_adjacency(obj2d, n_obj, pairs)
+        adjacency = (adj_k, adj_l)
+        group, n_merges = merge_undersupported(
+            n_obj, adj_k, adj_l, feat_obj, z, p.n_min, p.rho_contiguity
+        )
+    else:
+        group, n_merges = np.arange(n_obj), 0
+    G = int(group.max()) + 1 if n_obj else 0
+    # intp indices: np.take with int32 indices is several times slower (index conversion); the
+    # full-resolution object map is built once, after the last merge (absorption in mode full)
+    obj_i = obj2d.ravel().astype(np.intp)
+    group = group.astype(np.intp, copy=False)
+    feat_g = group[feat_obj]
+    n_feat_g = np.bincount(feat_g, minlength=G)
+    s = p.sample_stride
+    grid = (np.arange(0, H, s)[:, None] * W + np.arange(0, W, s)[None, :]).ravel()
+    missing = np.bincount(group[obj_i[grid]], minlength=G) == 0
+    if missing.any():
+        grid = np.concatenate([grid, np.flatnonzero(np.take(missing[group], obj_i))])
+    grid = grid[conf[grid] > 0]
+    gg_grid = group[obj_i[grid]]
+    theta0 = ga.theta0
+    y_grid = theta0[0] * prior[grid].astype(np.float64) + theta0[1]
+    far_grid, norm_grid = far_and_norm(y_grid, prior_kind, p)
+    n_prior_g = np.bincount(gg_grid, minlength=G)
+    n_far_g = np.bincount(gg_grid[far_grid], minlength=G)
+    # sky needs the metric global alignment (no feature with a prior: "far" means nothing)
+    sky = (n_feat_g == 0) & (n_prior_g > 0) & (n_far_g >= p.sky_far_fraction * n_prior_g)
+    sky &= ga.n_global > 0
+    return _Merged(
+        group,
+        obj_i,
+        G,
+        int(n_merges),
+        pairs,
+        adjacency,
+        feat_g,
+        n_feat_g,
+        grid,
+        gg_grid,
+        norm_grid,
+        sky,
+    )
+
+
+def _absorb(
+    fr: Frame, ms: _Merged, models: ShapeModels, Xf: F64, mode: str
+) -> tuple[ShapeModels, NDArray[np.intp], int]:
+    """Stage 5b (mode full): groups without a shape join an adjacent shape that explains them;
+    updates ``fr`` (groups, features, sky, object map). Returns the models, the samples' groups
+    and the number of absorbed groups."""
+    p = fr.p
+    gg_grid, n_absorbed, obj_to_g = ms.gg_grid, 0, ms.group
+    if mode == "full" and p.absorb and (models.kind > 0).any():
+        remap = absorb_groups(
+            fr,
+            ms.group,
+            ms.adjacency,
+            (models.kind, models.A, models.b, models.c, models.zlo, models.zhi),
+            Xf,
+            (ms.grid, ms.gg_grid, ms.norm_grid),
+        )
+        if remap is not None:
+            keep_ids, remap = remap
+            n_absorbed = fr.G - len(keep_ids)
+            obj_to_g = remap[ms.group]
+            gg_grid, feat_g = remap[ms.gg_grid], remap[fr.feat_g]
+            fr.G = len(keep_ids)
+            fr.feat_g, fr.n_feat_g = feat_g, np.bincount(feat_g, minlength=fr.G)
+            fr.sky, models = fr.sky[keep_ids], models.take(keep_ids)
+    if fr.gobj is None:
+        fr.gobj = object_map(obj_to_g, ms.obj_i)
+    return models, gg_grid, n_absorbed
+
+
+def _propagate(
+    fr: Frame,
+    models: ShapeModels,
+    grid: NDArray[np.intp],
+    gg_grid: NDArray[np.intp],
+    norm_grid: F64,
+) -> tuple[SampleRows, F64, F64]:
+    """Stage 6: model depth by ray-shape intersection at the CDR samples (sky excluded) and
+    whether it agrees with the globally aligned prior there."""
+    p = fr.p
+    keep = ~fr.sky[gg_grid]
+    sidx, sg, snorm = grid[keep], gg_grid[keep], norm_grid[keep]
+    sx, sc = fr.prior[sidx].astype(np.float64), fr.conf[sidx].astype(np.float64)
+    mdepth = np.full(len(sidx), np.inf)
+    mi = np.flatnonzero(models.kind[sg] > 0)
+    if len(mi):
+        mdepth[mi] = model_depth(
+            sidx[mi], sg[mi], models.kind, models.A, models.b, models.c, fr.W, fr.K
+        )
+    d_glob = depth_from_space(snorm, fr.prior_kind, p.d_min_m, p.d_max_m)
+    mok = model_agrees(mdepth, models.zlo[sg], models.zhi[sg], d_glob, p.model_prior_gate)
+    return SampleRows(sidx, sg, sx, sc, mdepth, mok), snorm, d_glob
 
 
 def _fit_shapes(
