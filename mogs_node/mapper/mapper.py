@@ -43,7 +43,12 @@ import torch
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap, MapChanges
-from mogs_node.mapper.insertion import InsertionParams, insertion_mask, sample_gaussians
+from mogs_node.mapper.insertion import (
+    InsertionParams,
+    background_mask,
+    insertion_mask,
+    sample_gaussians,
+)
 from mogs_node.mapper.keyframe import KeyframeState
 from mogs_node.mapper.projection import cull_gaussians, se3_exp_torch
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput, render
@@ -239,9 +244,14 @@ class GaussianMapper:
             d, c, alpha, rdepth, self.params.insertion, rrgb, img.astype(np.float32) / 255.0
         )
         index = len(self.keyframes)
-        new = sample_gaussians(
-            img, d, c, mask, self.K_matrix, T, self.params.insertion, offset=index
-        )
+        ins = self.params.insertion
+        d_ins, c_ins = d, c
+        bg = background_mask(d, alpha, ins)
+        if bg.any():  # far-sphere Gaussians where nothing has depth or is drawn (sky)
+            d_ins = np.where(bg, np.float32(ins.background_depth_m), d)
+            c_ins = np.where(bg, np.float32(0.0), c)
+            mask = mask | bg
+        new = sample_gaussians(img, d_ins, c_ins, mask, self.K_matrix, T, ins, offset=index)
         new_ids = self.map.add(new, birth_kf=index)
         dev = self.device
         kf = KeyframeState(

@@ -33,6 +33,7 @@ from mogs_node.mapper.checkpoint import (
     save_checkpoint,
 )
 from mogs_node.mapper.composite import load_cpp_extension
+from mogs_node.mapper.insertion import InsertionParams
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply, resolve_device
 from mogs_node.mapper.rasterizer import RasterParams
 from mogs_node.node import CATCH_UP_ENV, Node
@@ -61,6 +62,7 @@ class MapperNodeParams:
     exposure: bool = True  # per-keyframe affine exposure compensation
     refine_poses: bool = False  # optimise window keyframe poses
     densify: bool = False  # gradient-based cloning
+    background_depth_m: float = 0.0  # far-sphere Gaussians where the depth has none (0: off)
     backend: str = "auto"  # rasterizer backend: auto | cpp | torch | gsplat
     threads: int = 0  # torch threads (0: torch's default)
     max_pending: int = 16  # keyframes waiting for their depth (or depth for its keyframe)
@@ -99,6 +101,7 @@ class MapperNodeParams:
             exposure=self.exposure,
             refine_poses=self.refine_poses,
             densify=self.densify,
+            insertion=InsertionParams(background_depth_m=self.background_depth_m),
         )
 
 
