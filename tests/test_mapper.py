@@ -396,6 +396,43 @@ def test_mapper_fills_pixels_without_depth_with_a_far_sphere() -> None:
     assert int((dist > 50.0).sum()) - n_before < 0.25 * n_before
 
 
+def _full_res_l1(m: GaussianMapper) -> list[float]:
+    out = []
+    for kf in m.keyframes:
+        r = m.render_view(kf.T_world_cam, kf.exposure_ab).color
+        out.append(float((r - kf.image_f32).abs().mean()))
+    return out
+
+
+def test_final_refinement_visits_every_keyframe_and_sharpens_at_full_resolution() -> None:
+    img, depth = plane_view()
+    conf = np.ones_like(depth)
+    m = _mapper(n_random_past=0, train_downsample=2, window_size=1)
+    T1 = make_T(np.eye(3), np.array([0.5, 0.0, 0.0]))
+    m.add_keyframe(0, img, np.eye(4), depth, conf)
+    m.optimize(10)
+    img1, _ = plane_view(seed=0)
+    m.add_keyframe(1, img1, T1, depth, conf)
+    m.optimize(10)  # window 1: keyframe 0 is no longer trained here
+    before = _full_res_l1(m)
+    it0 = m.iterations
+    m.refine(30, downsample=1)
+    assert m.iterations == it0 + 30
+    after = _full_res_l1(m)
+    assert all(a < b for a, b in zip(after, before, strict=True)), (before, after)
+    # round-robin over the keyframes: 30 iterations on 2 keyframes end where they started
+    assert m._refine_next == 0
+    m.refine(1)
+    assert m._refine_next == 1
+    with pytest.raises(ConfigError, match="downsample"):
+        m.refine(1, downsample=0)
+    # the keyframe's half-resolution targets stay cached; other factors are made on the fly
+    kf = m.keyframes[0]
+    assert kf.targets(2)[0].shape == (H // 2, W // 2, 3)
+    assert kf.targets(4)[0].shape == (H // 4, W // 4, 3)
+    assert kf.targets(2)[0].shape == (H // 2, W // 2, 3)
+
+
 def test_mapper_optimises_only_what_the_window_sees() -> None:
     img, depth = plane_view()
     m = _mapper(n_random_past=0, window_size=1)
