@@ -177,6 +177,16 @@ def main(argv: list[str] | None = None) -> int:
     if prof:
         prof.disable()
     cpu_total = time.process_time() - c0
+    refine: dict[str, float] = {}
+    if p.final_refine_iters > 0:  # the end of the drive: the node's final refinement
+        q0 = score(mapper, data)
+        c1 = time.process_time()
+        mapper.refine(p.final_refine_iters, p.final_refine_downsample)
+        refine = {
+            "refine_cpu_s": time.process_time() - c1,
+            **{f"before_refine_{k}": v for k, v in q0.items()},
+        }
+        print(f"final refinement: {refine['refine_cpu_s']:.2f} s CPU", flush=True)
     if args.ply:
         export_ply(mapper, args.ply)
     q = score(mapper, data)
@@ -190,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         "insert_cpu_s_per_keyframe_mean": statistics.mean(k["insert_cpu_s"] for k in per_kf),
         "optimize_cpu_s_per_keyframe_mean": statistics.mean(k["optimize_cpu_s"] for k in per_kf),
         **q,
+        **refine,
         "params": {k: getattr(p, k) for k in MapperNodeParams.__dataclass_fields__},
     }
     for k, v in figures.items():

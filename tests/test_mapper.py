@@ -17,6 +17,7 @@ from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap
 from mogs_node.mapper.insertion import (
     InsertionParams,
     _stride_map,
+    background_mask,
     flat_image_mask,
     insertion_mask,
     planar_mask,
@@ -339,6 +340,97 @@ def test_mapper_fits_a_view_and_does_not_reinsert_explained_parts(tmp_path) -> N
     assert 0 < n2 < 0.6 * n0
     export_ply(m, str(tmp_path / "map.ply"))
     assert len(read_gaussian_ply(tmp_path / "map.ply")["means"]) == len(m.map)
+
+
+def test_background_mask_is_pixels_without_depth_that_the_map_leaves_transparent() -> None:
+    depth = np.full((4, 5), 10.0, np.float32)
+    depth[0, :] = 0.0  # sky: no depth
+    depth[1, 0] = np.nan
+    depth[1, 1] = 0.05  # below min_depth_m: no usable depth either
+    alpha = np.zeros((4, 5), np.float32)
+    alpha[0, 3:] = 0.95  # the map already draws these sky pixels
+    off = InsertionParams()
+    assert not background_mask(depth, alpha, off).any()  # 0: off by default
+    p = InsertionParams(background_depth_m=200.0)
+    want = np.zeros((4, 5), bool)
+    want[0, :3] = True
+    want[1, :2] = True
+    np.testing.assert_array_equal(background_mask(depth, alpha, p), want)
+    empty_map = np.zeros((4, 5), bool)
+    empty_map[0, :] = True
+    empty_map[1, :2] = True
+    np.testing.assert_array_equal(background_mask(depth, None, p), empty_map)
+    with pytest.raises(ConfigError, match="background_depth_m"):
+        InsertionParams(background_depth_m=0.05)
+
+
+def test_mapper_fills_pixels_without_depth_with_a_far_sphere() -> None:
+    img, depth = plane_view(depth_m=5.0)
+    depth[: H // 4] = 0.0  # the top quarter has no depth (sky)
+    conf = np.ones_like(depth)
+    T = make_T(np.eye(3), np.array([0.2, -0.1, 0.3]))
+    ins = InsertionParams(planar_tol=0.0, background_depth_m=100.0)
+    m = _mapper(n_random_past=0, insertion=ins)
+    m.add_keyframe(0, img, T, depth, conf)
+    means = m.map.params["means"].numpy()
+    dist = np.linalg.norm(means - T[:3, 3], axis=1)
+    far = dist > 50.0
+    # far Gaussians sit on the rays of the sky pixels at 100 m depth (camera z), at the coarsest
+    # stride: 8 px from the depth octaves, capped at 0.15 f = 6 px (footprint cap)
+    z = (means[far] - T[:3, 3])[:, 2]
+    np.testing.assert_allclose(z, 100.0, rtol=1e-5)
+    v = 40.0 * (means[far] - T[:3, 3])[:, 1] / z + 15.5
+    assert np.all(v < H // 4) and far.sum() == len(range(0, H // 4, 6)) * len(range(0, W, 6))
+    assert np.all(dist[~far] < 10.0)
+    sky_alpha = float(m.render_view(T).alpha[:2].mean())
+    assert sky_alpha > 0.6  # the sky is drawn, not the black background
+    # without the option only the wall's Gaussians spill over the top rows
+    m0 = _mapper(n_random_past=0, insertion=InsertionParams(planar_tol=0.0))
+    m0.add_keyframe(0, img, T, depth, conf)
+    assert float(m0.render_view(T).alpha[:2].mean()) < 0.3
+    # a second keyframe at the same pose: the sky is mostly explained, few new far Gaussians
+    n_before = int(far.sum())
+    m.optimize(10)
+    m.add_keyframe(1, img, T, depth, conf)
+    dist = np.linalg.norm(m.map.params["means"].numpy() - T[:3, 3], axis=1)
+    assert int((dist > 50.0).sum()) - n_before < 0.25 * n_before
+
+
+def _full_res_l1(m: GaussianMapper) -> list[float]:
+    out = []
+    for kf in m.keyframes:
+        r = m.render_view(kf.T_world_cam, kf.exposure_ab).color
+        out.append(float((r - kf.image_f32).abs().mean()))
+    return out
+
+
+def test_final_refinement_visits_every_keyframe_and_sharpens_at_full_resolution() -> None:
+    img, depth = plane_view()
+    conf = np.ones_like(depth)
+    m = _mapper(n_random_past=0, train_downsample=2, window_size=1)
+    T1 = make_T(np.eye(3), np.array([0.5, 0.0, 0.0]))
+    m.add_keyframe(0, img, np.eye(4), depth, conf)
+    m.optimize(10)
+    img1, _ = plane_view(seed=0)
+    m.add_keyframe(1, img1, T1, depth, conf)
+    m.optimize(10)  # window 1: keyframe 0 is no longer trained here
+    before = _full_res_l1(m)
+    it0 = m.iterations
+    m.refine(30, downsample=1)
+    assert m.iterations == it0 + 30
+    after = _full_res_l1(m)
+    assert all(a < b for a, b in zip(after, before, strict=True)), (before, after)
+    # round-robin over the keyframes: 30 iterations on 2 keyframes end where they started
+    assert m._refine_next == 0
+    m.refine(1)
+    assert m._refine_next == 1
+    with pytest.raises(ConfigError, match="downsample"):
+        m.refine(1, downsample=0)
+    # the keyframe's half-resolution targets stay cached; other factors are made on the fly
+    kf = m.keyframes[0]
+    assert kf.targets(2)[0].shape == (H // 2, W // 2, 3)
+    assert kf.targets(4)[0].shape == (H // 4, W // 4, 3)
+    assert kf.targets(2)[0].shape == (H // 2, W // 2, 3)
 
 
 def test_mapper_optimises_only_what_the_window_sees() -> None:

@@ -161,3 +161,35 @@ def test_by_default_the_mapper_never_cuts_iterations(inproc_bus) -> None:
     with pytest.raises(ConfigError, match="iters_when_behind"):
         MapperNode("m2", {"iters_when_behind": -2}, bus, context=ctx, diagnostics_period_s=0)
     node.close()
+
+
+def test_after_the_drive_the_map_is_refined_once_and_marked_final(inproc_bus, wired_node) -> None:
+    """With ``final_refine_iters`` the mapper refines the whole map once the source stopped and
+    every keyframe it saw is mapped, a chunk per timer tick, then publishes the update and a
+    ``/mapper/stats`` marked final (the run report waits for it)."""
+    bus, ctx = inproc_bus
+    params = {"iters_per_keyframe": 2, "final_refine_iters": 7, "final_refine_chunk": 3}
+    node = MapperNode("mapper", {**params, "threads": 1}, bus, context=ctx, diagnostics_period_s=0)
+    w = wired_node(node, ("/frontend/keyframe", "/metrizer/depth"), "/mapper/stats")
+    for kid in range(2):
+        kf, d = messages(kid, 0.3 * kid)
+        w.pub.publish("/frontend/keyframe", kf)
+        w.pub.publish("/metrizer/depth", d)
+    stats = w.collect(2, timeout_s=60)
+    assert [s.iterations for s in stats] == [2, 4]
+    assert not any(s.extra.get("final") for s in stats)
+    node._final_refine()  # the source has not stopped: nothing happens
+    assert node.mapper is not None and node.mapper.iterations == 4
+    other = msgs.Diagnostics(
+        stamp_ns=0, frame_id="", node="frontend", pid=1, uptime_s=1.0, status="stopped",
+        counters={}, topics={},
+    )  # fmt: skip
+    node.on_diagnostics(other)
+    node._final_refine()
+    assert node.mapper.iterations == 4  # only the source's stop counts
+    node.on_diagnostics(msgs.Diagnostics(**{**other.__dict__, "node": "player"}))
+    (final,) = w.collect(1, timeout_s=60)
+    assert final.extra.get("final") == 1.0 and final.iterations == 4 + 7
+    assert final.keyframe_id == 1
+    node._final_refine()  # once only
+    assert node.mapper.iterations == 11

@@ -93,14 +93,21 @@ def load_cpp_extension() -> ModuleType | None:
 
             src = _SOURCE
             name = extension_name()
-            build_dir = Path(get_default_build_root()) / f"mogs_torch{torch.__version__}" / name
+            root = os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()
+            build_dir = Path(root) / f"mogs_torch{torch.__version__}" / name
             build_dir.mkdir(parents=True, exist_ok=True)
             if not (build_dir / f"{name}.so").exists():  # first use: say why start-up waits
                 log.info("building the C++ compositing extension (once, ~20-40 s) in %s", build_dir)
             with _build_lock(build_dir):
+                # build from a copy inside the build directory: torch's build.ninja names the
+                # source path, so checkouts of the same source at different paths (worktrees,
+                # site-packages) would otherwise rebuild the cached module over each other
+                copy = build_dir / src.name
+                if not copy.exists() or copy.read_bytes() != src.read_bytes():
+                    copy.write_bytes(src.read_bytes())
                 _EXT = load(
                     name=name,
-                    sources=[str(src)],
+                    sources=[str(copy)],
                     extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
                     extra_ldflags=["-fopenmp"],
                     build_directory=str(build_dir),

@@ -30,6 +30,7 @@ from mogs_node.geometry import check_array
 
 __all__ = [
     "InsertionParams",
+    "background_mask",
     "flat_image_mask",
     "insertion_mask",
     "planar_mask",
@@ -61,6 +62,8 @@ class InsertionParams:
     scale_factor: float = 1.0  # initial sigma = scale_factor * stride * depth / f (MonoGS: NN dist)
     opacity_init: float = 0.5  # initial opacity (MonoGS: 0.5)
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
+    background_depth_m: float = 0.0  # pixels without depth that the map leaves transparent get
+    # Gaussians on a far sphere at this distance (sky, far background; 0: off)
 
     def __post_init__(self) -> None:
         if self.stride_px < 1 or self.max_stride_px < self.stride_px:
@@ -75,6 +78,8 @@ class InsertionParams:
             )
         if self.planar_max_grad < 0:
             raise ConfigError("InsertionParams.planar_max_grad: must be >= 0")
+        if not (self.background_depth_m == 0 or self.background_depth_m > self.min_depth_m):
+            raise ConfigError("InsertionParams.background_depth_m: 0 (off) or > min_depth_m")
 
 
 def random_depth(shape: tuple[int, int], d_min_m: float, d_max_m: float, seed: int) -> np.ndarray:
@@ -124,6 +129,29 @@ def insertion_mask(
         (rd - d) * np.maximum(c, 1e-6) > params.depth_rel_tol * np.maximum(d, 1e-6)
     )
     return usable & (unexplained | disagree)
+
+
+def background_mask(
+    depth_m: np.ndarray, rendered_alpha: np.ndarray | None, params: InsertionParams
+) -> np.ndarray:
+    """Pixels ``[H, W]`` bool that get far-sphere Gaussians: no usable depth (``depth_m`` [H, W]
+    below ``min_depth_m`` or non-finite) and the map transparent there (``rendered_alpha`` [H, W]
+    below ``alpha_explained``; ``None``: an empty map). All False when ``background_depth_m`` is 0.
+
+    The metrized depth has no value on sky and on whatever the prior could not measure; without
+    Gaussians there the render shows the black background, and the optimiser drags nearby
+    Gaussians into the hole (floaters, dark blobs in the sky). Gaussians at a distance beyond any
+    measured surface fill such holes without occluding anything the depth later pins (outdoor
+    3DGS systems model the sky as a far sphere or environment map for the same reason).
+    """
+    d = check_array("depth_m", depth_m, shape=(None, None), dtype=np.floating)
+    if params.background_depth_m <= 0:
+        return np.zeros(d.shape, bool)
+    nodepth = ~(np.isfinite(d) & (d >= params.min_depth_m))
+    if rendered_alpha is None:
+        return nodepth
+    a = check_array("rendered_alpha", rendered_alpha, shape=d.shape, dtype=np.floating)
+    return nodepth & (a < params.alpha_explained)
 
 
 def planar_mask(depth_m: np.ndarray, tol: float, window_px: int) -> np.ndarray:

@@ -75,7 +75,9 @@ class KeyframeState:
         block has none. ``factor`` 1 returns the stored tensors (nothing cached)."""
         if factor == 1:
             return self.image_f32, self.depth_m, self.confidence
-        if self.train_targets is None:
+        H, W = self.depth_m.shape
+        cached = self.train_targets
+        if cached is None or tuple(cached[1].shape) != (H // factor, W // factor):
             f = factor
             img = self.image_f32.permute(2, 0, 1)[None]
             img = torch.nn.functional.avg_pool2d(img, f)[0].permute(1, 2, 0).contiguous()
@@ -84,5 +86,8 @@ class KeyframeState:
             n = torch.nn.functional.avg_pool2d(valid, f)
             depth = torch.where(n > 0, d_sum / n.clamp_min(1e-12), torch.zeros_like(n))[0, 0]
             conf = torch.nn.functional.avg_pool2d(self.confidence[None, None], f)[0, 0]
-            self.train_targets = (img, depth.contiguous(), conf.contiguous())
-        return self.train_targets  # type: ignore[return-value]
+            made = (img, depth.contiguous(), conf.contiguous())
+            if cached is None:  # the first factor asked for (the training one) is kept
+                self.train_targets = made
+            return made
+        return cached  # type: ignore[return-value]

@@ -43,7 +43,12 @@ import torch
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap, MapChanges
-from mogs_node.mapper.insertion import InsertionParams, insertion_mask, sample_gaussians
+from mogs_node.mapper.insertion import (
+    InsertionParams,
+    background_mask,
+    insertion_mask,
+    sample_gaussians,
+)
 from mogs_node.mapper.keyframe import KeyframeState
 from mogs_node.mapper.projection import cull_gaussians, se3_exp_torch
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput, render
@@ -139,10 +144,7 @@ class GaussianMapper:
             raise ConfigError(
                 f"MapperParams.train_downsample: {f} leaves no pixel of {width}x{height}"
             )
-        fx, fy, cx, cy = self.K
-        # pixel centres at integer coordinates: block u' covers u = f u' .. f u' + f - 1
-        self.train_K = (fx / f, fy / f, (cx - (f - 1) / 2) / f, (cy - (f - 1) / 2) / f)
-        self.train_size = (self.width // f, self.height // f)
+        self.train_K, self.train_size = self._train_camera(f)
         self.map = GaussianMap(self.device)
         self.keyframes: list[KeyframeState] = []
         self.window: list[int] = []  # indices into self.keyframes, newest first
@@ -152,8 +154,16 @@ class GaussianMapper:
         self.n_pruned = 0
         self.n_densified = 0
         self._rng = np.random.default_rng(params.seed)
+        self._refine_next = 0  # the keyframe the next refinement iteration starts from
         self._grad_accum = torch.zeros(0, device=self.device)
         self._grad_count = torch.zeros(0, device=self.device)
+
+    def _train_camera(self, f: int) -> tuple[tuple[float, float, float, float], tuple[int, int]]:
+        """Intrinsics and (width, height) of the 1/``f`` training resolution; pixel centres at
+        integer coordinates: block u' covers u = f u' .. f u' + f - 1."""
+        fx, fy, cx, cy = self.K
+        K = (fx / f, fy / f, (cx - (f - 1) / 2) / f, (cy - (f - 1) / 2) / f)
+        return K, (self.width // f, self.height // f)
 
     # ------------------------------------------------------------------------------ rendering
     def render_view(
@@ -239,9 +249,14 @@ class GaussianMapper:
             d, c, alpha, rdepth, self.params.insertion, rrgb, img.astype(np.float32) / 255.0
         )
         index = len(self.keyframes)
-        new = sample_gaussians(
-            img, d, c, mask, self.K_matrix, T, self.params.insertion, offset=index
-        )
+        ins = self.params.insertion
+        d_ins, c_ins = d, c
+        bg = background_mask(d, alpha, ins)
+        if bg.any():  # far-sphere Gaussians where nothing has depth or is drawn (sky)
+            d_ins = np.where(bg, np.float32(ins.background_depth_m), d)
+            c_ins = np.where(bg, np.float32(0.0), c)
+            mask = mask | bg
+        new = sample_gaussians(img, d_ins, c_ins, mask, self.K_matrix, T, ins, offset=index)
         new_ids = self.map.add(new, birth_kf=index)
         dev = self.device
         kf = KeyframeState(
@@ -293,13 +308,7 @@ class GaussianMapper:
         p = self.params
         self._grad_accum = torch.zeros(len(self.map), device=self.device)
         self._grad_count = torch.zeros(len(self.map), device=self.device)
-        lrs = {
-            "means": p.lr_means_m,
-            "colors": p.lr_colors,
-            "opacity_logit": p.lr_opacity,
-            "log_scales": p.lr_log_scales,
-            "quats_wxyz": p.lr_quats,
-        }
+        lrs = self._lrs()
         newest = self.window[0]
         past = [k.index for k in self.keyframes if k.index not in self.window]
         fixed_pose = max(self.window) if len(self.window) == 1 else min(self.window)
@@ -324,6 +333,43 @@ class GaussianMapper:
         self._prune()
         return self.stats()
 
+    def refine(
+        self,
+        n_iters: int,
+        downsample: int = 1,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> dict[str, float]:
+        """Final refinement of the whole map (MonoGS's colour refinement at the end of a run):
+        ``n_iters`` iterations, one view each, over **every** keyframe in turn (keyframe order,
+        round-robin: deterministic, and each keyframe gets its share), at 1/``downsample`` of the
+        resolution (1: full resolution, which sharpens what half-resolution training blurred),
+        then pruning. Same loss, learning rates and exposure as :meth:`optimize`; poses stay.
+        ``should_stop`` is polled before each iteration (a node's time budget or shutdown)."""
+        if downsample < 1:
+            raise ConfigError(f"refine: downsample must be >= 1, got {downsample}")
+        if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
+            return self.stats()
+        lrs = self._lrs()
+        fixed = -1  # no window pose refinement here: -1 is no keyframe index
+        for it in range(n_iters):
+            if should_stop is not None and should_stop():
+                break
+            i = (self._refine_next + it) % len(self.keyframes)
+            self._train_step(i, fixed, lrs, factor=downsample, refine_pose=False)
+        self._refine_next = (self._refine_next + n_iters) % len(self.keyframes)
+        self._prune()
+        return self.stats()
+
+    def _lrs(self) -> dict[str, float]:
+        p = self.params
+        return {
+            "means": p.lr_means_m,
+            "colors": p.lr_colors,
+            "opacity_logit": p.lr_opacity,
+            "log_scales": p.lr_log_scales,
+            "quats_wxyz": p.lr_quats,
+        }
+
     def _pick_view(self, it: int, past: list[int]) -> int:
         """Even iterations: the newest keyframe; odd: one of the older window keyframes and
         ``n_random_past`` past keyframes drawn afresh, uniformly (``self._rng``: deterministic)."""
@@ -340,19 +386,24 @@ class GaussianMapper:
             return self.window[0]
         return pool[int(self._rng.integers(len(pool)))]
 
-    def _visible_rows(self, T_cam_world: torch.Tensor) -> torch.Tensor:
+    def _visible_rows(
+        self,
+        T_cam_world: torch.Tensor,
+        K: tuple[float, float, float, float],
+        size: tuple[int, int],
+    ) -> torch.Tensor:
         """Rows [R] of the Gaussians the training view may draw: a superset of the projection
         step's cull (in front, opacity above ``alpha_min``, support box on screen;
         :func:`cull_gaussians`). Rendering only these gives the same image as the whole map."""
         r = self.params.raster
-        W, H = self.train_size
+        W, H = size
         prm = self.map.params
         valid = cull_gaussians(
             prm["means"],
             prm["log_scales"],
             prm["opacity_logit"],
             T_cam_world.to(device=self.device, dtype=prm["means"].dtype),
-            self.train_K,
+            K,
             W,
             H,
             near_m=r.near_m,
@@ -362,20 +413,31 @@ class GaussianMapper:
         )
         return torch.nonzero(valid).flatten()
 
-    def _train_step(self, i: int, fixed_pose: int, lrs: dict[str, float]) -> float:
-        """One iteration on keyframe ``i``; returns its L1 photometric error (after exposure)."""
+    def _train_step(
+        self,
+        i: int,
+        fixed_pose: int,
+        lrs: dict[str, float],
+        factor: int | None = None,
+        refine_pose: bool = True,
+    ) -> float:
+        """One iteration on keyframe ``i`` at 1/``factor`` resolution (default
+        ``train_downsample``); returns its L1 photometric error (after exposure)."""
         p = self.params
+        f = p.train_downsample if factor is None else factor
+        K_f, (W, H) = (
+            (self.train_K, self.train_size) if f == p.train_downsample else (self._train_camera(f))
+        )
         kf = self.keyframes[i]
-        rows = self._visible_rows(kf.T_cam_world)
+        rows = self._visible_rows(kf.T_cam_world, K_f, (W, H))
         leaves = {k: self.map.params[k][rows].clone().requires_grad_() for k in PARAM_NAMES}
         xi = None
-        if p.refine_poses and i in self.window and i != fixed_pose:
+        if refine_pose and p.refine_poses and i in self.window and i != fixed_pose:
             xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-        W, H = self.train_size
         out = render(
             GaussianTensors(**leaves),
             kf.T_cam_world,
-            self.train_K,
+            K_f,
             W,
             H,
             pose_tangent=xi,
@@ -387,7 +449,7 @@ class GaussianMapper:
                 out.color[..., 0].sum(), leaves["colors"], retain_graph=True
             )
             weights = g_col[:, 0].detach()
-        image, depth_m, conf = kf.targets(p.train_downsample)
+        image, depth_m, conf = kf.targets(f)
         color = out.color
         ab = None
         if p.exposure:
@@ -426,7 +488,7 @@ class GaussianMapper:
         # pruning); weights in full-resolution pixels
         vis = out.counts > 0
         kf.visible_ids = self.map.ids[rows[vis]].cpu().numpy()
-        scale = float(p.train_downsample**2)
+        scale = float(f**2)
         kf.visible_weights = (weights[vis].float() * scale).cpu().numpy()
         kf.weights_next_id = self.map.next_id
         self.iterations += 1

@@ -33,6 +33,7 @@ from mogs_node.mapper.checkpoint import (
     save_checkpoint,
 )
 from mogs_node.mapper.composite import load_cpp_extension
+from mogs_node.mapper.insertion import InsertionParams
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply, resolve_device
 from mogs_node.mapper.rasterizer import RasterParams
 from mogs_node.node import CATCH_UP_ENV, Node
@@ -61,6 +62,11 @@ class MapperNodeParams:
     exposure: bool = True  # per-keyframe affine exposure compensation
     refine_poses: bool = False  # optimise window keyframe poses
     densify: bool = False  # gradient-based cloning
+    background_depth_m: float = 0.0  # far-sphere Gaussians where the depth has none (0: off)
+    final_refine_iters: int = 0  # at the end of the drive: iterations over every keyframe
+    final_refine_downsample: int = 1  # ... at 1/n of the resolution (GaussianMapper.refine)
+    final_refine_chunk: int = 5  # refinement iterations per timer tick (heartbeats go on)
+    source_node: str = "player"  # its "stopped" diagnostics mark the end of the drive
     backend: str = "auto"  # rasterizer backend: auto | cpp | torch | gsplat
     threads: int = 0  # torch threads (0: torch's default)
     max_pending: int = 16  # keyframes waiting for their depth (or depth for its keyframe)
@@ -99,6 +105,7 @@ class MapperNodeParams:
             exposure=self.exposure,
             refine_poses=self.refine_poses,
             densify=self.densify,
+            insertion=InsertionParams(background_depth_m=self.background_depth_m),
         )
 
 
@@ -186,6 +193,12 @@ class MapperNode(Node):
         )
         if p.iters_when_behind >= 0 and p.idle_iters_per_tick > 0:
             self.every(0.05, self._idle_optimize)
+        self.refine_left = -1  # final refinement iterations still to run (-1: not started)
+        self.last_stamp_ns = 0  # of the newest mapped keyframe
+        if p.final_refine_iters > 0:
+            self.source_done = False
+            self.subscribe("/diagnostics", self.on_diagnostics, msg_type=msgs.Diagnostics)
+            self.every(0.2, self._final_refine)
         self.subscribe(
             p.keyframe_topic,
             self.on_keyframe,
@@ -223,6 +236,51 @@ class MapperNode(Node):
         self.mapper.optimize(n, should_stop=lambda: self.stopping)
         self.counters["owed_iters"] -= n
 
+    def on_diagnostics(self, m: msgs.Diagnostics) -> None:
+        if m.node == self.params.source_node and m.status == "stopped":
+            self.source_done = True
+
+    def _final_refine(self) -> None:
+        """After the drive (the source stopped, every keyframe seen is mapped, nothing queued):
+        ``final_refine_iters`` over every keyframe (:meth:`GaussianMapper.refine`), a chunk per
+        tick; then the map update and a ``/mapper/stats`` marked ``final`` (the run report
+        waits for it)."""
+        p: MapperNodeParams = self.params
+        m = self.mapper
+        if m is None or not self.source_done or self.queue_depth or len(self.pairs):
+            return
+        if self.refine_left < 0:
+            if self.refine_left == -2:  # done
+                return
+            self.refine_left = p.final_refine_iters
+            self.log.info(
+                "final refinement: %d iterations over %d keyframes",
+                self.refine_left,
+                len(m.keyframes),
+            )
+        n = min(p.final_refine_chunk, self.refine_left)
+        st = m.refine(n, p.final_refine_downsample, should_stop=lambda: self.stopping)
+        self.refine_left -= n
+        if self.refine_left > 0:
+            return
+        self.refine_left = -2
+        last = m.keyframes[-1]
+        self.publish_update(last.keyframe_id, self.last_stamp_ns)
+        self.publish(
+            p.stats_topic,
+            msgs.MapStats(
+                stamp_ns=self.last_stamp_ns,
+                frame_id="world",
+                keyframe_id=last.keyframe_id,
+                n_gaussians=int(st["n_gaussians"]),
+                n_keyframes=int(st["n_keyframes"]),
+                iterations=int(st["iterations"]),
+                loss=float(st["loss"]),
+                psnr_db=float(st["psnr_db"]),
+                extra={"final": 1.0, "pruned": st["n_pruned"]},
+            ),
+        )
+
     def on_keyframe(self, msg: msgs.Keyframe) -> None:
         if self._integrated(msg.keyframe_id):
             return
@@ -257,6 +315,7 @@ class MapperNode(Node):
             self.counters["owed_iters"] += p.iters_per_keyframe - n_iters
         st = m.optimize(n_iters, should_stop=lambda: self.stopping)
         self.counters["keyframes_mapped"] += 1
+        self.last_stamp_ns = int(kf.stamp_ns)
         self.publish(
             p.stats_topic,
             msgs.MapStats(
@@ -282,22 +341,7 @@ class MapperNode(Node):
                     depth=np.nan_to_num(depth_m.cpu().numpy()).astype(np.float32),
                 ),
             )
-        ch = m.drain_changes()
-        self.publish(
-            p.gaussians_topic,
-            msgs.GaussianUpdate(
-                stamp_ns=kf.stamp_ns,
-                frame_id="world",
-                keyframe_id=kf.keyframe_id,
-                ids=ch.ids,
-                means=ch.means,
-                log_scales=ch.log_scales,
-                quats_wxyz=ch.quats_wxyz,
-                opacity_logit=ch.opacity_logit,
-                colors_rgb=ch.colors,
-                removed_ids=ch.removed_ids,
-            ),
-        )
+        self.publish_update(kf.keyframe_id, kf.stamp_ns)
         if (
             p.ply_path
             and p.ply_every_kf
@@ -309,6 +353,25 @@ class MapperNode(Node):
             and self.counters["keyframes_mapped"] % p.checkpoint_every_keyframes == 0
         ):
             self.save_checkpoint()
+
+    def publish_update(self, keyframe_id: int, stamp_ns: int) -> None:
+        """``/mapper/gaussians``: the Gaussians changed since the last update, removed ids."""
+        ch = self.mapper.drain_changes()
+        self.publish(
+            self.params.gaussians_topic,
+            msgs.GaussianUpdate(
+                stamp_ns=stamp_ns,
+                frame_id="world",
+                keyframe_id=keyframe_id,
+                ids=ch.ids,
+                means=ch.means,
+                log_scales=ch.log_scales,
+                quats_wxyz=ch.quats_wxyz,
+                opacity_logit=ch.opacity_logit,
+                colors_rgb=ch.colors,
+                removed_ids=ch.removed_ids,
+            ),
+        )
 
     def save_checkpoint(self) -> None:
         """Write the mapper state to ``checkpoint_dir`` (atomically; nothing before a keyframe)."""

@@ -54,6 +54,8 @@ class RunCollector:
     final_map: MapReplica = field(default_factory=MapReplica)  # from /mapper/gaussians
     map_updated: set[int] = field(default_factory=set)  # keyframe ids of the map updates
     view_scores: list[ViewScore] = field(default_factory=list)  # final map, rendered at the end
+    need_final: bool = False  # the mapper refines the map after the drive: wait for that update
+    final_seen: bool = False  # the mapper's /mapper/stats marked final arrived
 
     def add_depth(self, keyframe_id: int, depth_m: np.ndarray, confidence: np.ndarray) -> None:
         self.depth_done.add(keyframe_id)
@@ -89,6 +91,8 @@ class RunCollector:
     def map_ready(self) -> bool:
         """The map update of the newest mapped keyframe arrived (the mapper publishes its stats,
         then its update, in order on reliable topics: so every earlier update arrived too)."""
+        if self.need_final and not self.final_seen:
+            return False  # the final update precedes the final stats on the mapper's socket
         return bool(self.mapped) and max(self.mapped) in self.map_updated
 
 

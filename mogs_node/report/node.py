@@ -83,6 +83,8 @@ class RunReportParams:
     render_budget_s: float = 1.0  # rendering per timer tick before heartbeats get their turn
     image_topic: str = "/camera/image"  # ground truth of the held-out views
     gaussians_topic: str = "/mapper/gaussians"  # incremental map updates
+    wait_final_map: bool = False  # the mapper refines after the drive (final_refine_iters):
+    # render once its /mapper/stats marked final arrived
 
     def __post_init__(self) -> None:
         if self.heldout_views < 0 or self.max_keyframe_views < 0 or self.max_stored_frames < 1:
@@ -102,7 +104,7 @@ class RunReportNode(Node):
             # compile or load the rasterizer now (first run on a machine: a minute), not at the
             # end of the run inside a timer callback where heartbeats stop
             load_cpp_extension()
-        self.c = RunCollector()
+        self.c = RunCollector(need_final=p.wait_final_map)
         self.frames = FrameStore(p.max_stored_frames)  # held-out candidates (ground truth)
         self.kf_frames = FrameStore(p.max_keyframe_views)  # keyframe images by stamp
         self.camera: tuple[np.ndarray, int, int] | None = None  # K, width, height of the map
@@ -181,6 +183,8 @@ class RunReportNode(Node):
     def on_stats(self, m: msgs.MapStats) -> None:
         self._touch()
         self.c.mapped.add(m.keyframe_id)
+        if m.extra.get("final"):
+            self.c.final_seen = True
         self.c.last_stats = {
             "keyframe_id": m.keyframe_id,
             "n_gaussians": m.n_gaussians,
