@@ -30,6 +30,7 @@ __all__ = [
     "drive_overrides",
     "make_drives",
     "read_drive_list",
+    "write_sim_drives",
     "read_marker",
     "is_complete",
 ]
@@ -168,3 +169,32 @@ def load_launch_data(path: Path) -> tuple[str, dict]:
         raise ConfigError(f"{path}: invalid YAML: {err}") from err
     check_launch_for_fleet(data, str(path))
     return text, data
+
+
+def write_sim_drives(
+    out_dir: str | Path,
+    seeds: list[int],
+    *,
+    n_frames: int = 30,
+    size: tuple[int, int] = (621, 188),
+    static_start_s: float = 1.0,
+) -> list[Path]:
+    """Tiny synthetic drives with ground truth (``mogs sim --format mcap``), one per seed, for
+    ``launch/bag.yaml`` (whose frontend defaults are the sim rig at 621x188): the bag carries the
+    ground-truth poses and depth, so the table gets depth AbsRel and ATE. For tests and
+    bench/fleet.py; a folder per drive, ``OUT/sim_seed<N>``."""
+    from mogs_node.datasets.writers import write_sim_bag
+    from mogs_node.sim import SimConfig, make_sequence
+
+    out = Path(out_dir)
+    paths = []
+    for seed in seeds:
+        cfg = SimConfig(
+            seed=seed,
+            n_frames=n_frames,
+            width=size[0],
+            height=size[1],
+            static_start_s=static_start_s,
+        )
+        paths.append(Path(write_sim_bag(make_sequence(cfg), out / f"sim_seed{seed}", fmt="mcap")))
+    return paths
