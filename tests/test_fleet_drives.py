@@ -14,7 +14,6 @@ import os
 import subprocess
 import uuid
 from pathlib import Path
-from typing import Any
 
 import pytest
 from _reliability_harness import cli_argv
@@ -22,32 +21,12 @@ from _reliability_harness import cli_argv
 pytest.importorskip("ray")
 
 from mogs_node.fleet.batch import BatchOptions, run_batch  # noqa: E402
-from mogs_node.fleet.drives import drive_id, write_sim_drives  # noqa: E402
+from mogs_node.fleet.drives import PATIENT_PLAYER, drive_id, write_sim_drives  # noqa: E402
+from mogs_node.fleet.table import comparable_figures  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "bag.yaml"
-# on 2 loaded cores a node may take minutes to start (imports, a first compile): the player
-# waits for every node and for every acknowledgement, so that no run starts without its report
-# (which would miss the first frames) whatever the load: then the figures do not depend on timing
-PATIENT = {"player": {"wait_for_nodes_s": 1800.0, "ack_timeout_s": 1800.0}}
-
-
-def figures(summary: dict[str, Any]) -> dict[str, Any]:
-    """The figures of a run that must not depend on how it was started."""
-    m = summary.get("map", {})
-    return {
-        "keyframes": summary["keyframes"],
-        "keyframes_with_depth": summary["keyframes_with_depth"],
-        "keyframes_mapped": summary["keyframes_mapped"],
-        "frames_with_odometry": summary["frames_with_odometry"],
-        "frames_acknowledged": summary["frames_acknowledged"],
-        "depth": summary.get("depth"),
-        "trajectory": summary.get("trajectory"),
-        "gaussians": m.get("gaussians"),
-        "map_digest": m.get("digest"),
-        "heldout_psnr_db": m.get("heldout_psnr_db"),
-        "keyframe_psnr_db": m.get("keyframe_psnr_db"),
-    }
+PATIENT = PATIENT_PLAYER  # the figures then do not depend on the machine's load
 
 
 def launch_alone(drive: Path, run_dir: Path) -> subprocess.Popen:
@@ -106,7 +85,7 @@ def test_batch_of_three_sim_drives_and_a_bad_one(tmp_path: Path) -> None:
     for d in drives:
         alone = json.loads((tmp_path / "alone" / d.name / "summary.json").read_text())
         batch = json.loads((out / drive_id(str(d)) / "summary.json").read_text())
-        assert figures(batch) == figures(alone), d.name
+        assert comparable_figures(batch) == comparable_figures(alone), d.name
 
     # re-running the batch does no work for the finished drives (the bad one is tried again)
     stamps = {d: (out / drive_id(str(d)) / "summary.json").stat().st_mtime_ns for d in drives}

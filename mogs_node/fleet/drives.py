@@ -24,6 +24,7 @@ from mogs_node.errors import ConfigError
 
 __all__ = [
     "MARKER",
+    "PATIENT_PLAYER",
     "Drive",
     "check_launch_for_fleet",
     "config_digest",
@@ -35,6 +36,12 @@ __all__ = [
     "is_complete",
 ]
 
+#: player overrides that make a run's figures independent of the machine's load: the player waits
+#: for every node to be up and for every acknowledgement however long it takes (by default it
+#: plays after 60 s without the slowest node's heartbeat: the report then misses the first frames
+#: and keyframes, and two runs of one drive differ; measured on 2 loaded cores). For the fleet
+#: test and bench/fleet.py, which compare a batch's figures with single runs'.
+PATIENT_PLAYER = {"player": {"wait_for_nodes_s": 1800.0, "ack_timeout_s": 1800.0}}
 #: written by the task into a drive's run folder when its run has ended: status, error, wall time
 MARKER = "drive.json"
 _NAME_CHARS = re.compile(r"[^A-Za-z0-9_.-]+")

@@ -14,7 +14,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-__all__ = ["COLUMNS", "make_row", "write_csv", "write_markdown", "write_plot"]
+__all__ = ["COLUMNS", "comparable_figures", "make_row", "write_csv", "write_markdown", "write_plot"]
 
 #: the table's columns, in order
 COLUMNS = (
@@ -71,6 +71,25 @@ def make_row(outcome: dict[str, Any], *, resumed: bool = False) -> dict[str, Any
         "host": outcome.get("host", ""),
         "run_dir": outcome.get("run_dir", ""),
         "error": " ".join(str(outcome.get("error", "")).split()),  # one line
+    }
+
+
+def comparable_figures(summary: dict[str, Any]) -> dict[str, Any]:
+    """The figures of a run's summary.json that must not depend on how the run was started
+    (``mogs launch`` or a batch, which worker, which bus): what the mapping produced."""
+    m = summary.get("map", {})
+    return {
+        "keyframes": summary.get("keyframes"),
+        "keyframes_with_depth": summary.get("keyframes_with_depth"),
+        "keyframes_mapped": summary.get("keyframes_mapped"),
+        "frames_with_odometry": summary.get("frames_with_odometry"),
+        "frames_acknowledged": summary.get("frames_acknowledged"),
+        "depth": summary.get("depth"),
+        "trajectory": summary.get("trajectory"),
+        "gaussians": m.get("gaussians"),
+        "map_digest": m.get("digest"),
+        "heldout_psnr_db": m.get("heldout_psnr_db"),
+        "keyframe_psnr_db": m.get("keyframe_psnr_db"),
     }
 
 
