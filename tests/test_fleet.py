@@ -152,6 +152,27 @@ def test_table_rows_csv_markdown_and_plot(tmp_path: Path) -> None:
     assert (tmp_path / "fleet.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_batch_command_errors_before_any_drive_starts(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from mogs_node.cli import main
+
+    launch = tmp_path / "l.yaml"
+    launch.write_text(yaml.safe_dump(TINY))
+    out = str(tmp_path / "out")
+    assert main(["batch", str(launch), "--out", out]) == 1
+    assert "no drives given" in caplog.text
+    assert main(["batch", str(launch), "/d1", "--set", "mapper.iters=3", "--out", out]) == 1
+    assert "override(s) for unknown node(s) ['mapper']" in caplog.text
+    assert main(["batch", str(launch), "/d1", "--path-param", "path", "--out", out]) == 1
+    assert "--path-param 'path': expected NODE.PARAM" in caplog.text
+    tcp = {**TINY, "bus": {"pub_endpoint": "tcp://127.0.0.1:7700"}}
+    launch.write_text(yaml.safe_dump(tcp))
+    assert main(["batch", str(launch), "/d1", "--out", out]) == 1
+    assert "bus.pub_endpoint is set" in caplog.text
+    assert not (tmp_path / "out").exists()  # nothing ran
+
+
 # -------------------------------------------------------------- the Ray path, on a tiny graph
 
 needs_ray = pytest.mark.skipif(
