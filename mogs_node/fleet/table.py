@@ -136,8 +136,8 @@ def write_markdown(rows: list[dict[str, Any]], path: Path, *, title: str, notes:
 
 
 def write_plot(rows: list[dict[str, Any]], path: Path) -> None:
-    """``fleet.png``: wall time, depth AbsRel, ATE and held-out PSNR per drive (bars; a failed
-    drive is a red x at zero)."""
+    """``fleet.png``: wall time, depth AbsRel, ATE and held-out PSNR per drive (bars; a drive
+    that did not complete is red, a red x where it has no value)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -152,15 +152,29 @@ def write_plot(rows: list[dict[str, Any]], path: Path) -> None:
     names = [Path(r["drive"]).name for r in rows]
     x = list(range(len(rows)))
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.4), squeeze=False)
+    bad = [i for i, r in enumerate(rows) if r["status"] != "complete"]
     for ax, (key, label) in zip(axes[0], panels):
         vals = [r.get(key) for r in rows]
         ok = [i for i, v in enumerate(vals) if v is not None]
-        ax.bar([x[i] for i in ok], [float(vals[i]) for i in ok], color="tab:blue")
-        bad = [i for i, r in enumerate(rows) if r["status"] != "complete"]
-        if bad:
-            ax.plot(bad, [0.0] * len(bad), "rx", markersize=10, label="not complete")
+        colors = ["tab:blue" if rows[i]["status"] == "complete" else "tab:red" for i in ok]
+        ax.bar([x[i] for i in ok], [float(vals[i]) for i in ok], color=colors)
+        missing = [i for i in bad if vals[i] is None]
+        if missing:
+            ax.plot(missing, [0.0] * len(missing), "rx", markersize=10, label="not complete")
             ax.legend(fontsize=7)
+        if not ok:
+            ax.text(
+                0.5,
+                0.5,
+                "no values\n(no ground truth\nor no run)",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+                fontsize=8,
+                color="gray",
+            )
         ax.set_title(label, fontsize=9)
+        ax.set_xlim(-0.6, len(rows) - 0.4)
         ax.set_xticks(x)
         ax.set_xticklabels(names, rotation=45, ha="right", fontsize=7)
     fig.suptitle(f"fleet: {len(rows)} drives", fontsize=10)
