@@ -33,6 +33,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "record": ("mogs_node.commands.record", "record bus topics to an MCAP file"),
     "ros2": ("mogs_node.commands.ros2", "mirror bus topics to and from ROS 2 (needs rclpy)"),
     "keys": ("mogs_node.commands.keys", "generate CURVE key pairs for an authenticated tcp bus"),
+    "batch": ("mogs_node.commands.batch", "map many drives in one batch on Ray (local or cluster)"),
 }
 
 
