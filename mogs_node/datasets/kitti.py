@@ -244,7 +244,7 @@ def read_kitti_raw(
     K_cam = PinholeCamera.from_K(P[:, :3], W, H)
     # time stamps
     ts_path = d / camera / "timestamps.txt"
-    meta: dict[str, object] = {"calib": str(c2c)}
+    meta: dict[str, object] = {"calib": str(c2c), "calibration": str(c2c.parent)}
     if ts_path.exists():
         stamps = read_kitti_timestamps(ts_path)
         if len(stamps) != len(files):
@@ -411,7 +411,11 @@ def read_kitti_odometry(
         )
         for i, f in enumerate(files)
     )
-    meta = {"calib": str(calib_path), "poses": str(pose_path) if pose_path else None}
+    meta = {
+        "calib": str(calib_path),
+        "calibration": str(calib_path),
+        "poses": str(pose_path) if pose_path else None,
+    }
     return Sequence(d.name, frames, None, None, None, None, meta)
 
 

@@ -168,7 +168,8 @@ def write_sim_bag(
 ) -> Path:
     """Write ``seq`` to a bag (``fmt`` "rosbag2" (sqlite3), "mcap" or "rosbag1").
 
-    Per frame: the image (sensor_msgs/Image rgb8, or CompressedImage PNG), CameraInfo, the
+    Once: ``T_imu_cam`` on tf_static (imu -> camera). Per frame: the image (sensor_msgs/Image
+    rgb8, or CompressedImage PNG), CameraInfo, the
     ground-truth camera pose (PoseStamped, ``T_world_cam``) and, with ``with_depth``, the z-depth
     (Image 32FC1, 0 = none); every IMU sample in the frames' time span (sensor_msgs/Imu).
     """
@@ -177,6 +178,8 @@ def write_sim_bag(
     t0, t1 = seq.stamps_ns[idx].min(), seq.stamps_ns[idx].max()
     p = Path(path)
     with BagWriter(p, fmt, topics=tp) as w:
+        if tp.tf_static is not None and tp.imu is not None:  # the camera-IMU calibration
+            w.tf_static(int(t0) - 200_000_000, seq.T_imu_cam, parent="imu", child="camera")
         chosen = set(idx.tolist())
         for t, kind, k in seq.sensor_events():
             if kind == "imu":
