@@ -241,12 +241,14 @@ def nearest_rotation(R: FloatArray) -> FloatArray:
     return U @ D @ Vt
 
 
-def rotation_defect(R: FloatArray) -> float:
-    """How far ``R`` ``[3, 3]`` is from a rotation: max |R R^T - I|, or inf for det <= 0."""
+def rotation_defect(R: FloatArray) -> FloatArray:
+    """How far rotations ``[..., 3, 3]`` are from SO(3): max |R R^T - I| per matrix (``[...]``),
+    inf where det <= 0 or a value is not finite."""
     R = np.asarray(R, dtype=np.float64)
-    if not np.isfinite(R).all() or np.linalg.det(R) <= 0:
-        return float("inf")
-    return float(np.abs(R @ R.T - np.eye(3)).max())
+    ok = np.isfinite(R).all(axis=(-1, -2))
+    Rs = np.where(ok[..., None, None], R, np.eye(3))
+    d = np.abs(Rs @ np.swapaxes(Rs, -1, -2) - np.eye(3)).max(axis=(-1, -2))
+    return np.where(ok & (np.linalg.det(Rs) > 0), d, np.inf)
 
 
 def rigid_transform(
@@ -267,7 +269,7 @@ def rigid_transform(
         raise GeometryError(f"{name}: contains NaN or inf")
     if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > tolerance:
         raise GeometryError(f"{name}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    defect = rotation_defect(T[:3, :3])
+    defect = float(rotation_defect(T[:3, :3]))
     if not defect <= tolerance:
         raise GeometryError(
             f"{name}: the rotation is not orthonormal (max |R R^T - I| = {defect:.3g}, "
