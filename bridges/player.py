@@ -76,7 +76,7 @@ ENCODINGS = ("", "mono8", "rgb8", "bgr8")
 class PlayerParams:
     """Parameters of the player node."""
 
-    source: str = "sim"  # kitti | kitti_odometry | euroc | bag | sim | recording (mogs record)
+    source: str = "sim"  # kitti | kitti_odometry | euroc | vi_folder | bag | sim | recording
     path: str = ""  # dataset folder, bag or recording (unused for sim)
     rate: float = 1.0  # replay speed: 1 = recorded rate, N = N times faster, 0 = no clock
     fast: bool = False  # as fast as the pipeline accepts (flow control below); ignores rate

@@ -5,6 +5,8 @@
 - ``kitti``: KITTI raw drive folder (``image_02/data``; 10 Hz stamps from 0 without timestamps.txt)
 - ``kitti_odometry``: KITTI odometry ``sequences/XX`` folder
 - ``euroc``: EuRoC ASL folder (holding ``mav0``)
+- ``vi_folder``: a generic visual-inertial folder with a Kalibr ``camchain.yaml`` (TUM-VI, Basalt,
+  DM-VIO layouts; :mod:`mogs_node.datasets.vi_folder`)
 - ``bag``: rosbag1 file, rosbag2 folder (sqlite3 / MCAP) or bare ``.mcap`` with standard messages
 - ``sim``: the synthetic world (:class:`mogs_node.sim.SimConfig`), rendered lazily
 
@@ -171,6 +173,10 @@ def open_sequence(
         return read_kitti_odometry(p)
     if kind == "euroc":
         return read_euroc(p)
+    if kind == "vi_folder":
+        from mogs_node.datasets.vi_folder import read_vi_folder
+
+        return read_vi_folder(p)
     camera = None
     if intrinsics:
         if len(intrinsics) != 6:
