@@ -29,17 +29,17 @@ import cv2
 import numpy as np
 import yaml
 
-from mogs_node.datasets.base import Frame, ImuSamples, Sequence, Trajectory
+from mogs_node.datasets.base import Frame, Sequence, Trajectory
 from mogs_node.datasets.euroc import (
     imu_noise_from_kalibr,
     interpolate_poses,
     read_euroc_groundtruth,
 )
-from mogs_node.datasets.kitti import load_image
+from mogs_node.datasets.kitti import load_image, read_imu_text, stamp_ns_of
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, se3_inverse
 
-__all__ = ["read_imu_text", "read_kalibr_camchain", "read_vi_folder"]
+__all__ = ["read_kalibr_camchain", "read_vi_folder"]
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _KALIBR_MODELS = {"radtan": "radtan", "equidistant": "equidistant", "none": "none"}
@@ -103,47 +103,6 @@ def read_kalibr_camchain(path: str | Path, camera: str = "cam0") -> dict:
     }
 
 
-def _stamp_ns(text: str, where: str) -> int:
-    """Integer nanoseconds, or decimal seconds (a '.' or an exponent) -> nanoseconds."""
-    try:
-        if any(ch in text for ch in ".eE"):
-            sec, _, frac = f"{float(text):.9f}".partition(".")
-            return int(sec) * 1_000_000_000 + (int(frac) if not sec.startswith("-") else -int(frac))
-        return int(text)
-    except ValueError as err:
-        raise DatasetError(f"{where}: bad time stamp {text!r}") from err
-
-
-def read_imu_text(path: str | Path) -> ImuSamples:
-    """``t gx gy gz ax ay az`` per line (comma or space separated, ``t`` in ns or s)."""
-    p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except OSError as err:
-        raise DatasetError(f"{p}: cannot read IMU log ({err.strerror or err})") from err
-    t, vals = [], []
-    for i, line in enumerate(lines, 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        parts = line.replace(",", " ").split()
-        if len(parts) != 7:
-            raise DatasetError(
-                f"{p}:{i}: expected 7 values (t gx gy gz ax ay az), got {len(parts)}"
-            )
-        t.append(_stamp_ns(parts[0], f"{p}:{i}"))
-        try:
-            vals.append([float(x) for x in parts[1:]])
-        except ValueError as err:
-            raise DatasetError(f"{p}:{i}: bad number ({err})") from err
-    if not t:
-        raise DatasetError(f"{p}: no IMU samples")
-    v = np.asarray(vals, dtype=np.float64)
-    if not np.isfinite(v).all():
-        raise DatasetError(f"{p}: non-finite IMU values")
-    order = np.argsort(np.asarray(t, dtype=np.int64), kind="stable")
-    return ImuSamples(np.asarray(t, dtype=np.int64)[order], v[order, :3], v[order, 3:])
-
-
 def _first(root: Path, candidates: list[str]) -> Path | None:
     for c in candidates:
         hits = sorted(root.glob(c))
@@ -173,7 +132,7 @@ def _images(root: Path) -> tuple[Path, list[tuple[int, Path]]]:
             parts = [x.strip() for x in line.split(",")]
             if len(parts) < 2 or parts[1] not in files:
                 raise DatasetError(f"{csv}:{i}: expected 't_ns,filename' of an image in {img_dir}")
-            out.append((_stamp_ns(parts[0], f"{csv}:{i}"), files[parts[1]]))
+            out.append((stamp_ns_of(parts[0], f"{csv}:{i}"), files[parts[1]]))
     elif times is not None:
         stems = {f.stem: f for f in files.values()}
         for i, line in enumerate(times.read_text().splitlines(), 1):
@@ -184,7 +143,7 @@ def _images(root: Path) -> tuple[Path, list[tuple[int, Path]]]:
                 raise DatasetError(
                     f"{times}:{i}: expected 'name t_s [exposure]' of an image in {img_dir}"
                 )
-            out.append((_stamp_ns(parts[1], f"{times}:{i}"), stems[parts[0]]))
+            out.append((stamp_ns_of(parts[1], f"{times}:{i}"), stems[parts[0]]))
     else:
         for f in files.values():
             if not f.stem.isdigit():
