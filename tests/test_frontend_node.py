@@ -118,6 +118,7 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
         "width": c.width,
         "height": c.height,
         "T_imu_cam": [float(x) for x in seq.T_imu_cam.ravel()],
+        "mode": "vi",
     }
     node = FrontendNode("frontend", params, bus, context=ctx, diagnostics_period_s=0)
     watcher = Subscriber(bus, context=ctx)
@@ -208,7 +209,11 @@ def test_node_waits_for_the_camera_info(inproc_bus):
         env = watcher.receive(timeout_ms=2000)
         assert node.frontend is None and len(node._imu_waiting) == 1
         pub.publish("/camera/info", info)
+        spin_until(lambda: node._calibrated)
+        assert node.frontend is None  # built at the first image: its mode depends on the inputs
+        pub.publish("/camera/image", msgs.Image(30, "cam", "rgb8", img))
         spin_until(lambda: node.frontend is not None)
+        assert node.mode == "vi"  # IMU came before the image
         assert node.frontend is not None and not node._imu_waiting
         assert node.frontend.counters["imu_samples"] == 1  # the waiting sample went in
         assert node.frontend.camera.pinhole.fx_px == info.K[0, 0]

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -36,13 +36,22 @@ from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams, K
 from mogs_node.frontend.ground import GroundParams
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
+from mogs_node.frontend.monocular import MonocularFrontend, MonocularParams
 from mogs_node.frontend.preintegration import ImuNoise
 from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.frontend.tracker import TrackerParams
 from mogs_node.geometry import PinholeCamera, rigid_transform
 from mogs_node.node import Node, parse_params
 
-__all__ = ["CALIBRATION_FIELDS", "FrontendNode", "FrontendNodeParams", "camera_from_info"]
+__all__ = [
+    "CALIBRATION_FIELDS",
+    "FRONTEND_MODES",
+    "FrontendNode",
+    "FrontendNodeParams",
+    "camera_from_info",
+]
+
+FRONTEND_MODES = ("auto", "vi", "camera_only", "poses")
 
 #: the calibration values a launch file may override; the rest come from ``/camera/info``
 CALIBRATION_FIELDS = (
@@ -81,6 +90,11 @@ class FrontendNodeParams:
     imu_noise_inflation: float = 2.0  # the source's IMU noise densities (datasheet, Kalibr) times
     # this: the usual inflation that absorbs vibration and integration error (ImuNoise defaults)
     time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns
+    mode: str = "auto"  # 'vi' (camera + IMU), 'camera_only' (scale from the road at the camera
+    # height), 'poses' (the user's poses on pose_topic) or 'auto': at the first image, 'poses' if
+    # a pose came for it, 'vi' if IMU came before it, else 'camera_only' if the camera height is
+    # known, else 'vi' (waiting for IMU)
+    camera_only: dict[str, Any] = field(default_factory=dict)  # MonocularParams fields
     init_mode: str = "auto"  # 'auto', 'static' or 'dynamic'
     tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
     estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
@@ -94,6 +108,7 @@ class FrontendNodeParams:
     image_topic: str = "/camera/image"
     imu_topic: str = "/imu"
     camera_info_topic: str = "/camera/info"
+    pose_topic: str = "/camera/pose"  # poses the user has (player.poses), mode 'poses'
     odometry_topic: str = "/frontend/odometry"
     keyframe_topic: str = "/frontend/keyframe"
     frame_id: str = "world"
@@ -102,6 +117,8 @@ class FrontendNodeParams:
     def __post_init__(self) -> None:
         if self.T_imu_cam is not None and len(self.T_imu_cam) != 16:
             raise ConfigError(f"frontend.T_imu_cam: need 16 numbers, got {len(self.T_imu_cam)}")
+        if self.mode not in FRONTEND_MODES:
+            raise ConfigError(f"frontend.mode: {self.mode!r} not in {FRONTEND_MODES}")
         if not (np.isfinite(self.imu_noise_inflation) and self.imu_noise_inflation > 0):
             raise ConfigError(f"frontend.imu_noise_inflation: > 0, got {self.imu_noise_inflation}")
 
@@ -142,6 +159,24 @@ class FrontendNodeParams:
             tuple(cal["distortion_coeffs"]),
         )
         return params, cam, cal["T_imu_cam"]
+
+    def build_monocular(
+        self, where: str, info: msgs.CameraInfo | None, *, given_poses: bool
+    ) -> MonocularFrontend:
+        """The camera-only (or given-pose) frontend: the calibration as :meth:`build`, the road
+        measurement's and points' groups shared with the visual-inertial frontend's."""
+        fp, cam, T = self.build(where, info)
+        mono = dict(self.camera_only)
+        points = {"max_reproj_px": 1.5, **self.points, **mono.pop("points", {})}
+        for k in ("ground",):
+            if k in mono:
+                raise ConfigError(f"{where}.camera_only.{k}: set it in {where}.{k}")
+        params = replace(
+            parse_params(MonocularParams, mono, where=f"{where}.camera_only"),
+            points=parse_params(TrackPointsParams, points, where=f"{where}.points"),
+            ground=fp.ground,
+        )
+        return MonocularFrontend(params, cam, T, given_poses=given_poses)
 
     def calibration(self, where: str, info: msgs.CameraInfo | None) -> dict[str, Any]:
         """The merged calibration (launch values over ``info``'s) as plain values."""
@@ -223,18 +258,25 @@ class FrontendNode(Node):
 
     def setup(self) -> None:
         p: FrontendNodeParams = self.params
-        self.frontend: Frontend | None = None
+        self.frontend: Frontend | MonocularFrontend | None = None
+        self.mode = ""  # the mode in use, chosen at the first image (see the params)
         self.camera_info: msgs.CameraInfo | None = None
-        self._imu_waiting: deque[msgs.Imu] = deque(maxlen=100_000)  # IMU before the calibration
+        self._calibrated = False
+        self._imu_waiting: deque[msgs.Imu] = deque(maxlen=100_000)  # IMU before the frontend
+        self._imu_seen = False
+        self._poses: dict[int, np.ndarray] = {}  # the user's poses by stamp (mode 'poses')
         self._first_uncalibrated: float | None = None
         self._last_T_world_cam = np.eye(4)  # best pose so far: acknowledges frames without one
         self._last_velocity = np.zeros(3)
         self.counters.update(frames_without_calibration=0, camera_info_ignored=0)
         if p.overrides_all():
-            self._start(None)  # the launch file gives everything: no need to wait
+            self._configure(None)  # the launch file gives everything: no need to wait
+            if p.mode in ("vi", "camera_only"):
+                self._start(0)
         self.subscribe(
             p.camera_info_topic, self.on_camera_info, reliable=True, msg_type=msgs.CameraInfo
         )
+        self.subscribe(p.pose_topic, self.on_pose, reliable=True, msg_type=msgs.PoseStamped)
         self.subscribe(p.imu_topic, self.on_imu, reliable=True, msg_type=msgs.Imu)
         self.subscribe(p.image_topic, self.on_image, reliable=False, msg_type=msgs.Image)
         # after a restart: replay every journaled calibration, image and IMU sample
@@ -243,18 +285,18 @@ class FrontendNode(Node):
             (p.camera_info_topic, p.imu_topic, p.image_topic), (p.odometry_topic, p.keyframe_topic)
         )
 
-    def _start(self, info: msgs.CameraInfo | None) -> None:
-        """Build the frontend from the launch values over ``info``'s (ConfigError: stop)."""
+    def _configure(self, info: msgs.CameraInfo | None) -> None:
+        """Check and log the calibration (launch values over ``info``'s); ConfigError: stop."""
         p: FrontendNodeParams = self.params
         cal = p.calibration(self.name, info)
-        fp, cam, T_imu_cam = p.build(self.name, info)
-        self.frontend = Frontend(fp, cam, T_imu_cam)
+        fp, cam, _ = p.build(self.name, info)
+        self._calibrated = True
         given = [k for k in CALIBRATION_FIELDS if getattr(p, k) is not None]
         pc = cam.pinhole
         self.log.info(
             "calibration %s%s: %dx%d fx %.3f fy %.3f cx %.3f cy %.3f, distortion %s, camera "
             "height %s, IMU noise %s",
-            f"from {info.source or self.params.camera_info_topic}" if info else "from the launch",
+            f"from {info.source or p.camera_info_topic}" if info else "from the launch file",
             f" (launch overrides: {', '.join(given)})" if info is not None and given else "",
             pc.width,
             pc.height,
@@ -263,8 +305,8 @@ class FrontendNode(Node):
             pc.cx_px,
             pc.cy_px,
             cam.model,
-            f"{fp.ground.camera_height_m:.3f} m" if fp.ground.enabled else "not used",
-            "from the source" if cal["imu_noise"] and "imu" not in given else "defaults/launch",
+            f"{fp.ground.camera_height_m:.3f} m" if fp.ground.enabled else "not known",
+            "from the source" if cal["imu_noise"] and not p.imu else "defaults/launch",
         )
         if cal["T_imu_cam_defect"] > 1e-12:
             self.log.info(
@@ -272,13 +314,43 @@ class FrontendNode(Node):
                 self.name,
                 cal["T_imu_cam_defect"],
             )
+
+    def _start(self, stamp_ns: int) -> None:
+        """Build the frontend at the first image, in the mode of the params (see ``mode``)."""
+        p: FrontendNodeParams = self.params
+        mode = p.mode
+        if mode == "auto":
+            height = p.build(self.name, self.camera_info)[0].ground.enabled
+            if stamp_ns in self._poses:
+                mode = "poses"
+            elif self._imu_seen or not height:
+                mode = "vi"
+            else:
+                mode = "camera_only"
+        if mode == "vi":
+            fp, cam, T_imu_cam = p.build(self.name, self.camera_info)
+            self.frontend = Frontend(fp, cam, T_imu_cam)
+        else:
+            self.frontend = p.build_monocular(
+                self.name, self.camera_info, given_poses=mode == "poses"
+            )
+        self.mode = mode
+        self.log.info(
+            "mode %s%s",
+            mode,
+            {
+                "vi": " (camera + IMU)",
+                "camera_only": ": no IMU before the first image; metric scale from the road",
+                "poses": ": the poses on " + p.pose_topic,
+            }[mode],
+        )
         while self._imu_waiting:
             self.on_imu(self._imu_waiting.popleft())
 
     def on_camera_info(self, msg: msgs.CameraInfo) -> None:
-        if self.frontend is None:
+        if not self._calibrated:
+            self._configure(msg)
             self.camera_info = msg
-            self._start(msg)
         elif self.camera_info is not None and not _same_calibration(self.camera_info, msg):
             self.counters["camera_info_ignored"] += 1
             if self.counters["camera_info_ignored"] == 1:
@@ -289,7 +361,13 @@ class FrontendNode(Node):
                     msg.source,
                 )
 
+    def on_pose(self, msg: msgs.PoseStamped) -> None:
+        self._poses[int(msg.stamp_ns)] = np.array(msg.T_world_cam, dtype=np.float64)
+        while len(self._poses) > 10_000:  # images that never came: forget the oldest
+            self._poses.pop(next(iter(self._poses)))
+
     def on_imu(self, msg: msgs.Imu) -> None:
+        self._imu_seen = True
         if self.frontend is None:
             self._imu_waiting.append(msg)
             return
@@ -317,16 +395,22 @@ class FrontendNode(Node):
             )
 
     def on_image(self, msg: msgs.Image) -> None:
-        if self.frontend is None:
+        if not self._calibrated:
             self._no_calibration(msg)
             return
+        if self.frontend is None:
+            self._start(msg.stamp_ns)
         img = msg.data
         if msg.encoding == "bgr8":
             img = np.ascontiguousarray(img[..., ::-1])
         fe = self.frontend
+        assert fe is not None
         pending = fe.pending_stamps_ns
         rejected = fe.counters["image_time_backwards"] + fe.counters["image_wrong_size"]
-        outs = fe.add_image(msg.stamp_ns, img)
+        if isinstance(fe, MonocularFrontend):
+            outs = fe.add_image(msg.stamp_ns, img, self._poses.pop(int(msg.stamp_ns), None))
+        else:
+            outs = fe.add_image(msg.stamp_ns, img)
         if fe.counters["image_time_backwards"] + fe.counters["image_wrong_size"] > rejected:
             self._acknowledge(msg.stamp_ns, "rejected")
         waiting = set(fe.pending_stamps_ns) | {o.stamp_ns for o in outs}
@@ -375,6 +459,7 @@ class FrontendNode(Node):
 
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
         d = super().diagnostics(status)
+        d.counters["frontend_camera_only"] = float(self.mode in ("camera_only", "poses"))
         if self.frontend is not None:
             d.counters.update(
                 {f"frontend_{k}": float(v) for k, v in self.frontend.counters.items()}
