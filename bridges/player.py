@@ -87,6 +87,9 @@ class PlayerParams:
     # the static init inspects the 1 s before a frame, so a little more than 1 s)
     camera_info_topic: str = "/camera/info"  # the source's calibration (msgs.CameraInfo)
     camera_info_period_s: float = 2.0  # ... published before the first image and this often
+    poses: str = ""  # your camera poses T_world_cam (TUM or KITTI file): published on
+    # pose_topic before each image; the frontend maps with them (mode poses) instead of estimating
+    pose_topic: str = "/camera/pose"
     camera_height_m: float | None = None  # camera above the road (a car's calibration; None:
     # the source's own value if it has one, else unknown), published in the CameraInfo
     image_topic: str = "/camera/image"  # output images (best effort)
@@ -199,6 +202,7 @@ class PlayerNode(Node):
     def setup(self) -> None:
         p: PlayerParams = self.params
         self.seq: Sequence | None = None
+        self.user_poses: list[np.ndarray | None] = []  # player.poses, per frame
         self.events: list[tuple[int, str, int]] = []
         self._rec_iter: Iterator[RecordedMessage] | None = None
         self._rec_next: RecordedMessage | None = None
@@ -235,6 +239,17 @@ class PlayerNode(Node):
                     camera_height_m=p.camera_height_m,
                 )
                 self._log_calibration(self.camera_info)
+            if p.poses:
+                from mogs_node.datasets.vi_folder import read_user_poses
+
+                self.user_poses = read_user_poses(p.poses, self.seq.stamps_ns)
+                self.log.info(
+                    "poses of %d of %d frames from %s on %s",
+                    sum(T is not None for T in self.user_poses),
+                    len(self.seq),
+                    p.poses,
+                    p.pose_topic,
+                )
         self._resume_in_flight: int | None = None
         skipped = self._skip_journaled()
         self.pos = 0
@@ -443,6 +458,11 @@ class PlayerNode(Node):
         except (DatasetError, OSError, cv2.error) as err:
             self._unreadable(k, err)
             return
+        if self.user_poses and self.user_poses[k] is not None:  # before its image
+            self.publish(
+                p.pose_topic,
+                msgs.PoseStamped(stamp_ns=stamp, frame_id="world", T_world_cam=self.user_poses[k]),
+            )
         self.publish(
             p.image_topic,
             msgs.Image(stamp_ns=stamp, frame_id=p.camera_frame_id, encoding=enc, data=image),

@@ -39,7 +39,7 @@ from mogs_node.datasets.kitti import load_image, read_imu_text, stamp_ns_of
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, se3_inverse
 
-__all__ = ["read_kalibr_camchain", "read_vi_folder"]
+__all__ = ["read_kalibr_camchain", "read_user_poses", "read_vi_folder"]
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _KALIBR_MODELS = {"radtan": "radtan", "equidistant": "equidistant", "none": "none"}
@@ -224,3 +224,40 @@ def read_vi_folder(root: str | Path, *, camera: str = "cam0") -> Sequence:
         "time_shift_ns": shift,
     }
     return Sequence(r.name, frames, imu, cal["T_imu_cam"], gt, cal["distortion"], meta)
+
+
+def read_user_poses(path: str | Path, frame_stamps_ns: np.ndarray) -> list[np.ndarray | None]:
+    """The user's camera poses ``T_world_cam`` for frames at ``frame_stamps_ns`` [F].
+
+    TUM (``t tx ty tz qx qy qz qw``, 8 columns): interpolated on SE(3) at the frame stamps inside
+    the file's time span (None outside); KITTI odometry (12 numbers of the 3x4 pose per line):
+    one line per frame, in order (the counts must agree). Rotations are made orthonormal.
+    """
+    from mogs_node.frontend.trajectory_io import read_kitti, read_tum
+    from mogs_node.geometry import nearest_rotation
+
+    p = Path(path)
+    try:
+        first = next((ln for ln in p.read_text().splitlines() if ln.strip() and ln[0] != "#"), "")
+    except OSError as err:
+        raise DatasetError(f"{p}: cannot read poses ({err.strerror or err})") from err
+    n = len(first.split())
+    stamps = np.asarray(frame_stamps_ns, dtype=np.int64)
+    if n == 8:
+        t, P = read_tum(p)
+        if len(t) < 2 or np.any(np.diff(t) <= 0):
+            raise DatasetError(f"{p}: TUM poses need >= 2 lines with increasing stamps")
+        P[:, :3, :3] = nearest_rotation(P[:, :3, :3])
+        Q = interpolate_poses(t, P, stamps)
+        inside = (stamps >= t[0]) & (stamps <= t[-1])
+        return [Q[i] if inside[i] else None for i in range(len(stamps))]
+    if n == 12:
+        P = read_kitti(p)
+        if len(P) != len(stamps):
+            raise DatasetError(f"{p}: {len(P)} KITTI poses for {len(stamps)} frames")
+        P[:, :3, :3] = nearest_rotation(P[:, :3, :3])
+        return list(P)
+    raise DatasetError(
+        f"{p}: expected TUM (8 columns: t tx ty tz qx qy qz qw) or KITTI (12 numbers) lines, "
+        f"got {n} columns"
+    )
