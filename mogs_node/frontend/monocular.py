@@ -1,5 +1,5 @@
 """Camera-only frontend: a drive without an IMU (KITTI odometry, a dashcam), or with poses the user
-already has (``player.poses``). docs/frontend.md, "Camera only".
+already has (``player.poses``). docs/bridges.md, "No IMU: camera only; your own poses".
 
 The pose of a frame relative to the last keyframe comes from the essential matrix of the dense
 KLT tracks (rotation and translation direction, five-point RANSAC) and the metric length of the
