@@ -371,3 +371,14 @@ def test_kitti_odometry_writer_round_trip(tmp_path):
     )
     np.testing.assert_array_equal(got.stamps_ns, seq.stamps_ns - seq.stamps_ns[0])
     np.testing.assert_array_equal(got.frames[3].image, seq.render(3).rgb)
+
+
+def test_vi_folder_carries_ground_truth_depth(tmp_path):
+    from mogs_node.datasets import read_vi_folder, write_vi_folder
+
+    seq = _small_sim()
+    got = read_vi_folder(write_vi_folder(seq, tmp_path / "d"))
+    d_true = seq.render(1).depth_m
+    d = got.frames[1].depth_m()
+    ok = np.isfinite(d_true) & (d_true * 256 < 65535)
+    np.testing.assert_allclose(d[ok], d_true[ok], atol=1 / 512 + 1e-6)  # 1/256 m steps

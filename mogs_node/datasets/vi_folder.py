@@ -16,6 +16,8 @@ and Kalibr's ``camchain.yaml`` (+ ``imu.yaml``). :func:`read_vi_folder` accepts 
   [exposure]`` per line), else the file names are the nanosecond stamps (``1403715273262142976.png``).
 - IMU: ``imu0/data.csv`` or ``imu.txt`` / ``imu.csv``: ``t gx gy gz ax ay az`` per line, comma or
   space separated, ``t`` integer nanoseconds or decimal seconds; ``#`` comments.
+- ground-truth depth (optional): ``depth0/data/<image name>.png``, KITTI depth PNGs (uint16,
+  metres = value / 256, 0 = none), z-depth in the camera of the same-named image.
 - ground truth (optional): ``groundtruth.txt`` (TUM ``t tx ty tz qx qy qz qw``, the IMU/body in
   the world) or EuRoC's ``state_groundtruth_estimate0/data.csv``; camera poses are
   ``T_world_imu(t) @ T_imu_cam`` interpolated at the image stamps.
@@ -35,7 +37,7 @@ from mogs_node.datasets.euroc import (
     interpolate_poses,
     read_euroc_groundtruth,
 )
-from mogs_node.datasets.kitti import load_image, read_imu_text, stamp_ns_of
+from mogs_node.datasets.kitti import load_image, read_depth_png, read_imu_text, stamp_ns_of
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, se3_inverse
 
@@ -205,6 +207,12 @@ def read_vi_folder(root: str | Path, *, camera: str = "cam0") -> Sequence:
             f"{cam.width}x{cam.height}"
         )
     grey = first.ndim == 2
+    depth_dir = img_dir.parents[1] / "depth0" / "data" if img_dir.name == "data" else r / "depth0"
+
+    def depth_of(f: Path):
+        d = depth_dir / (f.stem + ".png")
+        return (lambda: read_depth_png(d)) if d.exists() else None
+
     frames = tuple(
         Frame(
             i,
@@ -213,7 +221,7 @@ def read_vi_folder(root: str | Path, *, camera: str = "cam0") -> Sequence:
             (lambda f=f: load_image(f, grey=grey)),
             "mono8" if grey else "rgb8",
             poses[i],
-            None,
+            depth_of(f),
             str(f),
         )
         for i, (_, f) in enumerate(images)

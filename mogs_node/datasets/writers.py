@@ -243,6 +243,7 @@ def write_vi_folder(
 
         camchain.yaml, imu.yaml   Kalibr calibration (the sim rig; noise of the sim's IMU)
         cam0/data/<t_ns>.png      RGB frames, cam0/data.csv (t_ns,filename)
+        depth0/data/<t_ns>.png    ground-truth z-depth (KITTI depth PNG: uint16 = round(256 m))
         imu0/data.csv             every IMU sample from the first to the last frame (+-1.5 s)
         groundtruth.txt           T_world_imu at the frame stamps (TUM)
     """
@@ -250,8 +251,8 @@ def write_vi_folder(
 
     out = Path(out_dir)
     idx = _frame_indices(seq, frames)
-    (out / "cam0" / "data").mkdir(parents=True, exist_ok=True)
-    (out / "imu0").mkdir(parents=True, exist_ok=True)
+    for sub in ("cam0/data", "depth0/data", "imu0"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     camchain, imu_yaml = _kalibr_yaml(seq, seq.config.imu_noise)
     (out / "camchain.yaml").write_text(camchain)
     (out / "imu.yaml").write_text(imu_yaml)
@@ -267,7 +268,9 @@ def write_vi_folder(
     (out / "imu0" / "data.csv").write_text("\n".join(lines) + "\n")
     write_tum(out / "groundtruth.txt", t, seq.T_world_imu[idx])
     for n, i in zip(names, idx):
-        _write_rgb(out / "cam0" / "data" / n, seq.render(int(i)).rgb)
+        f = seq.render(int(i))
+        _write_rgb(out / "cam0" / "data" / n, f.rgb)
+        cv2.imwrite(str(out / "depth0" / "data" / n), depth_to_kitti_png(f.depth_m))
     log.info("wrote %d frames in the generic VI layout to %s", len(idx), out)
     return out
 
