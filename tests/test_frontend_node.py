@@ -228,3 +228,20 @@ def test_node_waits_for_the_camera_info(inproc_bus):
         pub.close(0)
         node.close()
     assert env is not None and env.msg.status == "no_calibration" and env.msg.stamp_ns == 20
+
+
+def test_camera_only_needs_no_T_imu_cam():
+    """KITTI odometry: no IMU, no T_imu_cam; the camera-only frontend builds without it."""
+    info = _sim_info(T_imu_cam=None, camera_height_m=1.65, source="calib.txt")
+    fe = FrontendNodeParams(camera_only={"min_parallax_px": 30.0}).build_monocular(
+        "fe", info, given_poses=False
+    )
+    assert fe.T_imu_cam is None and fe.params.ground.camera_height_m == 1.65
+    assert fe.params.min_parallax_px == 30.0 and fe.params.points.max_reproj_px == 1.5
+    np.testing.assert_allclose(fe.normal_cam, [0.0, 1.0, 0.0])  # a level rectified camera
+    with pytest.raises(ConfigError, match=r"fe\.T_imu_cam: not in the launch file"):
+        FrontendNodeParams().build("fe", info)
+    with pytest.raises(ConfigError, match="camera_only.ground"):
+        FrontendNodeParams(camera_only={"ground": {}}).build_monocular(
+            "fe", info, given_poses=False
+        )

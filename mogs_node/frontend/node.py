@@ -128,12 +128,12 @@ class FrontendNodeParams:
         return all(getattr(self, k) is not None for k in need)
 
     def build(
-        self, where: str = "frontend", info: msgs.CameraInfo | None = None
+        self, where: str = "frontend", info: msgs.CameraInfo | None = None, *, imu: bool = True
     ) -> tuple[FrontendParams, CameraModel, np.ndarray]:
         """The algorithm's parameters, camera model and ``T_imu_cam`` [4, 4]: each calibration
         value from this launch file when set, else from ``info``; a value in neither is a
-        :class:`ConfigError` naming it."""
-        cal = self.calibration(where, info)
+        :class:`ConfigError` naming it (``imu`` False: ``T_imu_cam`` may be unknown, None)."""
+        cal = self.calibration(where, info, imu=imu)
         noise = dict(cal.pop("imu_noise"))
         noise.update(self.imu)  # the launch file's values win
         ground = dict(self.ground)
@@ -165,7 +165,7 @@ class FrontendNodeParams:
     ) -> MonocularFrontend:
         """The camera-only (or given-pose) frontend: the calibration as :meth:`build`, the road
         measurement's and points' groups shared with the visual-inertial frontend's."""
-        fp, cam, T = self.build(where, info)
+        fp, cam, T = self.build(where, info, imu=False)
         mono = dict(self.camera_only)
         points = {"max_reproj_px": 1.5, **self.points, **mono.pop("points", {})}
         for k in ("ground",):
@@ -178,8 +178,11 @@ class FrontendNodeParams:
         )
         return MonocularFrontend(params, cam, T, given_poses=given_poses)
 
-    def calibration(self, where: str, info: msgs.CameraInfo | None) -> dict[str, Any]:
-        """The merged calibration (launch values over ``info``'s) as plain values."""
+    def calibration(
+        self, where: str, info: msgs.CameraInfo | None, *, imu: bool = True
+    ) -> dict[str, Any]:
+        """The merged calibration (launch values over ``info``'s) as plain values (``imu`` False:
+        ``T_imu_cam`` may be unknown, None)."""
         base = camera_from_info(info, self.imu_noise_inflation) if info is not None else {}
         out: dict[str, Any] = {}
         for k in CALIBRATION_FIELDS:
@@ -188,16 +191,21 @@ class FrontendNodeParams:
                 v = base.get(k)
             if v is None and k in ("distortion_model", "distortion_coeffs"):
                 v = "none" if k == "distortion_model" else ()
+            if v is None and k == "T_imu_cam" and not imu:
+                out[k] = None
+                continue
             if v is None:
                 raise ConfigError(
                     f"{where}.{k}: not in the launch file and "
                     + ("no /camera/info received" if info is None else f"unknown to {info.source}")
                 )
             out[k] = v
-        try:
-            out["T_imu_cam"], defect = rigid_transform(out["T_imu_cam"], f"{where}.T_imu_cam")
-        except GeometryError as err:
-            raise ConfigError(str(err)) from err
+        defect = 0.0
+        if out["T_imu_cam"] is not None:
+            try:
+                out["T_imu_cam"], defect = rigid_transform(out["T_imu_cam"], f"{where}.T_imu_cam")
+            except GeometryError as err:
+                raise ConfigError(str(err)) from err
         out["T_imu_cam_defect"] = defect
         out["camera_height_m"] = base.get("camera_height_m", float("nan"))
         out["imu_noise"] = base.get("imu_noise", {})
@@ -288,8 +296,8 @@ class FrontendNode(Node):
     def _configure(self, info: msgs.CameraInfo | None) -> None:
         """Check and log the calibration (launch values over ``info``'s); ConfigError: stop."""
         p: FrontendNodeParams = self.params
-        cal = p.calibration(self.name, info)
-        fp, cam, _ = p.build(self.name, info)
+        cal = p.calibration(self.name, info, imu=False)
+        fp, cam, _ = p.build(self.name, info, imu=False)
         self._calibrated = True
         given = [k for k in CALIBRATION_FIELDS if getattr(p, k) is not None]
         pc = cam.pinhole
@@ -320,7 +328,7 @@ class FrontendNode(Node):
         p: FrontendNodeParams = self.params
         mode = p.mode
         if mode == "auto":
-            height = p.build(self.name, self.camera_info)[0].ground.enabled
+            height = p.build(self.name, self.camera_info, imu=False)[0].ground.enabled
             if stamp_ns in self._poses:
                 mode = "poses"
             elif self._imu_seen or not height:
