@@ -1,7 +1,9 @@
 """The player node: streams a recorded or simulated sequence onto the bus in time order.
 
 Publishes ``/camera/image`` (:class:`~mogs_node.msgs.Image`) and ``/imu``
-(:class:`~mogs_node.msgs.Imu`) with the recorded stamps, and ground truth when the dataset has it:
+(:class:`~mogs_node.msgs.Imu`) with the recorded stamps, the source's calibration on
+``/camera/info`` (:class:`~mogs_node.msgs.CameraInfo`: before the first image, then every
+``camera_info_period_s``), and ground truth when the dataset has it:
 ``/groundtruth/pose`` (:class:`~mogs_node.msgs.PoseStamped`, ``T_world_cam``) and, with
 ``groundtruth_depth``, ``/groundtruth/depth`` (:class:`~mogs_node.msgs.DepthMap`, kind metric,
 ``keyframe_id`` = frame index). A recording of ``mogs record`` is re-published bit-exactly, frame
@@ -58,7 +60,7 @@ from bridges.replay import (
     format_progress,
     select_window,
 )
-from bridges.sources import SOURCE_KINDS, open_sequence
+from bridges.sources import SOURCE_KINDS, camera_info_of, open_sequence
 from mogs_node import msgs
 from mogs_node.datasets import BagTopics, Sequence
 from mogs_node.errors import ConfigError, DatasetError
@@ -74,13 +76,22 @@ ENCODINGS = ("", "mono8", "rgb8", "bgr8")
 class PlayerParams:
     """Parameters of the player node."""
 
-    source: str = "sim"  # kitti | kitti_odometry | euroc | bag | sim | recording (mogs record)
+    source: str = "sim"  # kitti | kitti_odometry | euroc | vi_folder | bag | sim | recording
     path: str = ""  # dataset folder, bag or recording (unused for sim)
     rate: float = 1.0  # replay speed: 1 = recorded rate, N = N times faster, 0 = no clock
     fast: bool = False  # as fast as the pipeline accepts (flow control below); ignores rate
     start_s: float = 0.0  # first frame played: this many seconds after the first frame
     end_s: float | None = None  # last frame played: this many seconds after the first (None: all)
-    imu_lead_s: float = 0.1  # IMU samples this long before the first played frame are played
+    imu_lead_s: float = 1.2  # IMU samples this long before the first played frame are played
+    # (where the source has them): a start at rest initialises statically from them (issue 23:
+    # the static init inspects the 1 s before a frame, so a little more than 1 s)
+    camera_info_topic: str = "/camera/info"  # the source's calibration (msgs.CameraInfo)
+    camera_info_period_s: float = 2.0  # ... published before the first image and this often
+    poses: str = ""  # your camera poses T_world_cam (TUM or KITTI file): published on
+    # pose_topic before each image; the frontend maps with them (mode poses) instead of estimating
+    pose_topic: str = "/camera/pose"
+    camera_height_m: float | None = None  # camera above the road (a car's calibration; None:
+    # the source's own value if it has one, else unknown), published in the CameraInfo
     image_topic: str = "/camera/image"  # output images (best effort)
     imu_topic: str = "/imu"  # output IMU samples (reliable)
     groundtruth: bool = True  # publish ground-truth camera poses when the dataset has them
@@ -95,6 +106,7 @@ class PlayerParams:
     bag_camera_info_topic: str = "/camera/camera_info"  # bag: CameraInfo ("" = none)
     bag_pose_topic: str = "/ground_truth/pose"  # bag: geometry_msgs/PoseStamped ("" = none)
     bag_depth_topic: str = "/ground_truth/depth"  # bag: 32FC1 / 16UC1 depth ("" = none)
+    bag_tf_static_topic: str = "/tf_static"  # bag: T_imu_cam between the IMU and image frames
     intrinsics: tuple[float, ...] = ()  # bag without CameraInfo: (fx, fy, cx, cy, width, height)
     sim: dict[str, Any] = field(default_factory=dict)  # source sim: SimConfig fields
     ack_topic: str = "/frontend/odometry"  # fast: a message here acknowledges images <= its stamp
@@ -133,6 +145,17 @@ class PlayerParams:
             raise ConfigError(
                 "player: tick_s > 0, prefetch >= 0, linger_s >= 0, ack_timeout_s >= 0"
             )
+        if self.camera_info_period_s <= 0 or self.imu_lead_s < 0:
+            raise ConfigError(
+                "player.camera_info_period_s: > 0 and imu_lead_s: >= 0, got "
+                f"{self.camera_info_period_s}, {self.imu_lead_s}"
+            )
+        if self.camera_height_m is not None and not (
+            np.isfinite(self.camera_height_m) and self.camera_height_m >= 0
+        ):
+            raise ConfigError(
+                f"player.camera_height_m: a finite height >= 0, got {self.camera_height_m}"
+            )
         if self.start_s < 0 or (self.end_s is not None and self.end_s < self.start_s):
             raise ConfigError(
                 f"player.start_s/end_s: need 0 <= start_s <= end_s, got {self.start_s}, {self.end_s}"
@@ -145,6 +168,7 @@ class PlayerParams:
             imu=self.bag_imu_topic or None,
             pose=self.bag_pose_topic or None,
             depth=self.bag_depth_topic or None,
+            tf_static=self.bag_tf_static_topic or None,
         )
 
 
@@ -178,6 +202,7 @@ class PlayerNode(Node):
     def setup(self) -> None:
         p: PlayerParams = self.params
         self.seq: Sequence | None = None
+        self.user_poses: list[np.ndarray | None] = []  # player.poses, per frame
         self.events: list[tuple[int, str, int]] = []
         self._rec_iter: Iterator[RecordedMessage] | None = None
         self._rec_next: RecordedMessage | None = None
@@ -204,6 +229,27 @@ class PlayerNode(Node):
             )
             self.total_frames = sum(1 for e in self.events if e[1] == IMAGE)
             self.total_messages = len(self.events)
+            self.camera_info: msgs.CameraInfo | None = None
+            if len(self.seq):
+                first = self.events[0][0] if self.events else int(self.seq.stamps_ns[0])
+                self.camera_info = camera_info_of(
+                    self.seq,
+                    stamp_ns=first,
+                    frame_id=p.camera_frame_id,
+                    camera_height_m=p.camera_height_m,
+                )
+                self._log_calibration(self.camera_info)
+            if p.poses:
+                from mogs_node.datasets.vi_folder import read_user_poses
+
+                self.user_poses = read_user_poses(p.poses, self.seq.stamps_ns)
+                self.log.info(
+                    "poses of %d of %d frames from %s on %s",
+                    sum(T is not None for T in self.user_poses),
+                    len(self.seq),
+                    p.poses,
+                    p.pose_topic,
+                )
         self._resume_in_flight: int | None = None
         skipped = self._skip_journaled()
         self.pos = 0
@@ -251,6 +297,36 @@ class PlayerNode(Node):
             f"fast (flow control on {p.ack_topic})" if p.fast else f"rate {p.rate}x",
         )
         self._tick_timer = self.every(p.tick_s, self.tick)
+        if self.seq is not None and self.camera_info is not None:
+            self.every(p.camera_info_period_s, self._publish_camera_info)
+
+    def _log_calibration(self, info: msgs.CameraInfo) -> None:
+        K = info.K
+        self.log.info(
+            "calibration of %s: %dx%d fx %.3f fy %.3f cx %.3f cy %.3f, distortion %s, "
+            "T_imu_cam %s, camera height %s, IMU noise %s",
+            info.source,
+            info.width,
+            info.height,
+            K[0, 0],
+            K[1, 1],
+            K[0, 2],
+            K[1, 2],
+            info.distortion_model,
+            "known" if info.T_imu_cam is not None else "unknown",
+            f"{info.camera_height_m:.3f} m"
+            if info.camera_height_m == info.camera_height_m
+            else "unknown",
+            "known" if info.imu_noise else "unknown",
+        )
+
+    def _publish_camera_info(self) -> None:
+        """The calibration on ``camera_info_topic`` (reliable; again every period: no latching)."""
+        if self.camera_info is not None and self._started:
+            self.publish(self.params.camera_info_topic, self.camera_info)
+            self.counters["camera_info_published"] = (
+                self.counters.get("camera_info_published", 0) + 1
+            )
 
     def _skip_journaled(self) -> int:
         """After a restart or on ``--resume``: drop the images and IMU samples the journal already
@@ -382,6 +458,11 @@ class PlayerNode(Node):
         except (DatasetError, OSError, cv2.error) as err:
             self._unreadable(k, err)
             return
+        if self.user_poses and self.user_poses[k] is not None:  # before its image
+            self.publish(
+                p.pose_topic,
+                msgs.PoseStamped(stamp_ns=stamp, frame_id="world", T_world_cam=self.user_poses[k]),
+            )
         self.publish(
             p.image_topic,
             msgs.Image(stamp_ns=stamp, frame_id=p.camera_frame_id, encoding=enc, data=image),
@@ -477,6 +558,7 @@ class PlayerNode(Node):
             if p.wait_for_nodes:
                 self._wait_for_nodes(p.wait_for_nodes, p.wait_for_nodes_s)
             if self.seq is not None:
+                self._publish_camera_info()  # before the first image and IMU sample
                 self._prefetch()
             self.state = "playing"
         now = time.monotonic()

@@ -69,7 +69,7 @@ def select_window(
     *,
     start_s: float = 0.0,
     end_s: float | None = None,
-    imu_lead_s: float = 0.1,
+    imu_lead_s: float = 1.2,
 ) -> list[Event]:
     """Events of the frames whose stamp lies in ``[t0 + start_s, t0 + end_s]`` (``t0``: the first
     frame's stamp) and of the IMU samples from ``imu_lead_s`` before the first kept frame up to the

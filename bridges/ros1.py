@@ -47,7 +47,8 @@ from bridges.ros_outputs import (
     RosOutputs,
 )
 from mogs_node import msgs
-from mogs_node.errors import ConfigError, MessageError, Ros1UnavailableError
+from mogs_node.errors import ConfigError, GeometryError, MessageError, Ros1UnavailableError
+from mogs_node.geometry import rigid_transform, tf_lookup
 from mogs_node.node import Node
 
 __all__ = [
@@ -131,6 +132,12 @@ class Ros1BridgeParams:
     image_topic: str = "/camera/image_raw"  # sensor_msgs/Image (mono8/rgb8/bgr8) or CompressedImage
     imu_topic: str = "/imu"  # sensor_msgs/Imu
     camera_info_topic: str = "/camera/camera_info"  # sensor_msgs/CameraInfo ("" = none)
+    tf_static_topic: str = "/tf_static"  # T_imu_cam between the IMU's and the camera's frames
+    T_imu_cam: tuple[float, ...] | None = None  # without /tf_static: the camera in the IMU frame
+    # (16 numbers, row-major; None: the frontend's own launch value)
+    tf_wait_s: float = 1.0  # after the first CameraInfo, wait this long for /tf_static
+    camera_info_period_s: float = 2.0  # the calibration on the bus again this often
+    bus_camera_info_topic: str = "/camera/info"
     ros_node_name: str = "mogs"  # name of the rospy node
     master_uri: str = ""  # the roscore ("" = $ROS_MASTER_URI)
     prefix: str = "/mogs"  # ROS names of the outputs: <prefix>/odometry, /path, /map_cloud, ...
@@ -151,6 +158,11 @@ class Ros1BridgeParams:
             raise ConfigError("ros1: image_queue >= 1, end_after_quiet_s >= 0, master_check_s > 0")
         if not self.image_topic or not self.imu_topic:
             raise ConfigError("ros1: image_topic and imu_topic are required")
+        if self.T_imu_cam is not None:
+            try:
+                rigid_transform(self.T_imu_cam, "ros1.T_imu_cam")
+            except GeometryError as err:
+                raise ConfigError(str(err)) from err
 
     def outputs(self) -> RosOutputParams:
         return RosOutputParams(
@@ -171,6 +183,7 @@ class _Inbox:
         self.image_queue = image_queue
         self.imu: deque[bytes] = deque()
         self.camera_info: bytes | None = None
+        self.tf_static: list[bytes] = []
         self.frames_in = 0
         self.frames_dropped = 0
         self.imu_in = 0
@@ -199,16 +212,23 @@ class _Inbox:
             self.imu.append(raw)
         self.wake()
 
-    def take(self) -> tuple[list[bytes], list[tuple[str, bytes]], bytes | None]:
+    def put_tf_static(self, raw: bytes) -> None:
+        with self.lock:
+            self.tf_static.append(raw)
+        self.wake()
+
+    def take(self) -> tuple[list[bytes], list[tuple[str, bytes]], bytes | None, list[bytes]]:
         with contextlib.suppress(BlockingIOError):
             while os.read(self.wake_r, 4096):
                 pass
         with self.lock:
             imu, images, info = list(self.imu), list(self.images), self.camera_info
+            tf = list(self.tf_static)
             self.imu.clear()
             self.images.clear()
+            self.tf_static.clear()
             self.camera_info = None
-        return imu, images, info
+        return imu, images, info, tf
 
     def close(self) -> None:
         os.close(self.wake_r)
@@ -229,6 +249,10 @@ class Ros1Bridge(Node):
         self.inbox = _Inbox(p.image_queue)
         self.outputs = RosOutputs(p.outputs(), Distro.ROS1)
         self.calibration: rc.CameraCalibration | None = None
+        self.calibration_msg: msgs.CameraInfo | None = None
+        self._calibration_since: float | None = None
+        self._tf_edges: dict[tuple[str, str], Any] = {}
+        self._imu_frame = ""
         for k in ("frames_in", "frames_published", "frames_dropped", "imu_in", "imu_published"):
             self.counters[k] = 0
         self.counters.update(ros_malformed=0, ros_published=0, master_lost=0)
@@ -259,6 +283,8 @@ class Ros1Bridge(Node):
             self._start_inputs()
         if p.end_after_quiet_s > 0:
             self.every(min(0.5, p.end_after_quiet_s), self.check_quiet)
+        self.every(0.2, self._calibration_due)
+        self.every(p.camera_info_period_s, self._republish_calibration)
         self._master_ok = True
         self._watcher = threading.Thread(target=self._watch_master, daemon=True)
         self._watcher.start()
@@ -283,6 +309,8 @@ class Ros1Bridge(Node):
         rospy.Subscriber(p.imu_topic, rospy.AnyMsg, self._on_ros_imu, queue_size=10_000)
         if p.camera_info_topic:
             rospy.Subscriber(p.camera_info_topic, rospy.AnyMsg, self._on_ros_info, queue_size=1)
+        if p.tf_static_topic:
+            rospy.Subscriber(p.tf_static_topic, rospy.AnyMsg, self._on_ros_tf, queue_size=100)
         self.log.info("subscribed to %s and %s", p.image_topic, p.imu_topic)
 
     def _on_heartbeat(self, msg: msgs.Message) -> None:
@@ -308,6 +336,9 @@ class Ros1Bridge(Node):
     def _on_ros_imu(self, m: Any) -> None:
         self.inbox.put_imu(m._buff)
 
+    def _on_ros_tf(self, m: Any) -> None:
+        self.inbox.put_tf_static(m._buff)
+
     def _on_ros_info(self, m: Any) -> None:
         if self.calibration is None:
             with self.inbox.lock:
@@ -326,10 +357,16 @@ class Ros1Bridge(Node):
         """Converts what the ROS callbacks queued and publishes it on the bus: IMU first (the
         frontend integrates it up to each image), then the images."""
         p = self.params
-        imu, images, info = self.inbox.take()
+        imu, images, info, tf = self.inbox.take()
         self.counters["imu_in"] = self.inbox.imu_in
         self.counters["frames_in"] = self.inbox.frames_in
         self.counters["frames_dropped"] = self.inbox.frames_dropped
+        for raw in tf:
+            try:
+                ros = rc.deserialize(raw, "tf2_msgs/TFMessage", Distro.ROS1)
+                self._tf_edges.update(rc.transforms_from_ros(ros))
+            except MessageError as err:
+                self._bad("tf_static", err)
         if info is not None:
             self._on_camera_info(info)
         for raw in imu:
@@ -338,6 +375,7 @@ class Ros1Bridge(Node):
             except MessageError as err:
                 self._bad("IMU", err)
                 continue
+            self._imu_frame = self._imu_frame or m.frame_id
             self.publish(p.bus_imu_topic, m)
             self.counters["imu_published"] += 1
         for rtype, raw in images:
@@ -365,6 +403,7 @@ class Ros1Bridge(Node):
             self._bad("CameraInfo", err)
             return
         self.calibration = cal
+        self._calibration_since = time.monotonic()
         c = cal.camera
         self.counters.update(
             camera_fx_px=c.fx_px, camera_fy_px=c.fy_px, camera_cx_px=c.cx_px, camera_cy_px=c.cy_px
@@ -381,6 +420,36 @@ class Ros1Bridge(Node):
             cal.distortion_model,
             list(cal.distortion_coeffs),
         )
+
+    def _calibration_due(self) -> None:
+        """Publish the calibration on the bus once T_imu_cam is found on /tf_static, given in
+        the launch file, or ``tf_wait_s`` after the CameraInfo (then the frontend's value)."""
+        p: Ros1BridgeParams = self.params
+        cal = self.calibration
+        if cal is None or self.calibration_msg is not None:
+            return
+        T, where = None, ""
+        if self._tf_edges and self._imu_frame:
+            T = tf_lookup(self._tf_edges, self._imu_frame.lstrip("/"), cal.frame_id.lstrip("/"))
+            where = f"{p.tf_static_topic} {self._imu_frame} -> {cal.frame_id}"
+        if T is None and p.T_imu_cam is not None:
+            T, where = rigid_transform(p.T_imu_cam, "ros1.T_imu_cam")[0], "the launch file"
+        assert self._calibration_since is not None
+        if T is None and time.monotonic() - self._calibration_since < p.tf_wait_s:
+            return
+        self.calibration_msg = cal.message(
+            T_imu_cam=T, source=f"ros1:{p.camera_info_topic}" + (f" + {where}" if where else "")
+        )
+        self.log.info(
+            "calibration on %s: T_imu_cam %s",
+            p.bus_camera_info_topic,
+            f"from {where}" if T is not None else "unknown (the frontend's launch value)",
+        )
+        self._republish_calibration()
+
+    def _republish_calibration(self) -> None:
+        if self.calibration_msg is not None:
+            self.publish(self.params.bus_camera_info_topic, self.calibration_msg)
 
     # ------------------------------------------------------------ bus -> ROS (bus thread)
 

@@ -5,6 +5,8 @@
 - ``kitti``: KITTI raw drive folder (``image_02/data``; 10 Hz stamps from 0 without timestamps.txt)
 - ``kitti_odometry``: KITTI odometry ``sequences/XX`` folder
 - ``euroc``: EuRoC ASL folder (holding ``mav0``)
+- ``vi_folder``: a generic visual-inertial folder with a Kalibr ``camchain.yaml`` (TUM-VI, Basalt,
+  DM-VIO layouts; :mod:`mogs_node.datasets.vi_folder`)
 - ``bag``: rosbag1 file, rosbag2 folder (sqlite3 / MCAP) or bare ``.mcap`` with standard messages
 - ``sim``: the synthetic world (:class:`mogs_node.sim.SimConfig`), rendered lazily
 
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mogs_node import msgs
 from mogs_node.datasets import (
     BagTopics,
     Sequence,
@@ -28,14 +31,73 @@ from mogs_node.datasets import (
     read_kitti_raw,
 )
 from mogs_node.datasets.base import Frame, ImuSamples, Trajectory
-from mogs_node.errors import ConfigError, DatasetError
-from mogs_node.geometry import PinholeCamera
+from mogs_node.errors import ConfigError, DatasetError, GeometryError
+from mogs_node.geometry import PinholeCamera, rigid_transform
 
-__all__ = ["SOURCE_KINDS", "open_sequence", "sequence_from_sim"]
+__all__ = ["SOURCE_KINDS", "camera_info_of", "open_sequence", "sequence_from_sim"]
 
 log = logging.getLogger(__name__)
 
-SOURCE_KINDS = ("kitti", "kitti_odometry", "euroc", "bag", "sim")
+SOURCE_KINDS = ("kitti", "kitti_odometry", "euroc", "vi_folder", "bag", "sim")
+# dataset distortion names -> the frontend's (CameraModel) names
+_DISTORTION_NAMES = {
+    "none": "none",
+    "radial-tangential": "radtan",
+    "radtan": "radtan",
+    "plumb_bob": "radtan",
+    "equidistant": "equidistant",
+    "equi": "equidistant",
+}
+
+
+def camera_info_of(
+    seq: Sequence,
+    *,
+    stamp_ns: int = 0,
+    frame_id: str = "camera",
+    camera_height_m: float | None = None,
+) -> msgs.CameraInfo:
+    """The calibration of ``seq``'s published images as a :class:`~mogs_node.msgs.CameraInfo`.
+
+    Intrinsics and size of the first frame; the distortion left in the images (none when the
+    reader undistorts them, ``meta["undistorted"]``); ``T_imu_cam`` and the IMU noise densities
+    (``meta["imu_noise"]``) when the source has them; ``camera_height_m`` (None: the source's
+    ``meta["camera_height_m"]``, else unknown).
+    """
+    cam = seq.camera
+    model, coeffs = "none", ()
+    if seq.distortion is not None and not seq.meta.get("undistorted", False):
+        raw = [float(c) for c in seq.distortion.get("coeffs", ()) or ()]  # type: ignore[union-attr]
+        name = str(seq.distortion.get("model", "none"))
+        if any(raw):
+            if name not in _DISTORTION_NAMES:
+                raise DatasetError(f"{seq.name}: distortion model {name!r} is not supported")
+            model, coeffs = _DISTORTION_NAMES[name], tuple(raw)
+    if camera_height_m is None:
+        h = seq.meta.get("camera_height_m")
+        camera_height_m = float(h) if isinstance(h, int | float) else float("nan")
+    noise = seq.meta.get("imu_noise")
+    T_imu_cam = None
+    if seq.T_imu_cam is not None:  # calibration files print few digits: the nearest rotation
+        try:
+            T_imu_cam = rigid_transform(seq.T_imu_cam, f"{seq.name}: T_imu_cam")[0]
+        except GeometryError as err:
+            raise DatasetError(str(err)) from err
+    info = msgs.CameraInfo(
+        stamp_ns=int(stamp_ns),
+        frame_id=frame_id,
+        width=int(cam.width),
+        height=int(cam.height),
+        K=np.asarray(cam.K, dtype=np.float64),
+        distortion_model=model,
+        distortion_coeffs=np.asarray(coeffs, dtype=np.float64),
+        T_imu_cam=T_imu_cam,
+        camera_height_m=float(camera_height_m),
+        imu_noise=dict(noise) if isinstance(noise, dict) else {},
+        source=str(seq.meta.get("calibration", seq.name)),
+    )
+    info.validate()
+    return info
 
 
 def sequence_from_sim(seq: object) -> Sequence:
@@ -111,6 +173,10 @@ def open_sequence(
         return read_kitti_odometry(p)
     if kind == "euroc":
         return read_euroc(p)
+    if kind == "vi_folder":
+        from mogs_node.datasets.vi_folder import read_vi_folder
+
+        return read_vi_folder(p)
     camera = None
     if intrinsics:
         if len(intrinsics) != 6:

@@ -26,11 +26,15 @@ __all__ = [
     "intersect_rays_plane",
     "intersect_rays_quadric",
     "make_T",
+    "nearest_rotation",
+    "rigid_transform",
+    "rotation_defect",
     "quat_wxyz_from_rotmat",
     "quat_wxyz_to_rotmat",
     "rotmat_from_rpy",
     "se3_exp",
     "se3_inverse",
+    "tf_lookup",
     "se3_log",
     "so3_exp",
     "so3_log",
@@ -215,6 +219,92 @@ def make_T(R: FloatArray, t: FloatArray) -> FloatArray:
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
+
+
+#: a typed rotation this close to orthonormal (max |R R^T - I|) is projected without complaint
+ROTATION_TOLERANCE = 1e-4
+
+
+def nearest_rotation(R: FloatArray) -> FloatArray:
+    """The rotation ``[..., 3, 3]`` nearest to ``R`` in the Frobenius norm (SVD, det +1).
+
+    Six-decimal calibrations and text files are orthonormal only to ~1e-6; chained into relative
+    poses they fail strict SO(3) checks (evo's 1e-6), so typed rotations go through this once.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(R)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.zeros(R.shape[:-2] + (3, 3))
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    return U @ D @ Vt
+
+
+def rotation_defect(R: FloatArray) -> FloatArray:
+    """How far rotations ``[..., 3, 3]`` are from SO(3): max |R R^T - I| per matrix (``[...]``),
+    inf where det <= 0 or a value is not finite."""
+    R = np.asarray(R, dtype=np.float64)
+    ok = np.isfinite(R).all(axis=(-1, -2))
+    Rs = np.where(ok[..., None, None], R, np.eye(3))
+    d = np.abs(Rs @ np.swapaxes(Rs, -1, -2) - np.eye(3)).max(axis=(-1, -2))
+    return np.where(ok & (np.linalg.det(Rs) > 0), d, np.inf)
+
+
+def rigid_transform(
+    values: object, name: str, *, tolerance: float = ROTATION_TOLERANCE
+) -> tuple[FloatArray, float]:
+    """A typed rigid transform (16 numbers row-major, or ``[4, 4]``) -> ``(T [4, 4], defect)``.
+
+    A rotation orthonormal to within ``tolerance`` (max |R R^T - I|) is replaced by the nearest
+    rotation (:func:`nearest_rotation`) and its defect returned, for the caller to note once;
+    beyond that, or a last row other than ``[0, 0, 0, 1]``, it is a :class:`GeometryError` naming
+    ``name`` and the size of the defect.
+    """
+    try:
+        T = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    except (TypeError, ValueError) as err:
+        raise GeometryError(f"{name}: expected 16 numbers (a 4x4 matrix), got {values!r}") from err
+    if not np.isfinite(T).all():
+        raise GeometryError(f"{name}: contains NaN or inf")
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > tolerance:
+        raise GeometryError(f"{name}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    defect = float(rotation_defect(T[:3, :3]))
+    if not defect <= tolerance:
+        raise GeometryError(
+            f"{name}: the rotation is not orthonormal (max |R R^T - I| = {defect:.3g}, "
+            f"tolerance {tolerance:g}; det {np.linalg.det(T[:3, :3]):.6g}): check the typed values"
+        )
+    return make_T(nearest_rotation(T[:3, :3]), T[:3, 3]), defect
+
+
+def tf_lookup(
+    edges: dict[tuple[str, str], FloatArray], parent: str, child: str
+) -> FloatArray | None:
+    """``T_parent_child`` [4, 4] through a tree of static transforms, or None if unconnected.
+
+    ``edges`` maps ``(parent, child)`` to ``T_parent_child`` (ROS ``TransformStamped``: header
+    frame -> child frame); edges are walked both ways (breadth first), so IMU and camera may hang
+    off a common base frame.
+    """
+    if parent == child:
+        return np.eye(4)
+    nbrs: dict[str, list[tuple[str, FloatArray]]] = {}
+    for (a, b), T in edges.items():
+        T = np.asarray(T, dtype=np.float64)
+        nbrs.setdefault(a, []).append((b, T))
+        nbrs.setdefault(b, []).append((a, se3_inverse(T)))
+    seen = {parent: np.eye(4)}
+    todo = [parent]
+    while todo:
+        frame = todo.pop(0)
+        for nxt, T in nbrs.get(frame, ()):
+            if nxt not in seen:
+                seen[nxt] = seen[frame] @ T
+                if nxt == child:
+                    return seen[nxt]
+                todo.append(nxt)
+    return None
 
 
 def se3_inverse(T: FloatArray) -> FloatArray:

@@ -36,6 +36,7 @@ __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
     "MESSAGE_TYPES",
     "ArraySpec",
+    "CameraInfo",
     "DepthMap",
     "Diagnostics",
     "Envelope",
@@ -397,6 +398,54 @@ class Diagnostics(Message):
     topics: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(eq=False)
+class CameraInfo(Message):
+    """The source's calibration (``/camera/info``), as ROS ``sensor_msgs/CameraInfo`` plus the rig.
+
+    Published by the source (player, ROS bridges, live camera) before its first image and again
+    every few seconds (a node that starts or restarts late still gets it: the bus has no latching);
+    nodes take their camera from here and a launch file only overrides. ``K`` / ``width`` /
+    ``height`` describe the published images; ``distortion_model`` ('none', 'radtan' k1 k2 p1 p2
+    [k3], 'equidistant' k1..k4) the distortion left in them. ``T_imu_cam`` is the camera pose in
+    the IMU frame (absent: not known); ``camera_height_m`` the camera centre above the road (NaN:
+    not known); ``imu_noise`` the frontend's ``ImuNoise`` fields the source knows (may be empty);
+    ``source`` where the calibration came from (a file, a ROS topic), for the log.
+    """
+
+    TYPE: ClassVar[str] = "CameraInfo"
+    SCALARS: ClassVar[dict[str, str]] = {
+        **_BASE,
+        "width": "int",
+        "height": "int",
+        "distortion_model": "str",
+        "camera_height_m": "float_or_nan",
+        "imu_noise": "dict_num",
+        "source": "str",
+    }
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
+        "K": ArraySpec(_F64, ((3, 3),), finite=True),
+        "distortion_coeffs": ArraySpec(_F64, (("D",),), finite=True),
+        "T_imu_cam": ArraySpec(_F64, ((4, 4),), finite=True, optional=True),
+    }
+    MODELS: ClassVar[dict[str, tuple[int, ...]]] = {
+        "none": (0,),
+        "radtan": (4, 5),
+        "equidistant": (4,),
+    }
+
+    stamp_ns: int
+    frame_id: str
+    width: int
+    height: int
+    K: np.ndarray
+    distortion_model: str
+    distortion_coeffs: np.ndarray
+    T_imu_cam: np.ndarray | None = None
+    camera_height_m: float = float("nan")
+    imu_noise: dict[str, float] = field(default_factory=dict)
+    source: str = ""
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
@@ -411,6 +460,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         GaussianUpdate,
         PoseStamped,
         Diagnostics,
+        CameraInfo,
     )
 }
 
@@ -438,7 +488,7 @@ _SCALAR_TABLES: dict[type, tuple[tuple[str, str], ...]] = {
 _CROSS_CHECKED = frozenset(
     cls
     for cls in MESSAGE_TYPES.values()
-    if hasattr(cls, "ENCODINGS") or hasattr(cls, "KINDS") or cls is Image
+    if hasattr(cls, "ENCODINGS") or hasattr(cls, "KINDS") or cls in (Image, CameraInfo)
 )
 _ZMQ_FRAME = zmq.Frame
 _new_envelope = tuple.__new__  # Envelope(...) without the NamedTuple's Python-level __new__
@@ -676,6 +726,8 @@ def _check_enums(cls: type[Message], out: dict[str, Any]) -> dict[str, Any]:
         raise MessageError(
             f"unknown kind {out.get('kind')!r}, expected one of {kinds}", field="kind"
         )
+    if cls is CameraInfo:
+        _check_camera_info(out)
     if cls is Image:
         data = out["data"]
         if (data.ndim == 3) != (out["encoding"] != "mono8"):
@@ -683,6 +735,35 @@ def _check_enums(cls: type[Message], out: dict[str, Any]) -> dict[str, Any]:
                 f"encoding {out['encoding']} does not fit shape {list(data.shape)}", field="data"
             )
     return out
+
+
+def _check_camera_info(out: dict[str, Any]) -> None:
+    """Size, focal lengths and the distortion model's number of coefficients of a CameraInfo."""
+    need = CameraInfo.MODELS.get(out["distortion_model"])
+    if need is None:
+        raise MessageError(
+            f"unknown model {out['distortion_model']!r}, expected one of "
+            f"{tuple(CameraInfo.MODELS)}",
+            field="distortion_model",
+        )
+    if len(out["distortion_coeffs"]) not in need:
+        raise MessageError(
+            f"{out['distortion_model']} takes {need} coefficients, "
+            f"got {len(out['distortion_coeffs'])}",
+            field="distortion_coeffs",
+        )
+    for name in ("width", "height"):
+        if not 0 < out[name] <= MAX_DIM:
+            raise MessageError(f"image size must be in 1..{MAX_DIM}, got {out[name]}", field=name)
+    K = out["K"]
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1.0 and K[1, 0] == K[2, 0] == K[2, 1] == 0):
+        raise MessageError(
+            f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}",
+            field="K",
+        )
+    h = out["camera_height_m"]
+    if h == h and h < 0:
+        raise MessageError(f"must be >= 0 or NaN (unknown), got {h}", field="camera_height_m")
 
 
 _FAST_SCALARS = {cls: _make_fast_scalars(table) for cls, table in _SCALAR_TABLES.items()}

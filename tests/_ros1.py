@@ -208,15 +208,38 @@ def pose_msg(rospy: Any, stamp_ns: int, T: np.ndarray) -> Any:
     )
 
 
+def tf_static_msg(rospy: Any, stamp_ns: int, T: np.ndarray, parent: str, child: str) -> Any:
+    """A genpy ``tf2_msgs/TFMessage`` holding ``T_parent_child`` [4, 4]."""
+    from geometry_msgs.msg import Quaternion, Transform, TransformStamped, Vector3
+    from tf2_msgs.msg import TFMessage
+
+    from mogs_node.geometry import quat_wxyz_from_rotmat
+
+    q = quat_wxyz_from_rotmat(T[:3, :3])
+    tr = TransformStamped(
+        header=_header(rospy, stamp_ns, parent),
+        child_frame_id=child,
+        transform=Transform(
+            Vector3(*map(float, T[:3, 3])),
+            Quaternion(float(q[1]), float(q[2]), float(q[3]), float(q[0])),
+        ),
+    )
+    return TFMessage(transforms=[tr])
+
+
 def write_sim_bag_official(path: Path, seq: Any, encoding: str) -> Path:
     """A sim drive as a ROS 1 bag by the official ``rosbag`` writer: bz2 chunks, images on
     ``/cam0/image_raw`` (``encoding``: mono8, rgb8, bgr8 or jpeg), IMU on ``/imu0``, CameraInfo on
-    ``/cam0/camera_info``, ground truth ``T_world_cam`` on ``/ground_truth/pose``; the sequence's
-    own stamps (give it epoch ones)."""
+    ``/cam0/camera_info``, ``T_imu_cam`` on ``/tf_static`` (imu0 -> cam0), ground truth
+    ``T_world_cam`` on ``/ground_truth/pose``; the sequence's own stamps (give it epoch ones)."""
     rospy = rospy_or_skip()
     import rosbag
 
     with rosbag.Bag(str(path), "w", compression=rosbag.Compression.BZ2) as bag:
+        t0 = int(min(seq.imu_stamps_ns[0], seq.stamps_ns[0]))
+        bag.write(
+            "/tf_static", tf_static_msg(rospy, t0, seq.T_imu_cam, "imu0", "cam0"), _time(rospy, t0)
+        )
         for t, kind, k in seq.sensor_events():
             when = _time(rospy, t)
             if kind == "imu":

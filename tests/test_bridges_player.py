@@ -170,7 +170,7 @@ def test_sim_sequence_streams_every_message_in_time_order(broker_bus, bus_subscr
     from mogs_node.sim import SimConfig, make_sequence
 
     sub = bus_subscriber
-    for t in ("/camera/image", "/imu", "/groundtruth/pose", "/groundtruth/depth"):
+    for t in ("/camera/image", "/imu", "/groundtruth/pose", "/groundtruth/depth", "/camera/info"):
         sub.subscribe(t)
     got, out = play_to_end(
         broker_bus,
@@ -192,9 +192,18 @@ def test_sim_sequence_streams_every_message_in_time_order(broker_bus, bus_subscr
         "0.4",
     )
     seq = make_sequence(SimConfig(seed=2, n_frames=6, width=96, height=32))
-    # frames 1..4 (0.1 s .. 0.4 s after frame 0), IMU from 0.1 s before frame 1 up to frame 4
+    # the calibration first (and again every 2 s): the sim rig's camera and T_imu_cam
+    assert got[0].topic == "/camera/info"
+    infos = [e.msg for e in got if e.topic == "/camera/info"]
+    got = [e for e in got if e.topic != "/camera/info"]
+    assert all(i == infos[0] for i in infos)
+    np.testing.assert_array_equal(infos[0].K, seq.camera.K)
+    np.testing.assert_allclose(infos[0].T_imu_cam, seq.T_imu_cam, atol=1e-12)
+    assert (infos[0].width, infos[0].height, infos[0].distortion_model) == (96, 32, "none")
+    # frames 1..4 (0.1 s .. 0.4 s after frame 0), IMU from 1.2 s (the default imu_lead_s, where
+    # the drive has it) before frame 1 up to frame 4
     t1, t4 = int(seq.stamps_ns[1]), int(seq.stamps_ns[4])
-    imu_idx = [k for k, t in enumerate(seq.imu_stamps_ns) if t1 - 100_000_000 <= t <= t4]
+    imu_idx = [k for k, t in enumerate(seq.imu_stamps_ns) if t1 - 1_200_000_000 <= t <= t4]
     expected = sorted(
         [(int(seq.imu_stamps_ns[k]), 0, "/imu", k) for k in imu_idx]
         + [(int(seq.stamps_ns[i]), 1, "/camera/image", i) for i in range(1, 5)]

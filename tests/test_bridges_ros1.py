@@ -328,11 +328,13 @@ def test_inbox_drops_old_images_counts_them_and_never_drops_imu() -> None:
             box.put_image("sensor_msgs/Image", bytes([i]))
         for i in range(1000):
             box.put_imu(i.to_bytes(2, "little"))
-        imu, images, info = box.take()
+        box.put_tf_static(b"tf")
+        imu, images, info, tf = box.take()
         assert [raw for _, raw in images] == [b"\x03", b"\x04"]  # the latest two
         assert (box.frames_in, box.frames_dropped, box.imu_in) == (5, 3, 1000)
         assert [int.from_bytes(b, "little") for b in imu] == list(range(1000)) and info is None
-        assert box.take() == ([], [], None)
+        assert tf == [b"tf"]  # static transforms are never dropped either
+        assert box.take() == ([], [], None, [])
     finally:
         box.close()
 

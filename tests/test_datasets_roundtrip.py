@@ -274,3 +274,111 @@ def test_kitti_raw_velodyne_points_through_calibration(seq, renders, tmp_path: P
     np.testing.assert_array_equal(s.imu.stamps_ns, seq.stamps_ns[:2])
     np.testing.assert_allclose(s.imu.gyro_rad_s, seq.imu_gyro_rad_s[k], rtol=1e-15)
     np.testing.assert_allclose(s.imu.accel_m_s2, seq.imu_accel_m_s2[k], rtol=1e-15)
+
+
+# ------------------------------------------------------------ generic VI folder, KITTI odometry
+
+
+def _small_sim():
+    from mogs_node.sim import SimConfig, make_sequence
+
+    return make_sequence(SimConfig(seed=3, n_frames=4, width=96, height=40))
+
+
+def test_vi_folder_round_trip_with_a_kalibr_calibration(tmp_path):
+    from bridges.sources import camera_info_of
+    from mogs_node.datasets import read_vi_folder, write_sim_bag
+
+    seq = _small_sim()
+    d = write_sim_bag(seq, tmp_path / "walk", fmt="vi-folder")
+    got = read_vi_folder(d)
+    assert len(got) == len(seq) and np.array_equal(got.stamps_ns, seq.stamps_ns)
+    assert got.camera == seq.camera
+    np.testing.assert_allclose(got.T_imu_cam, seq.T_imu_cam, atol=1e-15)
+    np.testing.assert_allclose(got.T_world_cam, seq.T_world_cam, atol=1e-8)  # TUM, 9 decimals
+    np.testing.assert_array_equal(got.frames[2].image, seq.render(2).rgb)
+    m = (seq.imu_stamps_ns >= seq.stamps_ns[0] - 1_500_000_000) & (
+        seq.imu_stamps_ns <= seq.stamps_ns[-1] + 1_500_000_000
+    )
+    np.testing.assert_array_equal(got.imu.gyro_rad_s, seq.imu_gyro_rad_s[m])
+    info = camera_info_of(got)  # what the player publishes: no value typed anywhere
+    noise = seq.config.imu_noise
+    assert info.imu_noise["gyro_noise_rad_s_rthz"] == noise.gyro_noise_density
+    assert info.imu_noise["accel_walk_m_s3_rthz"] == noise.accel_random_walk
+    assert info.distortion_model == "none"  # all-zero radtan coefficients
+
+
+def test_vi_folder_dmvio_layout_and_kalibr_time_shift(tmp_path):
+    """DM-VIO: images/ + times.txt (name, seconds) + imu.txt (seconds, spaces); Kalibr's
+    timeshift_cam_imu moves the images onto the IMU clock; equidistant distortion is kept."""
+    import cv2
+
+    from bridges.sources import camera_info_of
+    from mogs_node.datasets import read_vi_folder
+
+    (tmp_path / "images").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "images" / f"{i:05d}.png"), np.full((40, 96), 10 * i, np.uint8))
+    (tmp_path / "times.txt").write_text(
+        "".join(f"{i:05d} {100.0 + 0.05 * i:.6f} 8.0\n" for i in range(3))
+    )
+    (tmp_path / "imu.txt").write_text(
+        "# t gx gy gz ax ay az\n"
+        + "".join(f"{99.9 + 0.005 * k:.6f} 0.01 0 0 0 0 9.8\n" for k in range(60))
+    )
+    (tmp_path / "camchain.yaml").write_text(
+        "cam0:\n  camera_model: pinhole\n  intrinsics: [50.0, 51.0, 48.0, 20.0]\n"
+        "  resolution: [96, 40]\n  distortion_model: equidistant\n"
+        "  distortion_coeffs: [0.01, -0.002, 0.0003, 0.0]\n"
+        "  T_cam_imu:\n  - [1, 0, 0, 0.1]\n  - [0, 1, 0, 0]\n  - [0, 0, 1, 0]\n  - [0, 0, 0, 1]\n"
+        "  timeshift_cam_imu: -0.0125\n"
+    )
+    seq = read_vi_folder(tmp_path)
+    assert list(seq.stamps_ns) == [100_000_000_000 - 12_500_000 + 50_000_000 * i for i in range(3)]
+    assert seq.frames[1].encoding == "mono8" and seq.frames[1].image[0, 0] == 10
+    assert seq.imu.stamps_ns[1] - seq.imu.stamps_ns[0] == 5_000_000 and len(seq.imu) == 60
+    np.testing.assert_allclose(seq.T_imu_cam[:3, 3], [-0.1, 0.0, 0.0])
+    info = camera_info_of(seq)
+    assert info.distortion_model == "equidistant" and info.imu_noise == {}
+    np.testing.assert_allclose(info.distortion_coeffs, [0.01, -0.002, 0.0003, 0.0])
+
+
+def test_vi_folder_errors_name_the_file(tmp_path):
+    from mogs_node.datasets import read_vi_folder
+
+    with pytest.raises(DatasetError, match="camchain.yaml"):
+        read_vi_folder(tmp_path)
+    (tmp_path / "camchain.yaml").write_text("cam0:\n  intrinsics: [1, 2]\n")
+    with pytest.raises(DatasetError, match=r"camchain\.yaml: cam0 needs intrinsics"):
+        read_vi_folder(tmp_path)
+    (tmp_path / "camchain.yaml").write_text(
+        "cam0:\n  intrinsics: [1, 1, 1, 1]\n  resolution: [4, 4]\n  distortion_model: fov\n"
+    )
+    with pytest.raises(DatasetError, match="distortion_model 'fov'"):
+        read_vi_folder(tmp_path)
+
+
+def test_kitti_odometry_writer_round_trip(tmp_path):
+    from mogs_node.datasets import read_kitti_odometry, write_sim_bag
+    from mogs_node.geometry import se3_inverse
+
+    seq = _small_sim()
+    d = write_sim_bag(seq, tmp_path / "00", fmt="kitti-odometry")
+    got = read_kitti_odometry(d)
+    assert got.imu is None and got.camera == seq.camera
+    np.testing.assert_allclose(
+        got.T_world_cam, se3_inverse(seq.T_world_cam[0]) @ seq.T_world_cam, atol=1e-12
+    )
+    np.testing.assert_array_equal(got.stamps_ns, seq.stamps_ns - seq.stamps_ns[0])
+    np.testing.assert_array_equal(got.frames[3].image, seq.render(3).rgb)
+
+
+def test_vi_folder_carries_ground_truth_depth(tmp_path):
+    from mogs_node.datasets import read_vi_folder, write_vi_folder
+
+    seq = _small_sim()
+    got = read_vi_folder(write_vi_folder(seq, tmp_path / "d"))
+    d_true = seq.render(1).depth_m
+    d = got.frames[1].depth_m()
+    ok = np.isfinite(d_true) & (d_true * 256 < 65535)
+    np.testing.assert_allclose(d[ok], d_true[ok], atol=1 / 512 + 1e-6)  # 1/256 m steps

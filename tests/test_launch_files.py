@@ -9,13 +9,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import shared_data
 
+from bridges.sources import camera_info_of, open_sequence
 from mogs_node.commands.node import load_node_class
 from mogs_node.launch import LaunchFile, NodeSpec, load_launch_file
 from mogs_node.node import parse_params
 
 REPO = Path(__file__).resolve().parents[1]
+_SIM_INFO = camera_info_of(open_sequence("sim", sim={"n_frames": 1, "width": 64, "height": 32}))
 LAUNCH_FILES = sorted((REPO / "launch").glob("*.yaml"))
 PIPELINE = ("frontend", "segmentation", "prior", "metrizer", "mapper", "report")
 
@@ -23,8 +24,8 @@ PIPELINE = ("frontend", "segmentation", "prior", "metrizer", "mapper", "report")
 def _nested(spec: NodeSpec, params: Any) -> None:
     """Parse the nested parameter groups the way each node's setup() does."""
     where = spec.name
-    if spec.cls.endswith(":FrontendNode"):
-        params.build(where)
+    if spec.cls.endswith(":FrontendNode"):  # calibration from a source's CameraInfo unless typed
+        params.build(where, None if params.overrides_all() else _SIM_INFO)
     elif spec.cls.endswith(":DepthPriorNode"):
         from mogs_node.depth_prior.flow_prior import FlowPriorParams
 
@@ -91,37 +92,37 @@ def test_distributed_launch_file_spans_hosts_over_curve_tcp() -> None:
     assert len(hosts) >= 2 and "localhost" not in hosts  # every node names its host
 
 
-def _frontend_against_excerpt(launch: str, seq: Any) -> Any:
-    """The frontend parameters of ``launch``, their intrinsics checked against the camera of the
-    excerpt ``seq``'s first frame (the caller checks the rest)."""
-    _, parsed = _load(REPO / "launch" / f"{launch}.yaml")
-    fe = parsed["frontend"]
-    cam = seq.frames[0].camera
-    np.testing.assert_allclose(
-        [fe.fx_px, fe.fy_px, fe.cx_px, fe.cy_px], [cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px]
-    )
-    return fe
+def _calibration_from_player(launch: str) -> tuple[Any, Any, Any]:
+    """``launch``'s frontend built from what its player publishes on /camera/info, and the
+    player's sequence: the calibration is typed nowhere in the launch file."""
+    lf, parsed = _load(REPO / "launch" / f"{launch}.yaml")
+    fe, pl = parsed["frontend"], parsed["player"]
+    from mogs_node.frontend.node import CALIBRATION_FIELDS
+
+    assert all(getattr(fe, k) is None for k in CALIBRATION_FIELDS), "calibration typed twice"
+    assert "camera_height_m" not in fe.ground
+    path = pl.path if Path(pl.path).is_absolute() else str(REPO / pl.path)
+    seq = open_sequence(pl.source, path)
+    info = camera_info_of(seq, camera_height_m=pl.camera_height_m)
+    return fe.build("frontend", info), seq, info
 
 
 @pytest.mark.shared_data
-def test_kitti_launch_file_has_the_excerpts_calibration() -> None:
-    from mogs_node.datasets import read_kitti_raw
-
-    seq = read_kitti_raw(shared_data("kitti_raw_2011_09_26_78"))
-    fe = _frontend_against_excerpt("kitti", seq)
-    cam = seq.frames[0].camera
-    assert (fe.width, fe.height) == (cam.width, cam.height)
-    np.testing.assert_allclose(
-        np.reshape(fe.T_imu_cam, (4, 4)), seq.T_imu_cam, atol=2e-6
-    )  # printed to 6 decimals
+def test_kitti_launch_file_takes_the_excerpts_calibration_from_the_player() -> None:
+    (fp, cam, T), seq, info = _calibration_from_player("kitti")
+    c = seq.frames[0].camera
+    assert cam.pinhole == c and cam.model == "none"
+    np.testing.assert_allclose(T, seq.T_imu_cam, atol=1e-6)  # the devkit chain, orthonormalised
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    assert fp.ground.camera_height_m == 1.65 and info.camera_height_m == 1.65  # typed once
 
 
 @pytest.mark.shared_data
-def test_euroc_launch_file_has_the_excerpts_calibration() -> None:
-    from mogs_node.datasets import read_euroc
-
-    seq = read_euroc(shared_data("euroc_v1_01_micro"))
-    fe = _frontend_against_excerpt("euroc", seq)
-    cam = seq.frames[0].camera  # undistorted by the player: same K, no distortion
-    assert (fe.width, fe.height, fe.distortion_model) == (cam.width, cam.height, "none")
-    np.testing.assert_allclose(np.reshape(fe.T_imu_cam, (4, 4)), seq.T_imu_cam, atol=1e-9)
+def test_euroc_launch_file_takes_the_excerpts_calibration_from_the_player() -> None:
+    (fp, cam, T), seq, info = _calibration_from_player("euroc")
+    assert cam.pinhole == seq.frames[0].camera  # undistorted by the player: same K
+    assert cam.model == "none" and info.distortion_model == "none"
+    np.testing.assert_allclose(T, seq.T_imu_cam, atol=1e-9)
+    # imu0/sensor.yaml's densities, times the frontend's inflation (what euroc.yaml typed before)
+    assert fp.imu.gyro_noise_rad_s_rthz == pytest.approx(2 * 1.6968e-04)
+    assert fp.imu.accel_walk_m_s3_rthz == pytest.approx(2 * 3.0e-3)

@@ -63,7 +63,7 @@ def _scalar(kind: str) -> st.SearchStrategy:
 
 @st.composite
 def messages(draw: st.DrawFn, cls: type[msgs.Message]) -> msgs.Message:
-    dims = {s: draw(st.integers(0, 6)) for s in ("N", "M")}
+    dims = {s: draw(st.integers(0, 6)) for s in ("N", "M", "D")}
     dims["H"] = draw(st.integers(1, 8))
     dims["W"] = draw(st.integers(1, 8))
     values = {name: draw(_scalar(kind)) for name, kind in cls.SCALARS.items()}
@@ -79,6 +79,18 @@ def messages(draw: st.DrawFn, cls: type[msgs.Message]) -> msgs.Message:
         )
     if cls is msgs.DepthMap:
         values["kind"] = draw(st.sampled_from(msgs.DepthMap.KINDS))
+    if cls is msgs.CameraInfo:  # a valid calibration: its fields are checked against each other
+        model = draw(st.sampled_from(sorted(msgs.CameraInfo.MODELS)))
+        n = draw(st.sampled_from(msgs.CameraInfo.MODELS[model]))
+        fx, fy = draw(st.floats(1.0, 5e3)), draw(st.floats(1.0, 5e3))
+        values.update(
+            distortion_model=model,
+            distortion_coeffs=draw(hnp.arrays(np.float64, n, elements=st.floats(-1.0, 1.0))),
+            K=np.array([[fx, 0.0, 10.0], [0.0, fy, 5.0], [0.0, 0.0, 1.0]]),
+            width=draw(st.integers(1, 4096)),
+            height=draw(st.integers(1, 4096)),
+            camera_height_m=draw(st.one_of(st.floats(0.0, 10.0), st.just(float("nan")))),
+        )
     return cls(**values)
 
 
@@ -545,3 +557,39 @@ def test_decode_takes_bytes_zmq_frames_and_other_buffers_alike() -> None:
         assert env.nbytes == sum(len(b) for b in as_bytes)
     env = msgs.decode(mixed)
     assert np.shares_memory(env.msg.image, np.frombuffer(as_zmq[2].buffer, np.uint8))
+
+
+def test_camera_info_round_trip_and_malformed():
+    from mogs_node.errors import MessageError as _Err
+
+    K = np.array([[400.0, 0.0, 320.0], [0.0, 401.0, 240.0], [0.0, 0.0, 1.0]])
+    info = msgs.CameraInfo(
+        stamp_ns=5,
+        frame_id="cam0",
+        width=640,
+        height=480,
+        K=K,
+        distortion_model="radtan",
+        distortion_coeffs=np.array([0.1, -0.05, 0.001, 0.002]),
+        T_imu_cam=np.eye(4),
+        camera_height_m=float("nan"),
+        imu_noise={"gyro_noise_rad_s_rthz": 1.7e-4},
+        source="camchain.yaml",
+    )
+    back = msgs.decode(msgs.encode("/camera/info", info)).msg
+    assert back == info and np.isnan(back.camera_height_m)
+    no_T = msgs.decode(
+        msgs.encode("/camera/info", msgs.CameraInfo(**{**info.__dict__, "T_imu_cam": None}))
+    )
+    assert no_T.msg.T_imu_cam is None
+    for over, field in (
+        ({"distortion_model": "fisheye9"}, "distortion_model"),
+        ({"distortion_coeffs": np.zeros(3)}, "distortion_coeffs"),
+        ({"K": np.diag([0.0, 1.0, 1.0])}, "K"),
+        ({"width": 0}, "width"),
+        ({"camera_height_m": -1.0}, "camera_height_m"),
+        ({"T_imu_cam": np.full((4, 4), np.nan)}, "T_imu_cam"),
+    ):
+        bad = msgs.CameraInfo(**{**info.__dict__, **over})
+        with pytest.raises(_Err, match=field):
+            bad.validate()

@@ -169,6 +169,17 @@ def test_camera_info_round_trip(distro: Distro, model: str, coeffs: tuple) -> No
     )
     r = wire(rc.camera_info_to_ros(cal, distro=distro), "sensor_msgs/CameraInfo", distro)
     assert rc.camera_info_from_ros(r) == cal
+    # and onto the bus, with T_imu_cam from /tf_static: what the frontend takes
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.02, 0.03)
+    m = rc.camera_info_from_ros(r).message(T_imu_cam=T, source="ros1:/cam0/camera_info")
+    back = msgs.decode(msgs.encode("/camera/info", m)).msg
+    c = rc.camera_info_from_ros(r)
+    assert (back.width, back.height) == (cal.camera.width, cal.camera.height)
+    assert back.distortion_model == c.distortion_model
+    np.testing.assert_array_equal(back.K, cal.camera.K)
+    np.testing.assert_array_equal(back.distortion_coeffs, np.asarray(c.distortion_coeffs, float))
+    np.testing.assert_array_equal(back.T_imu_cam, T)
 
 
 @pytest.mark.parametrize("distro", DISTROS)
@@ -465,6 +476,17 @@ def test_camera_info_round_trip_property(fx, aspect, w, h, coeffs, distro) -> No
     cal = CameraCalibration(0, "c", cam, model, tuple(coeffs) if any(coeffs) else ())
     r = wire(rc.camera_info_to_ros(cal, distro=distro), "sensor_msgs/CameraInfo", distro)
     assert rc.camera_info_from_ros(r) == cal
+    # and onto the bus, with T_imu_cam from /tf_static: what the frontend takes
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.02, 0.03)
+    m = rc.camera_info_from_ros(r).message(T_imu_cam=T, source="ros1:/cam0/camera_info")
+    back = msgs.decode(msgs.encode("/camera/info", m)).msg
+    c = rc.camera_info_from_ros(r)
+    assert (back.width, back.height) == (cal.camera.width, cal.camera.height)
+    assert back.distortion_model == c.distortion_model
+    np.testing.assert_array_equal(back.K, cal.camera.K)
+    np.testing.assert_array_equal(back.distortion_coeffs, np.asarray(c.distortion_coeffs, float))
+    np.testing.assert_array_equal(back.T_imu_cam, T)
     key = "K" if distro is Distro.ROS1 else "k"
     bad_k = np.array(getattr(r, key), dtype=np.float64)
     bad_k[4] = np.nan

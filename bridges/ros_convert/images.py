@@ -121,6 +121,23 @@ class CameraCalibration:
     distortion_model: str = "none"
     distortion_coeffs: tuple[float, ...] = ()
 
+    def message(self, *, T_imu_cam: np.ndarray | None = None, source: str = "") -> msgs.CameraInfo:
+        """This calibration (plus ``T_imu_cam`` [4, 4] when known) as the bus's
+        :class:`~mogs_node.msgs.CameraInfo`."""
+        out = msgs.CameraInfo(
+            stamp_ns=self.stamp_ns,
+            frame_id=self.frame_id,
+            width=int(self.camera.width),
+            height=int(self.camera.height),
+            K=np.asarray(self.camera.K, dtype=np.float64),
+            distortion_model=self.distortion_model,
+            distortion_coeffs=np.asarray(self.distortion_coeffs, dtype=np.float64),
+            T_imu_cam=None if T_imu_cam is None else np.asarray(T_imu_cam, dtype=np.float64),
+            source=source,
+        )
+        out.validate()
+        return out
+
 
 _ROS_DISTORTION = {
     "plumb_bob": "radtan",

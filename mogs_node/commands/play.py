@@ -44,6 +44,12 @@ def _play_args(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     g.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds in")
+    g.add_argument(
+        "--imu-lead", type=float, default=1.2, metavar="S", help="IMU from S seconds before frame 1"
+    )
+    g.add_argument(
+        "--camera-height", type=float, default=None, metavar="M", help="camera above the road (m)"
+    )
     g.add_argument("--ack-topic", default="/frontend/odometry", help="fast: acknowledgements")
     g.add_argument(
         "--max-in-flight", type=int, default=1, help="fast: unacknowledged images at most"
@@ -70,6 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     k.add_argument("--odometry", action="store_true", help="KITTI odometry sequences/XX layout")
     e = sub.add_parser("euroc", help="EuRoC ASL folder (holding mav0)")
     e.add_argument("path")
+    v = sub.add_parser(
+        "vi", help="a visual-inertial folder with a Kalibr camchain.yaml (TUM-VI, Basalt, DM-VIO)"
+    )
+    v.add_argument("path")
     b = sub.add_parser("bag", help="rosbag1 / rosbag2 (sqlite3, MCAP) or a `mogs record` file")
     b.add_argument("path")
     b.add_argument("--image-topic", default="/camera/image_raw")
@@ -85,7 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--size", default="621x188", help="WxH (default 621x188)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--trajectory", choices=["synthetic", "oxts"], default="synthetic")
-    for p in (k, e, b, s):
+    for p in (k, e, v, b, s):
         _play_args(p)
         _endpoint_args(p)
 
@@ -97,6 +107,8 @@ def params_from_args(args: argparse.Namespace) -> dict:
         "fast": args.fast,
         "start_s": args.start,
         "end_s": args.end,
+        "imu_lead_s": args.imu_lead,
+        "camera_height_m": args.camera_height,
         "ack_topic": args.ack_topic,
         "max_frames_in_flight": args.max_in_flight,
         "max_keyframes_in_flight": args.max_keyframes_in_flight,
@@ -110,6 +122,8 @@ def params_from_args(args: argparse.Namespace) -> dict:
         params.update(source="kitti_odometry" if args.odometry else "kitti", path=args.path)
     elif args.kind == "euroc":
         params.update(source="euroc", path=args.path)
+    elif args.kind == "vi":
+        params.update(source="vi_folder", path=args.path)
     elif args.kind == "bag":
         from bridges.recording import is_recording
 

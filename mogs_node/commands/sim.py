@@ -20,7 +20,7 @@ import numpy as np
 from mogs_node.errors import ConfigError
 
 HELP = "generate a synthetic driving sequence with ground truth"
-FORMATS = ("kitti", "rosbag2", "mcap", "rosbag1")
+FORMATS = ("kitti", "rosbag2", "mcap", "rosbag1", "kitti-odometry", "vi-folder")
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,13 @@ import numpy as np
 
 from mogs_node.datasets.base import Frame, ImuSamples, Sequence
 from mogs_node.errors import DatasetError
-from mogs_node.geometry import PinholeCamera, make_T, quat_wxyz_from_rotmat, quat_wxyz_to_rotmat
+from mogs_node.geometry import (
+    PinholeCamera,
+    make_T,
+    quat_wxyz_from_rotmat,
+    quat_wxyz_to_rotmat,
+    tf_lookup,
+)
 
 __all__ = ["BAG_FORMATS", "BagTopics", "BagWriter", "decode_image_msg", "read_bag"]
 
@@ -37,6 +43,8 @@ class BagTopics:
     imu: str | None = "/imu"  # sensor_msgs/Imu
     pose: str | None = "/ground_truth/pose"  # geometry_msgs/PoseStamped, T_world_cam
     depth: str | None = "/ground_truth/depth"  # sensor_msgs/Image 32FC1 (m) or 16UC1 (mm)
+    tf_static: str | None = "/tf_static"  # tf2_msgs/TFMessage: T_imu_cam between the frames of
+    # the IMU and image messages
 
 
 def _stamp_ns(header: Any) -> int:
@@ -104,8 +112,10 @@ def read_bag(
 ) -> Sequence:
     """Read a rosbag1 file, a rosbag2 folder (sqlite3 or MCAP) or a bare ``.mcap`` into a Sequence.
 
-    Intrinsics come from ``topics.camera_info`` (first message) or ``camera``; one of them is
-    required. Ground-truth poses and depth are matched to frames by identical stamps.
+    Intrinsics and distortion come from ``topics.camera_info`` (first message) or ``camera``;
+    one of them is required. ``T_imu_cam`` comes from ``topics.tf_static`` when it connects the
+    IMU messages' frame to the images' frame. Ground-truth poses and depth are matched to frames
+    by identical stamps.
     """
     tp = topics or BagTopics()
     p = Path(path)
@@ -121,21 +131,34 @@ def read_bag(
         poses: dict[int, np.ndarray] = {}
         depth_msgs: dict[int, Any] = {}
         K_cam = camera
-        wanted = [
-            conns[t] for t in (tp.image, tp.camera_info, tp.imu, tp.pose, tp.depth) if t in conns
-        ]
+        distortion: dict[str, object] | None = None
+        tf_edges: dict[tuple[str, str], np.ndarray] = {}
+        frames_of = {"image": "", "imu": ""}
+        names = (tp.image, tp.camera_info, tp.imu, tp.pose, tp.depth, tp.tf_static)
+        wanted = [conns[t] for t in names if t in conns]
         for conn, _, raw in reader.messages(connections=wanted):
             if conn.topic == tp.image:
                 msg = reader.deserialize(raw, conn.msgtype)  # pixel decoding stays lazy
                 img_msgs.append((_stamp_ns(msg.header), msg))
+                frames_of["image"] = frames_of["image"] or msg.header.frame_id
             elif conn.topic == tp.camera_info and K_cam is None:
                 msg = reader.deserialize(raw, conn.msgtype)
                 k = np.asarray(
                     getattr(msg, "k", getattr(msg, "K", None)), dtype=np.float64
                 ).reshape(3, 3)
                 K_cam = PinholeCamera.from_K(k, int(msg.width), int(msg.height))
+                d = np.asarray(getattr(msg, "d", getattr(msg, "D", ())), dtype=np.float64)
+                distortion = {"model": msg.distortion_model, "coeffs": d.tolist()}
+            elif conn.topic == tp.tf_static:
+                msg = reader.deserialize(raw, conn.msgtype)
+                for tr in msg.transforms:
+                    q, t = tr.transform.rotation, tr.transform.translation
+                    R = quat_wxyz_to_rotmat(np.array([q.w, q.x, q.y, q.z]))
+                    key = (tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"))
+                    tf_edges[key] = make_T(R, np.array([t.x, t.y, t.z]))
             elif conn.topic == tp.imu:
                 msg = reader.deserialize(raw, conn.msgtype)
+                frames_of["imu"] = frames_of["imu"] or msg.header.frame_id
                 imu_t.append(_stamp_ns(msg.header))
                 g, a = msg.angular_velocity, msg.linear_acceleration
                 gyro.append((g.x, g.y, g.z))
@@ -189,7 +212,21 @@ def read_bag(
             np.asarray(gyro)[order],
             np.asarray(accel)[order],
         )
-    return Sequence(p.stem, tuple(frames), imu, None, None, None, {"bag": str(p)})
+    T_imu_cam = None
+    if tf_edges and frames_of["imu"] and frames_of["image"]:
+        T_imu_cam = tf_lookup(
+            tf_edges, frames_of["imu"].lstrip("/"), frames_of["image"].lstrip("/")
+        )
+        if T_imu_cam is None:
+            log.warning(
+                "%s: %s does not connect the IMU frame %r to the camera frame %r",
+                p,
+                tp.tf_static,
+                frames_of["imu"],
+                frames_of["image"],
+            )
+    meta = {"bag": str(p), "calibration": f"{p}:{tp.camera_info}"}
+    return Sequence(p.stem, tuple(frames), imu, T_imu_cam, None, distortion, meta)
 
 
 class BagWriter:
@@ -198,7 +235,7 @@ class BagWriter:
     def __init__(
         self, path: str | Path, fmt: str = "rosbag2", *, topics: BagTopics | None = None
     ) -> None:
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         if fmt not in BAG_FORMATS:
             raise DatasetError(f"format: expected one of {BAG_FORMATS}, got {fmt!r}")
@@ -207,6 +244,9 @@ class BagWriter:
             raise DatasetError(f"{self.path}: already exists")
         self.ros1 = fmt == "rosbag1"
         self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
+        if self.ros1:  # Noetic's store lacks tf2_msgs (its ROS 1 definition, verbatim)
+            tf = "geometry_msgs/TransformStamped[] transforms\n"
+            self.ts.register(get_types_from_msg(tf, "tf2_msgs/msg/TFMessage"))
         if self.ros1:
             from rosbags.rosbag1 import Writer
 
@@ -318,6 +358,31 @@ class BagWriter:
             **fields,
         )
         self._write(self.topics.camera_info, "sensor_msgs/msg/CameraInfo", msg, stamp_ns)
+
+    def tf_static(
+        self,
+        stamp_ns: int,
+        T_parent_child: np.ndarray,
+        *,
+        parent: str = "imu",
+        child: str = "camera",
+    ) -> None:
+        """One static transform (``child`` in ``parent``) as tf2_msgs/TFMessage on tf_static."""
+        if self.topics.tf_static is None:
+            raise DatasetError("tf_static: no topic configured")
+        T = self.ts.types
+        q = quat_wxyz_from_rotmat(np.asarray(T_parent_child, dtype=np.float64)[:3, :3])
+        t = np.asarray(T_parent_child, dtype=np.float64)[:3, 3]
+        tr = T["geometry_msgs/msg/TransformStamped"](
+            header=self._header(stamp_ns, parent),
+            child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=t[0], y=t[1], z=t[2]),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=q[1], y=q[2], z=q[3], w=q[0]),
+            ),
+        )
+        msg = T["tf2_msgs/msg/TFMessage"](transforms=[tr])
+        self._write(self.topics.tf_static, "tf2_msgs/msg/TFMessage", msg, stamp_ns)
 
     def imu(
         self,

@@ -18,7 +18,37 @@ from mogs_node.datasets.kitti import load_image, read_euroc_imu_csv
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, make_T, quat_wxyz_to_rotmat, se3_exp, se3_log
 
-__all__ = ["interpolate_poses", "read_euroc", "read_euroc_groundtruth", "read_sensor_yaml"]
+__all__ = [
+    "KALIBR_IMU_NOISE",
+    "imu_noise_from_kalibr",
+    "interpolate_poses",
+    "read_euroc",
+    "read_euroc_groundtruth",
+    "read_sensor_yaml",
+]
+
+#: Kalibr / EuRoC ``imu.yaml`` keys -> the frontend's ImuNoise fields (same units)
+KALIBR_IMU_NOISE = {
+    "gyroscope_noise_density": "gyro_noise_rad_s_rthz",
+    "accelerometer_noise_density": "accel_noise_m_s2_rthz",
+    "gyroscope_random_walk": "gyro_walk_rad_s2_rthz",
+    "accelerometer_random_walk": "accel_walk_m_s3_rthz",
+}
+
+
+def imu_noise_from_kalibr(data: dict, path: Path) -> dict[str, float]:
+    """The noise densities of a Kalibr / EuRoC IMU yaml (those present) as ImuNoise fields."""
+    out = {}
+    for key, name in KALIBR_IMU_NOISE.items():
+        if key in data:
+            try:
+                v = float(data[key])
+            except (TypeError, ValueError) as err:
+                raise DatasetError(f"{path}: {key} must be a number, got {data[key]!r}") from err
+            if not (np.isfinite(v) and v > 0):
+                raise DatasetError(f"{path}: {key} must be finite and > 0, got {v}")
+            out[name] = v
+    return out
 
 
 def read_sensor_yaml(path: str | Path) -> dict:
@@ -138,9 +168,12 @@ def read_euroc(root: str | Path, *, camera: str = "cam0", undistort: bool = True
     imu = read_euroc_imu_csv(imu_csv) if imu_csv.exists() else None
     T_imu_cam = T_body_cam
     imu_yaml = mav / "imu0" / "sensor.yaml"
+    imu_noise: dict[str, float] = {}
     if imu_yaml.exists():  # camera in the IMU frame = T_BS_imu^-1 T_BS_cam
-        T_body_imu = _T_BS(read_sensor_yaml(imu_yaml), imu_yaml)
+        imu_data = read_sensor_yaml(imu_yaml)
+        T_body_imu = _T_BS(imu_data, imu_yaml)
         T_imu_cam = np.linalg.inv(T_body_imu) @ T_body_cam
+        imu_noise = imu_noise_from_kalibr(imu_data, imu_yaml)
     gt_csv = mav / "state_groundtruth_estimate0" / "data.csv"
     gt, gt_extra = read_euroc_groundtruth(gt_csv) if gt_csv.exists() else (None, None)
     poses: list[np.ndarray | None] = [None] * len(stamps)
@@ -174,6 +207,8 @@ def read_euroc(root: str | Path, *, camera: str = "cam0", undistort: bool = True
     meta: dict[str, object] = {
         "groundtruth_velocity_bias": gt_extra,
         "undistorted": maps is not None,
+        "imu_noise": imu_noise,
+        "calibration": str(yml),
     }
     dist = {"model": "radial-tangential", "coeffs": coeffs}
     return Sequence(mav.parent.name or mav.name, frames, imu, T_imu_cam, gt, dist, meta)

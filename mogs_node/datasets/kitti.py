@@ -33,6 +33,8 @@ __all__ = [
     "read_calib_file",
     "read_depth_png",
     "read_euroc_imu_csv",
+    "read_imu_text",
+    "stamp_ns_of",
     "read_kitti_odometry",
     "read_kitti_oxts",
     "read_kitti_raw",
@@ -173,29 +175,48 @@ def kitti_raw_extrinsics(
     return P, T_cam_velo, T_cam_imu
 
 
-def read_euroc_imu_csv(path: str | Path) -> ImuSamples:
-    """EuRoC-style IMU csv: ``t_ns, wx, wy, wz, ax, ay, az`` (header lines start with ``#``)."""
+def stamp_ns_of(text: str, where: str) -> int:
+    """Integer nanoseconds, or decimal seconds (a '.' or an exponent) -> nanoseconds."""
+    try:
+        if any(ch in text for ch in ".eE"):
+            sec, _, frac = f"{float(text):.9f}".partition(".")
+            return int(sec) * 1_000_000_000 + (int(frac) if not sec.startswith("-") else -int(frac))
+        return int(text)
+    except ValueError as err:
+        raise DatasetError(f"{where}: bad time stamp {text!r}") from err
+
+
+def read_imu_text(path: str | Path) -> ImuSamples:
+    """``t gx gy gz ax ay az`` per line (comma or space separated, ``t`` in ns or s)."""
     p = Path(path)
     try:
         lines = p.read_text().splitlines()
     except OSError as err:
-        raise DatasetError(f"{p}: cannot read IMU csv ({err.strerror or err})") from err
+        raise DatasetError(f"{p}: cannot read IMU log ({err.strerror or err})") from err
     t, vals = [], []
     for i, line in enumerate(lines, 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
-        parts = line.split(",")
+        parts = line.replace(",", " ").split()
         if len(parts) != 7:
-            raise DatasetError(f"{p}:{i}: expected 7 comma-separated values, got {len(parts)}")
+            raise DatasetError(
+                f"{p}:{i}: expected 7 values (t gx gy gz ax ay az), got {len(parts)}"
+            )
+        t.append(stamp_ns_of(parts[0], f"{p}:{i}"))
         try:
-            t.append(int(parts[0]))
             vals.append([float(x) for x in parts[1:]])
         except ValueError as err:
             raise DatasetError(f"{p}:{i}: bad number ({err})") from err
     if not t:
         raise DatasetError(f"{p}: no IMU samples")
     v = np.asarray(vals, dtype=np.float64)
-    return ImuSamples(np.asarray(t, dtype=np.int64), v[:, :3], v[:, 3:])
+    if not np.isfinite(v).all():
+        raise DatasetError(f"{p}: non-finite IMU values")
+    order = np.argsort(np.asarray(t, dtype=np.int64), kind="stable")
+    return ImuSamples(np.asarray(t, dtype=np.int64)[order], v[order, :3], v[order, 3:])
+
+
+read_euroc_imu_csv = read_imu_text  # EuRoC's csv is one of the text logs read_imu_text takes
 
 
 def read_kitti_raw(
@@ -244,7 +265,7 @@ def read_kitti_raw(
     K_cam = PinholeCamera.from_K(P[:, :3], W, H)
     # time stamps
     ts_path = d / camera / "timestamps.txt"
-    meta: dict[str, object] = {"calib": str(c2c)}
+    meta: dict[str, object] = {"calib": str(c2c), "calibration": str(c2c.parent)}
     if ts_path.exists():
         stamps = read_kitti_timestamps(ts_path)
         if len(stamps) != len(files):
@@ -411,7 +432,11 @@ def read_kitti_odometry(
         )
         for i, f in enumerate(files)
     )
-    meta = {"calib": str(calib_path), "poses": str(pose_path) if pose_path else None}
+    meta = {
+        "calib": str(calib_path),
+        "calibration": str(calib_path),
+        "poses": str(pose_path) if pose_path else None,
+    }
     return Sequence(d.name, frames, None, None, None, None, meta)
 
 

@@ -1,4 +1,5 @@
-"""Export a simulated sequence to disk: KITTI-raw layout, rosbag2 (sqlite3 / MCAP) and ROS1 bags.
+"""Export a simulated sequence to disk: KITTI-raw and KITTI-odometry layouts, a generic
+visual-inertial folder with a Kalibr calibration, rosbag2 (sqlite3 / MCAP) and ROS1 bags.
 
 KITTI-raw layout written by :func:`write_kitti_raw` (readable by
 :func:`mogs_node.datasets.kitti.read_kitti_raw`)::
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -30,7 +31,15 @@ from mogs_node.geometry import se3_inverse
 if TYPE_CHECKING:
     from mogs_node.sim import SimSequence
 
-__all__ = ["depth_to_kitti_png", "rpy_from_rotmat", "write_kitti_raw", "write_sim_bag"]
+__all__ = [
+    "FOLDER_FORMATS",
+    "depth_to_kitti_png",
+    "rpy_from_rotmat",
+    "write_kitti_odometry",
+    "write_kitti_raw",
+    "write_sim_bag",
+    "write_vi_folder",
+]
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +165,120 @@ def write_kitti_raw(
     return out
 
 
+def _frame_indices(seq: SimSequence, frames: list[int] | None) -> np.ndarray:
+    idx = np.arange(len(seq)) if frames is None else np.asarray(frames, dtype=int)
+    if len(idx) == 0:
+        raise DatasetError("frames: nothing to write")
+    return idx
+
+
+def _write_rgb(path: Path, rgb: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1])):
+        raise DatasetError(f"{path}: cannot write the image")
+
+
+def write_kitti_odometry(
+    seq: SimSequence, out_dir: str | Path, *, frames: list[int] | None = None
+) -> Path:
+    """Write ``seq`` as one KITTI odometry sequence folder (readable by
+    :func:`mogs_node.datasets.kitti.read_kitti_odometry`; no IMU, as KITTI odometry)::
+
+        image_2/%06d.png   rectified RGB frames
+        times.txt          seconds since the first frame
+        calib.txt          P0..P3 = [K | 0] (one camera), Tr = identity
+        poses.txt          T_world_cam per frame, 12 numbers, the first pose the identity
+    """
+    out = Path(out_dir)
+    idx = _frame_indices(seq, frames)
+    (out / "image_2").mkdir(parents=True, exist_ok=True)
+    t = seq.stamps_ns[idx]
+    (out / "times.txt").write_text("".join(f"{(s - t[0]) * 1e-9:.6e}\n" for s in t))
+    P = _fmt(np.c_[seq.camera.K, np.zeros(3)])
+    (out / "calib.txt").write_text(
+        "".join(f"P{c}: {P}\n" for c in range(4)) + f"Tr: {_fmt(np.eye(4)[:3])}\n"
+    )
+    T = se3_inverse(seq.T_world_cam[idx[0]]) @ seq.T_world_cam[idx]
+    (out / "poses.txt").write_text("".join(_fmt(p[:3]) + "\n" for p in T))
+    for n, i in enumerate(idx):
+        _write_rgb(out / "image_2" / f"{n:06d}.png", seq.render(int(i)).rgb)
+    log.info("wrote %d frames in KITTI-odometry layout to %s", len(idx), out)
+    return out
+
+
+def _kalibr_yaml(seq: SimSequence, noise: Any) -> tuple[str, str]:
+    """``camchain.yaml`` and ``imu.yaml`` of the sim rig, as Kalibr writes them (``noise``: the
+    sim's :class:`~mogs_node.sim.imu.ImuNoiseParams`)."""
+    c = seq.camera
+    T_cam_imu = se3_inverse(seq.T_imu_cam)
+    rows = "\n".join("  - [" + ", ".join(repr(float(v)) for v in r) + "]" for r in T_cam_imu)
+    camchain = (
+        "cam0:\n"
+        "  camera_model: pinhole\n"
+        f"  intrinsics: [{c.fx_px!r}, {c.fy_px!r}, {c.cx_px!r}, {c.cy_px!r}]\n"
+        f"  resolution: [{c.width}, {c.height}]\n"
+        "  distortion_model: radtan\n"
+        "  distortion_coeffs: [0.0, 0.0, 0.0, 0.0]\n"
+        "  T_cam_imu:\n" + rows + "\n"
+        "  timeshift_cam_imu: 0.0\n"
+        "  rostopic: /cam0/image_raw\n"
+    )
+    rate = 1e9 / float(np.median(np.diff(seq.imu_stamps_ns)))
+    imu = (
+        "imu0:\n"
+        f"  accelerometer_noise_density: {noise.accel_noise_density!r}\n"
+        f"  accelerometer_random_walk: {noise.accel_random_walk!r}\n"
+        f"  gyroscope_noise_density: {noise.gyro_noise_density!r}\n"
+        f"  gyroscope_random_walk: {noise.gyro_random_walk!r}\n"
+        f"  update_rate: {rate:.1f}\n"
+        "  rostopic: /imu0\n"
+    )
+    return camchain, imu
+
+
+def write_vi_folder(
+    seq: SimSequence, out_dir: str | Path, *, frames: list[int] | None = None
+) -> Path:
+    """Write ``seq`` as a generic visual-inertial folder (EuRoC / TUM-VI / Basalt layout with a
+    Kalibr calibration; readable by :func:`mogs_node.datasets.vi_folder.read_vi_folder`)::
+
+        camchain.yaml, imu.yaml   Kalibr calibration (the sim rig; noise of the sim's IMU)
+        cam0/data/<t_ns>.png      RGB frames, cam0/data.csv (t_ns,filename)
+        depth0/data/<t_ns>.png    ground-truth z-depth (KITTI depth PNG: uint16 = round(256 m))
+        imu0/data.csv             every IMU sample from the first to the last frame (+-1.5 s)
+        groundtruth.txt           T_world_imu at the frame stamps (TUM)
+    """
+    from mogs_node.frontend.trajectory_io import write_tum
+
+    out = Path(out_dir)
+    idx = _frame_indices(seq, frames)
+    for sub in ("cam0/data", "depth0/data", "imu0"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    camchain, imu_yaml = _kalibr_yaml(seq, seq.config.imu_noise)
+    (out / "camchain.yaml").write_text(camchain)
+    (out / "imu.yaml").write_text(imu_yaml)
+    t = seq.stamps_ns[idx]
+    names = [f"{int(s)}.png" for s in t]
+    (out / "cam0" / "data.csv").write_text(
+        "#timestamp [ns],filename\n" + "".join(f"{int(s)},{n}\n" for s, n in zip(t, names))
+    )
+    m = (seq.imu_stamps_ns >= t[0] - 1_500_000_000) & (seq.imu_stamps_ns <= t[-1] + 1_500_000_000)
+    lines = ["#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z"]
+    for s, g, a in zip(seq.imu_stamps_ns[m], seq.imu_gyro_rad_s[m], seq.imu_accel_m_s2[m]):
+        lines.append(f"{int(s)}," + ",".join(repr(float(v)) for v in (*g, *a)))
+    (out / "imu0" / "data.csv").write_text("\n".join(lines) + "\n")
+    write_tum(out / "groundtruth.txt", t, seq.T_world_imu[idx])
+    for n, i in zip(names, idx):
+        f = seq.render(int(i))
+        _write_rgb(out / "cam0" / "data" / n, f.rgb)
+        cv2.imwrite(str(out / "depth0" / "data" / n), depth_to_kitti_png(f.depth_m))
+    log.info("wrote %d frames in the generic VI layout to %s", len(idx), out)
+    return out
+
+
+#: ``mogs sim --format`` values written as folders (the rest are bags, :data:`BAG_FORMATS`)
+FOLDER_FORMATS = {"kitti-odometry": write_kitti_odometry, "vi-folder": write_vi_folder}
+
+
 def write_sim_bag(
     seq: SimSequence,
     path: str | Path,
@@ -166,17 +289,24 @@ def write_sim_bag(
     compressed: bool = False,
     with_depth: bool = True,
 ) -> Path:
-    """Write ``seq`` to a bag (``fmt`` "rosbag2" (sqlite3), "mcap" or "rosbag1").
+    """Write ``seq`` to a bag (``fmt`` "rosbag2" (sqlite3), "mcap" or "rosbag1"); a folder format
+    of :data:`FOLDER_FORMATS` ("kitti-odometry", "vi-folder") goes to its writer instead, so one
+    call writes every ``mogs sim --format`` but KITTI raw.
 
-    Per frame: the image (sensor_msgs/Image rgb8, or CompressedImage PNG), CameraInfo, the
+    Once: ``T_imu_cam`` on tf_static (imu -> camera). Per frame: the image (sensor_msgs/Image
+    rgb8, or CompressedImage PNG), CameraInfo, the
     ground-truth camera pose (PoseStamped, ``T_world_cam``) and, with ``with_depth``, the z-depth
     (Image 32FC1, 0 = none); every IMU sample in the frames' time span (sensor_msgs/Imu).
     """
+    if fmt in FOLDER_FORMATS:
+        return FOLDER_FORMATS[fmt](seq, path, frames=frames)
     tp = topics or BagTopics()
     idx = np.arange(len(seq)) if frames is None else np.asarray(frames, dtype=int)
     t0, t1 = seq.stamps_ns[idx].min(), seq.stamps_ns[idx].max()
     p = Path(path)
     with BagWriter(p, fmt, topics=tp) as w:
+        if tp.tf_static is not None and tp.imu is not None:  # the camera-IMU calibration
+            w.tf_static(int(t0) - 200_000_000, seq.T_imu_cam, parent="imu", child="camera")
         chosen = set(idx.tolist())
         for t, kind, k in seq.sensor_events():
             if kind == "imu":

@@ -18,11 +18,44 @@ from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
 from mogs_node.errors import ShapeError
-from mogs_node.geometry import check_array
+from mogs_node.geometry import check_array, nearest_rotation, rotation_defect
 
-__all__ = ["evaluate", "trajectory_metrics"]
+__all__ = ["MAX_ROTATION_DEFECT", "evaluate", "orthonormalized", "trajectory_metrics"]
+
+#: a pose whose rotation is further than this from SO(3) (max |R R^T - I|) cannot be scored
+MAX_ROTATION_DEFECT = 1e-2
 
 log = logging.getLogger(__name__)
+
+
+def orthonormalized(name: str, poses: NDArray) -> NDArray:
+    """``poses`` [N, 4, 4] with every rotation projected to the nearest rotation.
+
+    evo checks SO(3) to 1e-6; poses chained from a calibration typed with six decimals, or read
+    from a text file, miss that by ~1e-6 (issue 28) and would not be scored at all. A rotation
+    further than :data:`MAX_ROTATION_DEFECT` from SO(3) is no rounding: :class:`ShapeError` naming
+    the poses (index, defect) and why.
+    """
+    P = np.array(poses, dtype=np.float64)
+    defect = rotation_defect(P[:, :3, :3])
+    bad = np.flatnonzero(~(defect <= MAX_ROTATION_DEFECT))
+    if len(bad):
+        shown = ", ".join(f"{int(i)} ({defect[i]:.3g})" for i in bad[:10])
+        raise ShapeError(
+            f"{name}: {len(bad)} of {len(P)} poses have no rotation matrix (max |R R^T - I| > "
+            f"{MAX_ROTATION_DEFECT:g}, or det <= 0): index (defect) {shown}"
+            + (" ..." if len(bad) > 10 else "")
+        )
+    rows = P[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])
+    bad = np.flatnonzero(np.abs(rows).max(axis=1) > 1e-9)
+    if len(bad):
+        raise ShapeError(
+            f"{name}: {len(bad)} poses have a last row other than [0, 0, 0, 1]: index "
+            + ", ".join(str(int(i)) for i in bad[:10])
+        )
+    P[:, :3, :3] = nearest_rotation(P[:, :3, :3])
+    P[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return P
 
 
 def trajectory_metrics(
@@ -33,9 +66,12 @@ def trajectory_metrics(
 
     ``scale_error`` is ``|s - 1|`` with ``s`` the Sim(3) alignment's scale; RPE compares relative
     motions over ``rpe_delta_frames`` frames (RMSE of translation in m and of rotation in degrees).
+    Rotations are re-orthonormalised first (:func:`orthonormalized`); what cannot be scored is a
+    :class:`ShapeError` that says which poses and why.
     """
     est = check_array("poses_est", poses_est, shape=(None, 4, 4), finite=True)
     ref = check_array("poses_ref", poses_ref, shape=(len(est), 4, 4), finite=True)
+    est, ref = orthonormalized("poses_est", est), orthonormalized("poses_ref", ref)
     t = check_array("stamps_ns", stamps_ns, shape=(len(est),), dtype=np.integer) * 1e-9
     if len(est) < 3:
         raise ShapeError("poses_est: need at least 3 poses")

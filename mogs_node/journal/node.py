@@ -30,6 +30,7 @@ __all__ = ["DEFAULT_TOPICS", "JournalNode", "JournalParams"]
 
 #: every reliable topic of the pipeline plus the camera images (the frontend replays them)
 DEFAULT_TOPICS = (
+    "/camera/info",
     "/camera/image",
     "/imu",
     "/frontend/odometry",

@@ -50,7 +50,9 @@ from mogs_node.report.views import (
 __all__ = ["NOT_ESTIMATED", "RunReportNode", "RunReportParams"]
 
 #: odometry statuses that acknowledge a frame without estimating its pose (frontend node)
-NOT_ESTIMATED = frozenset({"initializing", "reset", "rejected", "dropped"})
+NOT_ESTIMATED = frozenset(
+    {"initializing", "reset", "rejected", "dropped", "no_calibration", "no_pose"}
+)
 #: node counters kept in summary.json: what each node received, dropped (best effort superseded)
 #: and lost (reliable gaps); the player's frame counts
 NODE_COUNTERS = (

@@ -1,0 +1,378 @@
+"""Camera-only frontend: a drive without an IMU (KITTI odometry, a dashcam), or with poses the user
+already has (``player.poses``). docs/bridges.md, "No IMU: camera only; your own poses".
+
+The pose of a frame relative to the last keyframe comes from the essential matrix of the dense
+KLT tracks (rotation and translation direction, five-point RANSAC) and the metric length of the
+translation from the road at the calibrated camera height (:func:`~mogs_node.frontend.ground.
+estimate_ground_translation`: the plane homography of the road between the two images; the
+visual-inertial frontend uses the same measurement for its scale). A frame with too little
+parallax for the essential matrix is placed by PnP on the last keyframe's points. With given
+poses (``add_image(..., T_world_cam=...)``) nothing is estimated. Either way the keyframes' sparse
+points are the dense tracks triangulated over the last frames with those poses (DLT + Gauss-Newton
+and the gates of :func:`~mogs_node.frontend.track_points.keyframe_points`, paper IV-A).
+
+World frame (estimated poses): road-aligned, z up (away from the road), x along the first camera's
+view, the first camera ``camera_height_m`` above the origin: what the depth prior's road model and
+the mapper expect of the visual-inertial world. The same interface as
+:class:`~mogs_node.frontend.frontend.Frontend` (``add_image``, ``add_imu``, ``counters``), so the
+node shell drives either.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.frontend import FrameOutput, KeyframeOutput
+from mogs_node.frontend.ground import (
+    GroundParams,
+    estimate_ground_translation,
+    road_normal_from_mount,
+)
+from mogs_node.frontend.track_points import (
+    KeyframePoints,
+    TrackHistory,
+    TrackPointsParams,
+    keyframe_points,
+)
+from mogs_node.frontend.tracker import FeatureTracker
+from mogs_node.geometry import check_array, make_T, se3_inverse
+
+__all__ = ["MonocularFrontend", "MonocularParams", "road_aligned_start"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MonocularParams:
+    """Parameters of the camera-only frontend."""
+
+    min_parallax_px: float = 20.0  # keyframe: median track motion since the last keyframe
+    max_interval_s: float = 1.0  # ... or this long since it (with min_pose_parallax_px)
+    min_pose_parallax_px: float = 4.0  # below: too little baseline for the essential matrix
+    # (the frame keeps the previous frame's rotation)
+    min_tracks: int = 40  # tracks shared with the keyframe to estimate a pose
+    ransac_px: float = 1.0  # five-point RANSAC threshold (undistorted px)
+    min_inlier_share: float = 0.5  # of the shared tracks, for a pose to be kept
+    first_speed_m_s: float = 5.0  # scale search of the first pair: around this speed ...
+    first_search_span: float = 8.0  # ... within this factor either way
+    max_speed_m_s: float = 60.0  # a road measurement implying more is rejected
+    gate_rel: float = 0.3  # a road speed this far from the median of the recent ones is gated
+    gate_window: int = 9  # recent accepted road speeds kept
+    road_normal_cam: tuple[float, float, float] | None = None  # road normal (towards the road) in
+    # the camera; None: from T_imu_cam (IMU mounted level) or +y (a level rectified camera)
+    ground_max_residual: float = 20.0  # the road measurement's residual bound (grey levels):
+    # looser than the visual-inertial frontend's 12, which has the IMU to fall back on; the
+    # speed gate (gate_rel) stands between a bad measurement and the poses
+    points: TrackPointsParams = field(
+        default_factory=lambda: TrackPointsParams(max_reproj_px=1.5)
+    )  # each frame's pose has its own essential matrix: a looser reprojection gate than the
+    # window-optimised poses of the visual-inertial frontend (0.6 px)
+    ground: GroundParams = field(default_factory=GroundParams)
+
+    def __post_init__(self) -> None:
+        if self.min_parallax_px <= self.min_pose_parallax_px or self.min_pose_parallax_px <= 0:
+            raise ConfigError("camera-only: 0 < min_pose_parallax_px < min_parallax_px")
+        if self.min_tracks < 8 or not 0 < self.min_inlier_share <= 1:
+            raise ConfigError("camera-only: min_tracks >= 8, 0 < min_inlier_share <= 1")
+
+
+def road_aligned_start(normal_cam: NDArray, height_m: float) -> NDArray[np.float64]:
+    """``T_world_cam`` [4, 4] of the first camera: world z up (against the road normal
+    ``normal_cam`` [3], which points from the camera to the road), x along the camera's view
+    projected onto the road, the camera ``height_m`` above the origin."""
+    n = check_array("normal_cam", normal_cam, shape=(3,), finite=True)
+    z = -n / np.linalg.norm(n)
+    x = np.array([0.0, 0.0, 1.0]) - z * z[2]
+    if np.linalg.norm(x) < 1e-6:
+        raise ConfigError("road normal along the optical axis: the camera looks at the road")
+    x /= np.linalg.norm(x)
+    R_world_cam = np.stack([x, np.cross(z, x), z])  # rows: world axes in the camera frame
+    return make_T(R_world_cam, [0.0, 0.0, height_m])
+
+
+@dataclass
+class _Keyframe:
+    t_ns: int
+    gray: NDArray[np.uint8]
+    uv: dict[int, NDArray]  # track id -> undistorted pixel
+    T_world_cam: NDArray[np.float64]
+    points: KeyframePoints  # its sparse points (PnP of the next frames)
+
+
+class MonocularFrontend:
+    """Camera-only (or given-pose) frontend; see the module docstring."""
+
+    def __init__(
+        self,
+        params: MonocularParams,
+        camera: CameraModel,
+        T_imu_cam: NDArray | None = None,
+        *,
+        given_poses: bool = False,
+    ) -> None:
+        if not given_poses and not params.ground.enabled:
+            raise ConfigError(
+                "camera-only: the metric scale comes from the road: needs the camera height "
+                "(player.camera_height_m, or frontend.ground.camera_height_m > 0)"
+            )
+        if camera.model != "none":
+            raise ConfigError(
+                f"camera-only: needs rectified images (camera model 'none', got {camera.model!r})"
+            )
+        self.params = replace(
+            params, ground=replace(params.ground, max_residual=params.ground_max_residual)
+        )
+        self.given_poses = given_poses
+        self.camera = camera
+        self.T_imu_cam = None if T_imu_cam is None else np.asarray(T_imu_cam, np.float64)
+        if params.road_normal_cam is not None:
+            n = np.asarray(params.road_normal_cam, np.float64)
+        elif self.T_imu_cam is not None:
+            n = road_normal_from_mount(self.T_imu_cam)
+        else:
+            n = np.array([0.0, 1.0, 0.0])
+        self.normal_cam = n / np.linalg.norm(n)
+        self.tracker = FeatureTracker(params.points.tracker(), camera)
+        self.history = TrackHistory(params.points.history_frames)
+        self.kf: _Keyframe | None = None
+        self._keyframe_id = 0
+        self._frame_index = 0
+        self._last_ns: int | None = None
+        self._last_pose: tuple[int, NDArray] | None = None  # (t_ns, T_world_cam)
+        self._speed_m_s: float | None = None
+        self._speeds: list[float] = []
+        # the previous frame with a pose: (t_ns, grey, R_cam_kf, T_world_cam)
+        self._prev: tuple[int, NDArray, NDArray, NDArray] | None = None
+        self._prev_R_kf = np.eye(3)
+        self._dist_since_kf = 0.0  # road distance travelled since the keyframe
+        fwd = np.array([0.0, 0.0, 1.0]) - self.normal_cam * self.normal_cam[2]
+        self._dir_kf = fwd / np.linalg.norm(fwd)  # a car moves along the road, ahead
+        self.counters: dict[str, float] = {
+            "frames": 0,
+            "keyframes": 0,
+            "imu_samples_ignored": 0,
+            "image_time_backwards": 0,
+            "image_wrong_size": 0,
+            "poses_essential": 0,
+            "poses_given": 0,
+            "frames_without_pose": 0,
+            "ground_measurements": 0,
+            "ground_failed": 0,
+            "ground_gated": 0,
+        }
+
+    @property
+    def pending_stamps_ns(self) -> list[int]:
+        return []  # nothing waits: there is no IMU to wait for
+
+    def add_imu(self, t_ns: int, gyro_rad_s: object, accel_m_s2: object) -> list[FrameOutput]:
+        """Ignored (camera-only), counted."""
+        self.counters["imu_samples_ignored"] += 1
+        return []
+
+    # ----------------------------------------------------------------------------------- frames
+
+    def add_image(
+        self, stamp_ns: int, image: NDArray, T_world_cam: NDArray | None = None
+    ) -> list[FrameOutput]:
+        """One frame; ``T_world_cam`` [4, 4]: the pose the user has (nothing is estimated)."""
+        if self._last_ns is not None and stamp_ns <= self._last_ns:
+            self.counters["image_time_backwards"] += 1
+            return []
+        pin = self.camera.pinhole
+        if image.ndim not in (2, 3) or image.shape[:2] != (pin.height, pin.width):
+            self.counters["image_wrong_size"] += 1
+            return []
+        self._last_ns = int(stamp_ns)
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        tr = self.tracker.track(image)
+        self.history.add(stamp_ns, tr.ids, tr.uv_px, gray)
+        self.counters["frames"] += 1
+        idx = self._frame_index
+        self._frame_index += 1
+        uv = dict(zip(tr.ids.tolist(), tr.uv_px))
+        if self.given_poses and T_world_cam is None:
+            self.counters["frames_without_pose"] += 1  # no pose of the user's for this frame
+            return [self._output(stamp_ns, idx, None, "no_pose")]
+        if self.kf is None:  # the first frame: the first keyframe (no points yet)
+            T0 = (
+                np.asarray(T_world_cam, np.float64)
+                if T_world_cam is not None
+                else road_aligned_start(self.normal_cam, self.params.ground.camera_height_m)
+            )
+            self.kf = _Keyframe(int(stamp_ns), gray, uv, T0, KeyframePoints.empty())
+            self.history.set_pose(stamp_ns, T0)
+            self._prev = (int(stamp_ns), gray, np.eye(3), T0)
+            return [self._output(stamp_ns, idx, T0, "tracking")]
+        parallax, shared = self._parallax(uv)
+        if T_world_cam is not None:
+            T = np.asarray(T_world_cam, np.float64)
+            self.counters["poses_given"] += 1
+            self._prev_R_kf = T[:3, :3].T @ self.kf.T_world_cam[:3, :3]
+        else:
+            T = self._estimate(stamp_ns, gray, uv, parallax, shared)
+        if T is None:
+            self.counters["frames_without_pose"] += 1
+            return [self._output(stamp_ns, idx, None, "initializing")]
+        self.history.set_pose(stamp_ns, T)
+        self._prev = (int(stamp_ns), gray, self._prev_R_kf, T)
+        out = self._output(stamp_ns, idx, T, "tracking")
+        p = self.params
+        interval = (stamp_ns - self.kf.t_ns) * 1e-9
+        if parallax >= p.min_parallax_px or (
+            interval >= p.max_interval_s and parallax >= p.min_pose_parallax_px
+        ):
+            out.keyframe = self._make_keyframe(stamp_ns, image, gray, uv, T)
+        return [out]
+
+    def _parallax(self, uv: dict[int, NDArray]) -> tuple[float, list[int]]:
+        assert self.kf is not None
+        shared = [i for i in uv if i in self.kf.uv]
+        if not shared:
+            return 0.0, shared
+        d = np.linalg.norm(np.array([uv[i] - self.kf.uv[i] for i in shared]), axis=1)
+        return float(np.median(d)), shared
+
+    def _relative_to_keyframe(
+        self, uv: dict[int, NDArray], parallax: float, shared: list[int]
+    ) -> tuple[NDArray, NDArray] | None:
+        """``R_cur_kf`` [3, 3] and the motion direction in the keyframe's camera [3] from the
+        essential matrix of the tracks shared with the keyframe (None: too few or too little
+        parallax)."""
+        assert self.kf is not None
+        p = self.params
+        if len(shared) < p.min_tracks or parallax < p.min_pose_parallax_px:
+            return None
+        uv0 = np.array([self.kf.uv[i] for i in shared], np.float64)
+        uv1 = np.array([uv[i] for i in shared], np.float64)
+        K = self.camera.K
+        E, mask = cv2.findEssentialMat(uv0, uv1, K, cv2.RANSAC, 0.999, p.ransac_px)
+        if E is None or E.shape != (3, 3) or mask is None:
+            return None
+        n_in, R, t, _ = cv2.recoverPose(E, uv0, uv1, K, mask=mask)
+        if n_in < p.min_inlier_share * mask.sum() or n_in < p.min_tracks // 2:
+            return None
+        t = t.reshape(3) / max(float(np.linalg.norm(t)), 1e-12)
+        return R, -R.T @ t  # X_cur = R X_kf + t: the camera moved along -R^T t
+
+    def _estimate(
+        self,
+        stamp_ns: int,
+        gray: NDArray,
+        uv: dict[int, NDArray],
+        parallax: float,
+        shared: list[int],
+    ) -> NDArray | None:
+        """``T_world_cam`` of this frame (None: no scale yet): the rotation from the essential
+        matrix against the keyframe (or the previous frame's, when there is too little parallax),
+        the step from the previous frame measured on the road along the motion direction."""
+        assert self.kf is not None and self._prev is not None
+        p = self.params
+        rel = self._relative_to_keyframe(uv, parallax, shared)
+        if rel is not None:
+            R_cur_kf, self._dir_kf = rel
+            self.counters["poses_essential"] += 1
+        else:
+            R_cur_kf = self._prev_R_kf  # too little parallax: no rotation since the last frame
+        t_prev, gray_prev, R_prev_kf, T_world_prev = self._prev
+        dt = (stamp_ns - t_prev) * 1e-9
+        d_prev = R_prev_kf @ self._dir_kf  # motion direction in the previous camera
+        R_cur_prev = R_cur_kf @ R_prev_kf.T
+        h = p.ground.camera_height_m
+        step = None
+        if dt > 0:
+            if self._speed_m_s is None:
+                guess, g = (
+                    p.first_speed_m_s * dt,
+                    replace(p.ground, search_span=p.first_search_span),
+                )
+            else:
+                guess, g = max(self._speed_m_s, 0.3) * dt, p.ground
+            m = estimate_ground_translation(
+                gray_prev,
+                gray,
+                self.camera.K,
+                R_cur_prev,
+                -R_cur_prev @ d_prev,
+                self.normal_cam,
+                guess / h,
+                g,
+                search=True,
+            )
+            if m is not None and m.distance_m <= p.max_speed_m_s * dt:
+                step = self._gate(m.distance_m / dt) * dt
+        if step is None:
+            self.counters["ground_failed"] += 1
+            if self._speed_m_s is None:
+                return None
+            step = self._speed_m_s * dt  # constant speed over a gap of the road
+        self._dist_since_kf += step
+        self._prev_R_kf = R_cur_kf
+        if rel is not None:  # along the essential matrix's direction: consistent with the tracks
+            t_cur_kf = -R_cur_kf @ self._dir_kf * self._dist_since_kf
+            return self.kf.T_world_cam @ se3_inverse(make_T(R_cur_kf, t_cur_kf))
+        T = np.eye(4)
+        T[:3, :3] = self.kf.T_world_cam[:3, :3] @ R_cur_kf.T
+        T[:3, 3] = T_world_prev[:3, 3] + step * (T_world_prev[:3, :3] @ d_prev)
+        return T
+
+    def _gate(self, speed_m_s: float) -> float:
+        """A road measurement far from the recent ones (a vehicle ahead, a shadow) is replaced by
+        their median; accepted ones are remembered."""
+        p = self.params
+        recent = self._speeds
+        if len(recent) >= 3:
+            med = float(np.median(recent))
+            if abs(speed_m_s / max(med, 1e-6) - 1) > p.gate_rel:
+                self.counters["ground_gated"] += 1
+                self._speed_m_s = med
+                return med
+        recent.append(speed_m_s)
+        del recent[: -p.gate_window]
+        self.counters["ground_measurements"] += 1
+        self._speed_m_s = float(np.median(recent[-3:]))
+        return speed_m_s
+
+    def _make_keyframe(
+        self, stamp_ns: int, image: NDArray, gray: NDArray, uv: dict, T: NDArray
+    ) -> KeyframeOutput:
+        pts = keyframe_points(self.history, self.camera.pinhole, self.params.points)
+        self.kf = _Keyframe(int(stamp_ns), gray, uv, T, pts)
+        self._dir_kf = self._prev_R_kf @ self._dir_kf  # into the new keyframe's camera
+        self._prev_R_kf = np.eye(3)
+        self._dist_since_kf = 0.0
+        assert self._prev is not None
+        self._prev = (self._prev[0], gray, np.eye(3), T)
+        self.counters["keyframes"] += 1
+        kf = KeyframeOutput(
+            keyframe_id=self._keyframe_id,
+            stamp_ns=int(stamp_ns),
+            image=np.asarray(image),
+            K=self.camera.K.copy(),
+            T_world_cam=T.copy(),
+            feature_ids=pts.ids.astype(np.int64),
+            feature_uv_px=pts.uv_px.astype(np.float32),
+            feature_xyz_cam_m=pts.xyz_cam_m.astype(np.float32),
+            feature_cov_cam_m2=pts.cov_cam_m2.astype(np.float32),
+            feature_weight=pts.weight.astype(np.float32),
+        )
+        self._keyframe_id += 1
+        return kf
+
+    def _output(self, stamp_ns: int, idx: int, T: NDArray | None, status: str) -> FrameOutput:
+        v = None
+        if T is not None:
+            if self._last_pose is not None and stamp_ns > self._last_pose[0]:
+                dt = (stamp_ns - self._last_pose[0]) * 1e-9
+                v = (T[:3, 3] - self._last_pose[1][:3, 3]) / dt
+            else:
+                v = np.zeros(3)
+            self._last_pose = (int(stamp_ns), T)
+        return FrameOutput(int(stamp_ns), idx, status, T, v)
