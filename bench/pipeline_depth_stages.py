@@ -7,7 +7,8 @@ frontend poses | flow on ground-truth poses | simulated LFM) and masks (graph | 
 docs/benchmarks.md.
 
     python bench/pipeline_depth_stages.py [--seed S] [--launch launch/demo.yaml] [--json OUT]
-        [--live] [--no-docs]  (without it the section of docs/benchmarks.md is rewritten)
+        [--live | --live-runs DEMO_DIR LFM_DIR] [--no-docs]  (without it the section of
+        docs/benchmarks.md is rewritten)
 
 ``--live`` also runs the pipeline itself (``mogs demo``, one OS process per node) with the demo
 launch file and with ``launch/demo_lfm.yaml`` (the simulated LFM as prior, evaluation only) and
@@ -111,7 +112,10 @@ def live(launch: str) -> dict:
     with tempfile.TemporaryDirectory(prefix="mogs-live-") as tmp:
         cmd = [sys.executable, "-m", "mogs_node.cli", "demo", "--launch", launch, "--out", tmp]
         logging.info("running %s", " ".join(cmd))
-        subprocess.run(cmd, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+        run = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+        if run.returncode != 0:
+            tail = (run.stdout + run.stderr)[-4000:]
+            raise RuntimeError(f"{' '.join(cmd)} failed ({run.returncode}):\n{tail}")
         summary = json.loads((Path(tmp) / "summary.json").read_text())
     return summary["depth"]
 
@@ -144,6 +148,14 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="also write the figures here")
     ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     ap.add_argument("--live", action="store_true", help="also run the pipeline (two mogs demo)")
+    ap.add_argument(
+        "--live-runs",
+        nargs=2,
+        metavar=("DEMO_DIR", "LFM_DIR"),
+        default=None,
+        help="instead of --live: the output folders of `mogs demo` runs made with the demo "
+        "launch file and launch/demo_lfm.yaml (their summary.json)",
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     t0 = time.perf_counter()
@@ -153,9 +165,14 @@ def main() -> None:
     fig = evaluate_stages(kfs, inputs, params)
     info.pop("K_sim", None)
     fig["info"] = info
-    if args.live:
-        for key, launch in (("live", args.launch or "launch/demo.yaml"), ("live_lfm", LFM_LAUNCH)):
-            d = live(launch)
+    if args.live or args.live_runs:
+        launches = (("live", args.launch or "launch/demo.yaml"), ("live_lfm", LFM_LAUNCH))
+        for i, (key, launch) in enumerate(launches):
+            if args.live_runs:
+                summary = json.loads((Path(args.live_runs[i]) / "summary.json").read_text())
+                d = summary["depth"]
+            else:
+                d = live(launch)
             fig[f"{key}_depth"] = d
             fig[f"{key}_absrel"] = d["absrel"]
             fig[f"{key}_coverage"] = d["coverage"]
@@ -165,7 +182,7 @@ def main() -> None:
         f" {a}" for a in sys.argv[1:] if a != "--no-docs"
     )
     md = markdown(fig, info, command)
-    if args.live:
+    if args.live or args.live_runs:
         md = md.replace(LIVE_ANCHOR, "\n".join(live_markdown(fig)) + "\n\n" + LIVE_ANCHOR)
     print(md)
     if args.json:

@@ -85,6 +85,7 @@ def _pool(scores: list) -> dict[str, float]:
     cov = [s.coverage for s in scores]
     return {
         "absrel": sum(s.sum_abs_rel for s in scores) / n if n else float("nan"),
+        "rmse": float(np.sqrt(sum(s.sum_sq for s in scores) / n)) if n else float("nan"),
         "delta1": sum(s.n_delta1 for s in scores) / n if n else float("nan"),
         "coverage": float(np.mean(cov)) if cov else 0.0,
         "min_keyframe_coverage": float(min(cov, default=0.0)),
