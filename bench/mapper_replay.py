@@ -28,6 +28,7 @@ import shutil
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ from mogs_node.eval.report import REPO_ROOT, write_json
 from mogs_node.journal.store import JournalStore
 from mogs_node.launch import load_launch_file
 from mogs_node.mapper.image_metrics import psnr_db, ssim
-from mogs_node.mapper.mapper import GaussianMapper, export_ply
+from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
 from mogs_node.mapper.node import MapperNodeParams, depth_for_keyframe
 
 
@@ -67,8 +68,19 @@ def mapper_params(launch: str, overrides: dict[str, Any]) -> MapperNodeParams:
     return MapperNodeParams(**kw)
 
 
+def core_params(p: MapperNodeParams, core: dict[str, Any]) -> MapperParams:
+    """The node's core parameters with ``core`` overrides: ``name`` or ``insertion.name``."""
+    mp = p.mapper_params()
+    ins = {k.split(".", 1)[1]: v for k, v in core.items() if k.startswith("insertion.")}
+    top = {k: v for k, v in core.items() if not k.startswith("insertion.")}
+    return replace(mp, insertion=replace(mp.insertion, **ins), **top)
+
+
 def replay(
-    data: dict[str, list[Any]], p: MapperNodeParams, max_keyframes: int = 0
+    data: dict[str, list[Any]],
+    p: MapperNodeParams,
+    max_keyframes: int = 0,
+    core: dict[str, Any] | None = None,
 ) -> tuple[GaussianMapper, list[dict[str, float]]]:
     """Map every keyframe in order (the first ``max_keyframes``, 0: all); returns the mapper and
     per-keyframe CPU times (printed as they come)."""
@@ -81,7 +93,7 @@ def replay(
         rgb = kf.rgb()
         H, W = rgb.shape[:2]
         if mapper is None:
-            mapper = GaussianMapper(p.mapper_params(), kf.K, W, H)
+            mapper = GaussianMapper(core_params(p, core or {}), kf.K, W, H)
         d, c = depth_for_keyframe(depth[kf.keyframe_id], W, H)
         c0 = time.process_time()
         n_new = mapper.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
@@ -156,6 +168,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("journal", help="runs/<ts>/journal/journal.log of a pipeline run")
     ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
     ap.add_argument("--set", action="append", default=[], help="mapper param=JSON value")
+    ap.add_argument(
+        "--core",
+        action="append",
+        default=[],
+        help="MapperParams field=JSON value (insertion.FIELD for InsertionParams)",
+    )
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-keyframes", type=int, default=0, help="map only the first n (0: all)")
     ap.add_argument("--profile", action="store_true", help="print the cProfile table")
@@ -168,12 +186,13 @@ def main(argv: list[str] | None = None) -> int:
         k, v = kv.split("=", 1)
         overrides[k] = json.loads(v)
     p = mapper_params(args.launch, overrides)
+    core = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.core)}
     data = read_journal(Path(args.journal))
     prof = cProfile.Profile() if args.profile else None
     c0 = time.process_time()
     if prof:
         prof.enable()
-    mapper, per_kf = replay(data, p, args.max_keyframes)
+    mapper, per_kf = replay(data, p, args.max_keyframes, core)
     if prof:
         prof.disable()
     cpu_total = time.process_time() - c0

@@ -75,6 +75,11 @@ def test_final_map_figures_and_report_section(tmp_path: Path) -> None:
     assert not c.map_ready
     c.map_updated.add(1)
     assert c.map_ready
+    # a mapper that refines after the drive: ready only once its final stats arrived
+    c.need_final = True
+    assert not c.map_ready
+    c.final_seen = True
+    assert c.map_ready
     c.view_scores = [
         ViewScore("heldout", 150, -1, 20.0, 0.5, 1.0, "renders/heldout_150.png"),
         ViewScore("heldout", 170, -1, 30.0, 0.9, 0.5, "renders/heldout_170.png"),

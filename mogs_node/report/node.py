@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
@@ -83,12 +84,16 @@ class RunReportParams:
     max_stored_frames: int = 64  # camera images kept as held-out candidates (an even sample)
     render_backend: str = "auto"  # rasterizer backend of the final renders
     render_budget_s: float = 1.0  # rendering per timer tick before heartbeats get their turn
+    threads: int = 0  # torch threads of the final renders (0: torch's default; 1 on shared
+    # cores, where two OpenMP threads mostly wait for each other)
     image_topic: str = "/camera/image"  # ground truth of the held-out views
     gaussians_topic: str = "/mapper/gaussians"  # incremental map updates
     wait_final_map: bool = False  # the mapper refines after the drive (final_refine_iters):
     # render once its /mapper/stats marked final arrived
 
     def __post_init__(self) -> None:
+        if self.threads < 0:
+            raise ConfigError("report.threads: must be >= 0")
         if self.heldout_views < 0 or self.max_keyframe_views < 0 or self.max_stored_frames < 1:
             raise ConfigError(
                 "report: heldout_views >= 0, max_keyframe_views >= 0, max_stored_frames >= 1"
@@ -101,6 +106,8 @@ class RunReportNode(Node):
     def setup(self) -> None:
         p: RunReportParams = self.params
         self.out = Path(p.out_dir)
+        if p.threads:
+            torch.set_num_threads(p.threads)
         (self.out / "depth").mkdir(parents=True, exist_ok=True)
         if p.render_backend in ("auto", "cpp"):
             # compile or load the rasterizer now (first run on a machine: a minute), not at the
