@@ -43,6 +43,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--viz", default=None, metavar="DIR", help="write image|masks|prior|depth|error strips"
     )
     depth.add_argument(
+        "--points",
+        choices=["lidar", "tracks"],
+        default="lidar",
+        help="kitti78 sparse points: LiDAR at the tracked corners, or the system's own KLT "
+        "tracks triangulated with the PnP poses (docs/frontend.md)",
+    )
+    depth.add_argument(
         "--json", default=None, metavar="PATH", help="also write the figures as JSON"
     )
     depth.set_defaults(_eval="depth")

@@ -63,6 +63,7 @@ class TrackPointsParams:
     # reprojection gate catches the same drifting tracks)
     klt_max_iter: int = 10  # KLT iterations per pyramid level
     top_up_every: int = 2  # new corners every this many frames (corner search is half the cost)
+    ransac_thresh_px: float = 1.0  # F-RANSAC threshold of the dense tracker (undistorted px)
     bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
     bucket_rows: int = 5
     history_frames: int = 10  # frames of observations (and poses) a track is triangulated from
@@ -111,6 +112,7 @@ class TrackPointsParams:
             fb_check=self.fb_check,
             klt_max_iter=self.klt_max_iter,
             top_up_every=self.top_up_every,
+            ransac_thresh_px=self.ransac_thresh_px,
             square_spacing=True,
             bucket_cols=self.bucket_cols,
             bucket_rows=self.bucket_rows,
