@@ -15,12 +15,17 @@ poses:
    between close pixels) are dropped: a point near a depth edge carries the wrong side's depth.
 5. :func:`carry_forward`: a keyframe with too few fresh points (standstill) takes the previous
    keyframe's points moved into its camera frame.
+6. :func:`reproject_points` + :func:`merge_points`: while moving, the previous keyframe's points
+   that the new keyframe still sees (their patch, moved by the relative pose and scaled by the
+   depth ratio, still matches: not occluded, not out of view) join the fresh ones (map points
+   re-observed, as a keyframe-based SLAM tracks its local map).
 
 :class:`TrackHistory` keeps the observations and poses of the last frames. No I/O, no bus.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass
 
@@ -43,8 +48,10 @@ __all__ = [
     "depth_edge_flags",
     "gate_points",
     "keyframe_points",
+    "merge_points",
     "patch_zncc",
     "refine_points",
+    "reproject_points",
     "triangulate_dlt",
 ]
 
@@ -84,6 +91,8 @@ class TrackPointsParams:
     suspect_zncc: float = 0.95  # a point with a lower ZNCC ...
     suspect_reproj_px: float = 0.3  # ... or a larger reprojection error ...
     suspect_weight: float = 0.25  # ... keeps this share of its omega
+    reproject: bool = True  # the previous keyframe's points that still match join the fresh ones
+    reproject_min_zncc: float = 0.9  # their patch against the previous keyframe's, at least this
     carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward,
     carry_max_motion_m: float = 0.25  # if the camera moved less than this since (standstill:
     # moving on, occluders move over the old points and they no longer hold)
@@ -157,6 +166,17 @@ class KeyframePoints:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def subset(self, mask: NDArray) -> KeyframePoints:
+        """The points selected by ``mask`` [N] (bool) or an index array."""
+        return KeyframePoints(
+            self.ids[mask],
+            self.uv_px[mask],
+            self.xyz_cam_m[mask],
+            self.cov_cam_m2[mask],
+            self.weight[mask],
+            self.carried,
+        )
 
 
 def _check_views(uv_px: NDArray, T_ref_cams: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -374,6 +394,81 @@ def patch_zncc(
     return np.where(den > 1e-6, (a * b).sum(axis=1) / np.maximum(den, 1e-6), 0.0)
 
 
+def _moved(
+    prev: KeyframePoints, T_cur_prev: NDArray, camera: PinholeCamera
+) -> tuple[NDArray[np.bool_], KeyframePoints]:
+    """Every point of ``prev`` moved by ``T_cur_prev`` [4, 4] (covariances rotated), and which
+    of them [N] land in the image in front of the camera."""
+    T = check_array("T_cur_prev", T_cur_prev, shape=(4, 4), finite=True).astype(np.float64)
+    xyz = transform_points(T, prev.xyz_cam_m.astype(np.float64))
+    uv, front = camera.project(xyz)
+    R = T[:3, :3]
+    cov = R[None] @ prev.cov_cam_m2.astype(np.float64) @ R.T[None]
+    moved = KeyframePoints(
+        ids=prev.ids,
+        uv_px=uv.astype(np.float32),
+        xyz_cam_m=xyz.astype(np.float32),
+        cov_cam_m2=cov.astype(np.float32),
+        weight=prev.weight,
+    )
+    return front & camera.in_image(uv), moved
+
+
+def reproject_points(
+    prev: KeyframePoints,
+    T_cur_prev: NDArray,
+    camera: PinholeCamera,
+    image_prev: NDArray,
+    image_cur: NDArray,
+    *,
+    radius_px: int,
+    min_zncc: float,
+) -> KeyframePoints:
+    """The previous keyframe's points that the current keyframe still sees, in its camera.
+
+    ``T_cur_prev`` [4, 4] as in :func:`carry_forward`; ``image_prev``, ``image_cur`` [H, W] the
+    two keyframes' undistorted grey images. A point is kept when it lands in the image in front
+    of the camera and the patch around its new pixel matches the patch around its old one
+    (:func:`patch_zncc`, scaled by the depth ratio) with a ZNCC of at least ``min_zncc``: an
+    occluder that moved over it, or a point on a moving object, fails.
+    """
+    keep, moved = _moved(prev, T_cur_prev, camera)
+    idx = np.flatnonzero(keep)
+    z_prev = np.maximum(prev.xyz_cam_m[idx, 2].astype(np.float64), 1e-9)
+    scale = moved.xyz_cam_m[idx, 2] / z_prev
+    zncc = patch_zncc(image_cur, moved.uv_px[idx], image_prev, prev.uv_px[idx], scale, radius_px)
+    keep[idx] = zncc >= min_zncc
+    return moved.subset(keep)
+
+
+def merge_points(
+    fresh: KeyframePoints, old: KeyframePoints, *, min_distance_px: float, params: TrackPointsParams
+) -> KeyframePoints:
+    """``fresh`` with those of ``old`` (re-observed points) that add to it: not the same track,
+    not within ``min_distance_px`` of a fresh point, and not across a depth edge from their
+    neighbours in the union (:func:`depth_edge_flags`; fresh points are kept as they are)."""
+    if len(old) == 0:
+        return fresh
+    add = ~np.isin(old.ids, fresh.ids)
+    if len(fresh):
+        d, _ = cKDTree(fresh.uv_px).query(old.uv_px, k=1)
+        add &= d >= min_distance_px
+    uv = np.concatenate([fresh.uv_px, old.uv_px[add]])
+    z = np.concatenate([fresh.xyz_cam_m[:, 2], old.xyz_cam_m[add, 2]])
+    edge = depth_edge_flags(uv, z, radius_px=params.edge_radius_px, rel_jump=params.edge_rel_jump)[
+        len(fresh) :
+    ]
+    add[np.flatnonzero(add)[edge]] = False
+    new = old.subset(add)
+    return KeyframePoints(
+        *(
+            np.concatenate([getattr(fresh, k), getattr(new, k)])
+            for k in ("ids", "uv_px", "xyz_cam_m", "cov_cam_m2", "weight")
+        ),
+        carried=fresh.carried,
+    )
+
+
 def carry_forward(
     prev: KeyframePoints, T_cur_prev: NDArray, camera: PinholeCamera
 ) -> KeyframePoints:
@@ -382,20 +477,8 @@ def carry_forward(
     ``T_cur_prev`` [4, 4]: the previous camera's pose in the current camera frame. Points that
     leave the image or fall behind the camera are dropped; covariances are rotated.
     """
-    T = check_array("T_cur_prev", T_cur_prev, shape=(4, 4), finite=True).astype(np.float64)
-    xyz = transform_points(T, prev.xyz_cam_m.astype(np.float64))
-    uv, front = camera.project(xyz)
-    keep = front & camera.in_image(uv)
-    R = T[:3, :3]
-    cov = R[None] @ prev.cov_cam_m2[keep].astype(np.float64) @ R.T[None]
-    return KeyframePoints(
-        ids=prev.ids[keep],
-        uv_px=uv[keep].astype(np.float32),
-        xyz_cam_m=xyz[keep].astype(np.float32),
-        cov_cam_m2=cov.astype(np.float32),
-        weight=prev.weight[keep],
-        carried=True,
-    )
+    keep, moved = _moved(prev, T_cur_prev, camera)
+    return dataclasses.replace(moved.subset(keep), carried=True)
 
 
 @dataclass
@@ -429,6 +512,10 @@ class TrackHistory:
         self._frames.append((int(t_ns), np.asarray(ids)[order], np.asarray(uv_px)[order], image))
         kept = {fr[0] for fr in self._frames}
         self._poses = {t: T for t, T in self._poses.items() if t in kept}
+
+    def newest_image(self) -> NDArray[np.uint8] | None:
+        """The newest frame's grey image [H, W] (None: none kept)."""
+        return self._frames[-1][3] if self._frames else None
 
     def set_pose(self, t_ns: int, T_world_cam: NDArray) -> None:
         """Latest estimate of the camera pose [4, 4] of frame ``t_ns`` (ignored if not kept)."""
