@@ -173,7 +173,11 @@ class Frontend:
         )
         self._history = TrackHistory(params.points.history_frames)
         self._last_points: tuple[NDArray, KeyframePoints] | None = None  # (T_world_cam, points)
-        self._last_points_image: NDArray[np.uint8] | None = None  # that keyframe's grey image
+        # the last keyframes' (T_world_cam, points, grey image): their points that a new
+        # keyframe still sees join its own
+        self._recent_points: deque[tuple[NDArray, KeyframePoints, NDArray]] = deque(
+            maxlen=max(params.points.reproject_keyframes, 1)
+        )
         self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
         self._pim_params = make_params(params.imu)
         self.imu = _ImuBuffer()
@@ -416,7 +420,7 @@ class Frontend:
         self._prev_gray = None
         self._history.reset()  # the next initialisation starts a new world frame
         self._last_points = None
-        self._last_points_image = None
+        self._recent_points.clear()
         self._ground_ratios.clear()
 
     def _measure_ground(self, image: NDArray) -> None:
@@ -554,19 +558,19 @@ class Frontend:
         pp = self.params.points
         pts = keyframe_points(self._history, self.camera.pinhole, pp)
         image = self._history.newest_image()
-        if pp.reproject and self._last_points is not None and image is not None:
-            T_world_prev, prev = self._last_points
-            if self._last_points_image is not None and len(prev):
-                old = reproject_points(
-                    prev,
-                    se3_inverse(T_world_cam) @ T_world_prev,
-                    self.camera.pinhole,
-                    self._last_points_image,
-                    image,
-                    radius_px=pp.patch_radius_px,
-                    min_zncc=pp.reproject_min_zncc,
-                )
-                pts = merge_points(pts, old, min_distance_px=pp.min_distance_px, params=pp)
+        for T_world_prev, prev, image_prev in reversed(self._recent_points):  # newest first
+            if image is None or len(prev) == 0:
+                continue
+            old = reproject_points(
+                prev,
+                se3_inverse(T_world_cam) @ T_world_prev,
+                self.camera.pinhole,
+                image_prev,
+                image,
+                radius_px=pp.patch_radius_px,
+                min_zncc=pp.reproject_min_zncc,
+            )
+            pts = merge_points(pts, old, min_distance_px=pp.min_distance_px, params=pp)
         if len(pts) < pp.carry_min_points and self._last_points is not None:
             T_world_prev, prev = self._last_points
             T_cur_prev = se3_inverse(T_world_cam) @ T_world_prev
@@ -575,7 +579,8 @@ class Frontend:
                 if len(moved) > len(pts):
                     pts = moved
         self._last_points = (T_world_cam.copy(), pts)
-        self._last_points_image = image
+        if image is not None and pp.reproject_keyframes > 0:
+            self._recent_points.append((T_world_cam.copy(), pts, image))
         return pts
 
     def _make_keyframe(self, stamp_ns: int, image: NDArray, T_world_cam: NDArray) -> KeyframeOutput:

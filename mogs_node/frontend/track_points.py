@@ -15,7 +15,7 @@ poses:
    between close pixels) are dropped: a point near a depth edge carries the wrong side's depth.
 5. :func:`carry_forward`: a keyframe with too few fresh points (standstill) takes the previous
    keyframe's points moved into its camera frame.
-6. :func:`reproject_points` + :func:`merge_points`: while moving, the previous keyframe's points
+6. :func:`reproject_points` + :func:`merge_points`: while moving, the last keyframes' points
    that the new keyframe still sees (their patch, moved by the relative pose and scaled by the
    depth ratio, still matches: not occluded, not out of view) join the fresh ones (map points
    re-observed, as a keyframe-based SLAM tracks its local map).
@@ -82,7 +82,8 @@ class TrackPointsParams:
     pixel_sigma_px: float = 0.5  # KLT noise assumed for the covariance (at least the residual)
     max_depth_rel_sigma: float = 0.05  # 1-sigma depth / depth above this: dropped
     omega_rel_sigma: float = 0.02  # omega = 1 / (1 + (sigma_z / z / this)^2)
-    gn_iterations: int = 4  # Gauss-Newton iterations of the refinement
+    gn_iterations: int = 2  # Gauss-Newton iterations of the refinement (from the DLT start, 2
+    # and 4 give the same points on the demo drive)
     edge_radius_px: float = 8.0  # neighbours this close in the image are compared ...
     edge_rel_jump: float = 0.1  # ... and a relative depth jump larger than this marks an edge
     patch_radius_px: int = 3  # photometric check: (2r+1)^2 patch around the point in the
@@ -91,7 +92,8 @@ class TrackPointsParams:
     suspect_zncc: float = 0.95  # a point with a lower ZNCC ...
     suspect_reproj_px: float = 0.3  # ... or a larger reprojection error ...
     suspect_weight: float = 0.25  # ... keeps this share of its omega
-    reproject: bool = True  # the previous keyframe's points that still match join the fresh ones
+    reproject_keyframes: int = 3  # the last keyframes whose points join a new keyframe's fresh
+    # ones where they still match (0: none)
     reproject_min_zncc: float = 0.9  # their patch against the previous keyframe's, at least this
     carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward,
     carry_max_motion_m: float = 0.25  # if the camera moved less than this since (standstill:
@@ -106,8 +108,13 @@ class TrackPointsParams:
             raise ConfigError("points: max_reproj_px, pixel_sigma_px, omega_rel_sigma > 0")
         if not 0 < self.suspect_weight <= 1:
             raise ConfigError("points: 0 < suspect_weight <= 1")
-        if self.bucket_cols < 0 or self.bucket_rows < 0 or self.gn_iterations < 0:
-            raise ConfigError("points: bucket_cols, bucket_rows, gn_iterations >= 0")
+        if (
+            min(self.bucket_cols, self.bucket_rows, self.gn_iterations, self.reproject_keyframes)
+            < 0
+        ):
+            raise ConfigError(
+                "points: bucket_cols, bucket_rows, gn_iterations, reproject_keyframes >= 0"
+            )
 
     def tracker(self) -> TrackerParams:
         """Parameters of the dense :class:`~mogs_node.frontend.tracker.FeatureTracker`."""
@@ -215,8 +222,11 @@ def triangulate_dlt(
     ok = valid.sum(axis=1) >= 2
     if not np.any(ok):
         return out
-    _, _, Vt = np.linalg.svd(A[ok])
-    Xh = Vt[:, -1, :]  # [M, 4]
+    # the right singular vector of A's smallest singular value = the eigenvector of A^T A [4, 4]
+    # with the smallest eigenvalue (an order of magnitude faster than a batched SVD of [2F, 4])
+    AtA = np.einsum("nki,nkj->nij", A[ok], A[ok])
+    _, V = np.linalg.eigh(AtA)
+    Xh = V[:, :, 0]  # [M, 4]
     w = Xh[:, 3]
     finite = np.abs(w) > 1e-9 * np.linalg.norm(Xh, axis=1)
     pts = np.full((len(Xh), 3), np.nan)
