@@ -242,6 +242,41 @@ def traj_lines(paths: list[str]) -> list[str]:
     return out
 
 
+SWEEP_HEAD = "Run time against ATE"
+ACCURACY_HEAD = "Accuracy (`mogs eval traj"
+
+
+def kept_tables(section: str, *, sweep: bool, accuracy: bool) -> list[str]:
+    """The knob sweep and / or the accuracy tables of the current ``frontend`` section of
+    docs/benchmarks.md (``section``: its text), for a run that does not redo them (--no-sweep,
+    no --traj-json); their first line says they come from an earlier run."""
+    out: list[str] = []
+    for wanted, head, stop in (
+        (sweep, SWEEP_HEAD, ACCURACY_HEAD),
+        (accuracy, ACCURACY_HEAD, None),
+    ):
+        if not wanted or head not in section:
+            continue
+        part = section[section.index(head) :]
+        if stop is not None and stop in part:
+            part = part[: part.index(stop)]
+        lines = part.rstrip().splitlines()
+        if "kept from" not in lines[0]:
+            lines[0] = lines[0].replace(head, head + " (kept from an earlier run, not re-run)", 1)
+        out += ["", *lines]
+    return out
+
+
+def current_section(name: str = "frontend") -> str:
+    """Text of section ``name`` of docs/benchmarks.md ('' if absent)."""
+    p = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+    text = p.read_text() if p.exists() else ""
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    if begin not in text or end not in text:
+        return ""
+    return text.split(begin, 1)[1].split(end, 1)[0]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100, help="frames per run (10 Hz)")
@@ -364,6 +399,8 @@ def main(argv: list[str] | None = None) -> int:
                 for n, v, ms, fps, a, p in sweep
             ]
         lines += point_lines
+        if not sweep or not args.traj_json:  # keep what this run does not redo
+            lines += kept_tables(current_section(), sweep=not sweep, accuracy=not args.traj_json)
         lines += traj_lines(args.traj_json)
         update_markdown_section("frontend", "\n".join(lines))
     print(json.dumps(figures, indent=1, default=float))

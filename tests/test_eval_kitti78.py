@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mogs_node.errors import ConfigError
 from mogs_node.eval.depth_kitti78 import _static_pnp, sample_lidar
 from mogs_node.geometry import PinholeCamera, make_T, so3_exp, transform_points
 
@@ -63,7 +64,7 @@ def test_evaluate_on_two_real_frames(tmp_path) -> None:
     folder = shared_data("kitti_raw_2011_09_26_78")
     args = argparse.Namespace(data=str(folder), frames=2, viz=str(tmp_path / "viz"), json=None)
     res = evaluate(args)
-    assert res["dataset"] == "kitti78" and res["frames"] == 2
+    assert res["dataset"] == "kitti78" and res["frames"] == 2 and res["points"] == "lidar"
     assert set(METHODS) <= set(res["methods"])
     for name in METHODS:
         m = res["methods"][name]
@@ -93,3 +94,46 @@ def test_full_mogs_beats_baselines_on_the_whole_excerpt() -> None:
     assert res["frames"] >= 70
     for base in ("no_msc_cdr", "interp_nearest", "interp_edge_aware"):
         assert m["full"]["absrel"] < m[base]["absrel"], base
+
+
+@pytest.mark.shared_data
+def test_track_points_are_metric_on_real_frames() -> None:
+    """The system's own points (dense KLT tracks triangulated with the PnP poses) agree with the
+    LiDAR return at their pixel, which they never saw."""
+    from conftest import shared_data
+
+    from mogs_node.eval.depth_kitti78 import load_kitti78, localise_pnp, track_points
+
+    data = load_kitti78(shared_data("kitti_raw_2011_09_26_78"))
+    data.rgb, data.lidar_m = data.rgb[:25], data.lidar_m[:25]
+    poses, _, _ = localise_pnp(data)
+    pts = track_points(data, poses, {5, 24})
+    assert set(pts) == {5, 24}
+    rel = []
+    for i, f in pts.items():
+        assert not f.used.any() and len(f.z) == len(f.uv) == len(f.w)
+        assert np.all(f.z > 0) and np.all((f.w > 0) & (f.w <= 1))
+        z_lidar, _ = sample_lidar(data.lidar_m[i], f.uv)
+        ok = z_lidar > 0
+        rel.append(np.abs(f.z[ok] - z_lidar[ok]) / z_lidar[ok])
+    assert len(pts[24].z) >= 40
+    assert np.median(np.concatenate(rel)) < 0.05
+
+
+@pytest.mark.shared_data
+def test_evaluate_with_track_points_reports_its_source(tmp_path) -> None:
+    from conftest import shared_data
+
+    from mogs_node.eval.depth_kitti78 import METHODS, evaluate
+
+    folder = shared_data("kitti_raw_2011_09_26_78")
+    args = argparse.Namespace(data=str(folder), frames=2, viz=None, json=None, points="tracks")
+    res = evaluate(args)
+    assert res["points"] == "tracks" and res["frames"] == 2
+    assert res["localisation"]["sparse_points_mean"] > 20
+    assert res["localisation"]["sparse_rel_err_median"] < 0.05
+    # every LiDAR pixel is held out: ground truth is all LiDAR returns of the evaluated frames
+    for name in METHODS:
+        assert 0 < res["methods"][name]["absrel"] < 1
+    with pytest.raises(ConfigError, match="points"):
+        evaluate(argparse.Namespace(data=str(folder), frames=2, viz=None, json=None, points="x"))

@@ -21,8 +21,10 @@ from mogs_node.frontend.track_points import (
     depth_edge_flags,
     gate_points,
     keyframe_points,
+    merge_points,
     patch_zncc,
     refine_points,
+    reproject_points,
     triangulate_dlt,
 )
 from mogs_node.frontend.tracker import FeatureTracker
@@ -145,6 +147,62 @@ def test_patch_check_rejects_a_patch_across_a_depth_edge():
     z = patch_zncc(ref, uv_ref, view, uv_view, np.ones(3), 3)
     assert z[0] > 0.99
     assert z[1] < 0.8 and z[2] < 0.8
+
+
+def _points(uv: np.ndarray, z: np.ndarray, ids: np.ndarray) -> KeyframePoints:
+    return KeyframePoints(
+        ids.astype(np.int64),
+        uv.astype(np.float32),
+        CAM.backproject(uv, z).astype(np.float32),
+        np.tile(np.eye(3, dtype=np.float32) * 1e-4, (len(uv), 1, 1)),
+        np.full(len(uv), 0.5, np.float32),
+    )
+
+
+def test_reprojected_points_keep_what_is_still_seen_and_drop_what_is_covered():
+    rng = np.random.default_rng(11)
+    prev_img = rng.integers(0, 255, (188, 621)).astype(np.uint8)
+    u, v = np.meshgrid(np.arange(20.0, 600, 15), np.arange(20.0, 170, 15))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    prev = _points(uv, np.full(len(uv), 12.0), np.arange(len(uv)))
+    # the camera moved sideways (the wall at 12 m shifts 2 px to the right in the new image);
+    # an occluder now covers u < 200 of the new image
+    step_m = 2.0 * 12.0 / CAM.fx_px
+    T_cur_prev = make_T(np.eye(3), np.array([step_m, 0.0, 0.0]))
+    xyz = transform_points(T_cur_prev, prev.xyz_cam_m.astype(np.float64))
+    new_uv, _ = CAM.project(xyz)
+    shift = float(np.median(new_uv[:, 0] - uv[:, 0]))
+    np.testing.assert_allclose(new_uv[:, 0] - uv[:, 0], 2.0, atol=1e-4)
+    cur_img = np.roll(prev_img, 2, axis=1)
+    cur_img[:, :200] = rng.integers(0, 255, (188, 200)).astype(np.uint8)
+    out = reproject_points(prev, T_cur_prev, CAM, prev_img, cur_img, radius_px=3, min_zncc=0.9)
+    kept_u = prev.uv_px[np.searchsorted(prev.ids, out.ids), 0]
+    assert np.all(kept_u + shift >= 200 - 4)  # nothing under the occluder
+    assert np.sum(uv[:, 0] + shift > 205) - len(out) <= 2  # (nearly) all the rest kept
+    np.testing.assert_allclose(out.xyz_cam_m, xyz[out.ids].astype(np.float32), atol=1e-5)
+    np.testing.assert_allclose(out.uv_px, new_uv[out.ids], atol=1e-3)
+    # a wrong relative pose (the points land 6 px off their texture) keeps nothing
+    T_bad = make_T(np.eye(3), np.array([4 * step_m, 0.0, 0.0]))
+    bad = reproject_points(prev, T_bad, CAM, prev_img, cur_img, radius_px=3, min_zncc=0.9)
+    assert len(bad) <= 2
+
+
+def test_merge_adds_only_new_separate_and_depth_consistent_points():
+    fresh = _points(np.array([[100.0, 50], [200, 50], [300, 50]]), np.full(3, 10.0), np.arange(3))
+    old = _points(
+        np.array([[100.0, 90], [202, 51], [400, 50], [305, 52], [500, 120]]),
+        np.array([9.0, 10.0, 10.0, 30.0, 20.0]),
+        np.array([0, 10, 11, 12, 13]),  # id 0: the same track as a fresh point
+    )
+    p = TrackPointsParams()
+    out = merge_points(fresh, old, min_distance_px=5.0, params=p)
+    # id 10 lies 2 px from a fresh point; id 12 sits 5.8 px from a fresh point at a third of its
+    # depth (a depth edge); ids 11 and 13 are added
+    np.testing.assert_array_equal(out.ids, [0, 1, 2, 11, 13])
+    np.testing.assert_array_equal(out.xyz_cam_m[:3], fresh.xyz_cam_m)
+    assert merge_points(fresh, KeyframePoints.empty(), min_distance_px=5.0, params=p) is fresh
+    empty = merge_points(KeyframePoints.empty(), old, min_distance_px=5.0, params=p)
+    np.testing.assert_array_equal(empty.ids, old.ids)  # nothing fresh to clash with
 
 
 def test_carry_forward_moves_points_into_the_new_camera_exactly():

@@ -50,6 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--launch", default=None, help="demo: its launch file (default launch/demo.yaml)"
     )
     depth.add_argument(
+        "--points",
+        choices=["lidar", "tracks"],
+        default="lidar",
+        help="kitti78 sparse points: LiDAR at the tracked corners, or the system's own KLT "
+        "tracks triangulated with the PnP poses (docs/frontend.md)",
+    )
+    depth.add_argument(
         "--json", default=None, metavar="PATH", help="also write the figures as JSON"
     )
     depth.set_defaults(_eval="depth")

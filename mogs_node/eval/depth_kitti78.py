@@ -22,6 +22,13 @@ Protocol (issue 5; the excerpt has no IMU, so the visual-inertial frontend canno
    figures use the pixels where every method predicts a depth (methods differ in coverage: the
    flow prior covers ~30% of LiDAR pixels); each method's figures on its own coverage are under
    ``"own"``.
+
+With ``--points tracks`` step 1's sparse points are the system's own instead (issue 16): the
+frontend's dense tracker (:class:`~mogs_node.frontend.track_points.TrackPointsParams`) runs over
+the frames and each evaluated frame gets every well-triangulated track, exactly as a keyframe of
+the frontend does (:func:`~mogs_node.frontend.track_points.keyframe_points`: multi-view DLT +
+Gauss-Newton, paper IV-A, with its gates and depth-edge tests), from the PnP poses of step 2.
+LiDAR then serves only those poses and the ground truth (every LiDAR pixel is held out).
 """
 
 from __future__ import annotations
@@ -42,13 +49,22 @@ from mogs_node.depth_prior.flow_prior import (
     compute_flow_prior,
     fit_scale_huber,
 )
-from mogs_node.errors import DatasetError
+from mogs_node.errors import ConfigError, DatasetError
 from mogs_node.eval.metrics import depth_metrics, depth_metrics_by_range
 from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section
+from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
 
-__all__ = ["Kitti78", "evaluate", "load_kitti78", "localise_pnp", "sample_lidar"]
+__all__ = [
+    "POINT_SOURCES",
+    "Kitti78",
+    "evaluate",
+    "load_kitti78",
+    "localise_pnp",
+    "sample_lidar",
+    "track_points",
+]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +75,7 @@ SAMPLE_RADIUS_PX = 2
 SAMPLE_MAX_SPREAD = 0.1
 PNP_THRESH_PX = 1.0
 TRACKER_MAX_FEATURES = 300
+POINT_SOURCES = ("lidar", "tracks")  # --points: LiDAR at the corners, or triangulated tracks
 
 
 @dataclass
@@ -223,6 +240,46 @@ def localise_pnp(data: Kitti78) -> tuple[NDArray[np.float64], list[_Frame], dict
     return np.array(poses), frames, stats
 
 
+def track_points(
+    data: Kitti78,
+    T_world_cams: NDArray[np.float64],
+    frames: set[int],
+    params: TrackPointsParams | None = None,
+) -> dict[int, _Frame]:
+    """The system's own sparse points of ``frames``: dense KLT tracks triangulated with the poses.
+
+    ``T_world_cams`` [F, 4, 4]: the PnP poses of :func:`localise_pnp`. The frontend's dense
+    tracker runs over the frames (no rotation prediction: the excerpt has no IMU); at each frame
+    of ``frames`` :func:`~mogs_node.frontend.track_points.keyframe_points` triangulates the tracks
+    alive in it from the frames they were seen in (paper IV-A) and gates them, as the frontend
+    does for a keyframe. No LiDAR pixel is used (``used`` stays empty).
+    """
+    from mogs_node.frontend.camera import CameraModel
+    from mogs_node.frontend.track_points import TrackHistory, keyframe_points
+    from mogs_node.frontend.tracker import FeatureTracker
+
+    pp = params or TrackPointsParams()
+    H, W = data.lidar_m[0].shape
+    camera = PinholeCamera.from_K(data.K, W, H)
+    tracker = FeatureTracker(pp.tracker(), CameraModel(camera))
+    history = TrackHistory(pp.history_frames)
+    out: dict[int, _Frame] = {}
+    for i, rgb in enumerate(data.rgb[: max(frames, default=-1) + 1]):
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        res = tracker.track(gray)
+        history.add(i, res.ids, res.uv_px, gray)
+        history.set_pose(i, T_world_cams[i])
+        if i in frames:
+            pts = keyframe_points(history, camera, pp)
+            out[i] = _Frame(
+                uv=pts.uv_px.astype(np.float64),
+                z=pts.xyz_cam_m[:, 2].astype(np.float64),
+                w=pts.weight.astype(np.float64),
+                used=np.zeros((H, W), bool),
+            )
+    return out
+
+
 def _colour(depth: NDArray, valid: NDArray, vmax: float = 40.0) -> NDArray[np.uint8]:
     """Inverse-depth colour map (near warm), black where not valid; RGB uint8."""
     inv = np.where(valid, np.clip(3.0 / np.maximum(depth, 1e-3) * (vmax / 40.0), 0, 1), 0)
@@ -266,6 +323,9 @@ def evaluate(args: argparse.Namespace) -> dict:
     from mogs_node.metrizer.baselines import BASELINES
     from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams
 
+    source = getattr(args, "points", None) or "lidar"
+    if source not in POINT_SOURCES:
+        raise ConfigError(f"points: {source!r} is not one of {POINT_SOURCES}")
     folder = Path(args.data) if getattr(args, "data", None) else DEFAULT_DIR
     t0 = time.perf_counter()
     data = load_kitti78(folder)
@@ -278,11 +338,16 @@ def evaluate(args: argparse.Namespace) -> dict:
     if n_want and n_want < len(eligible):
         pick = np.unique(np.round(np.linspace(0, len(eligible) - 1, n_want)).astype(int))
         eligible = [eligible[k] for k in pick]
+    ms_per: dict[str, float] = {m: 0.0 for m in ("seg", "prior", *METHODS)}
     viz_dir = Path(args.viz) if getattr(args, "viz", None) else None
+    if source == "tracks":
+        tic = time.perf_counter()
+        for i, fr in track_points(data, poses, set(eligible)).items():
+            frames[i] = fr
+        ms_per["tracks"] = (time.perf_counter() - tic) * 1e3
     pred: dict[str, list[NDArray]] = {m: [] for m in (*METHODS, "prior_raw")}
     gts: list[NDArray] = []
     prior_cov, prior_scale = [], []
-    ms_per: dict[str, float] = {m: 0.0 for m in ("seg", "prior", *METHODS)}
     for n, i in enumerate(eligible):
         rgb, gt, f = data.rgb[i], data.lidar_m[i], frames[i]
         gt_mask = (gt > 0) & ~f.used
@@ -351,8 +416,21 @@ def evaluate(args: argparse.Namespace) -> dict:
         entry["own"]["by_range"] = depth_metrics_by_range(p, g, edges_m=RANGES)
         methods[name] = entry
     n_f = max(len(eligible), 1)
+    n_pts = [len(frames[i].z) for i in eligible]
+    loc_stats["sparse_points_mean"] = float(np.mean(n_pts)) if n_pts else 0.0
+    loc_stats["sparse_points_median"] = float(np.median(n_pts)) if n_pts else 0.0
+    if source == "tracks":  # the triangulated points against the LiDAR return at their pixel
+        rel = []
+        for i in eligible:
+            z_lidar, _ = sample_lidar(data.lidar_m[i], frames[i].uv)
+            ok = z_lidar > 0
+            rel.append(np.abs(frames[i].z[ok] - z_lidar[ok]) / z_lidar[ok])
+        rel_all = np.concatenate(rel) if rel else np.zeros(0)
+        loc_stats["sparse_rel_err_median"] = float(np.median(rel_all)) if len(rel_all) else 0.0
+        loc_stats["sparse_rel_err_p90"] = float(np.percentile(rel_all, 90)) if len(rel_all) else 0.0
     out = {
         "dataset": "kitti78",
+        "points": source,
         "frames": len(eligible),
         "methods": methods,
         "gt_points": int(len(g)),
@@ -370,12 +448,24 @@ def evaluate(args: argparse.Namespace) -> dict:
     whole = n_want is None and getattr(args, "data", None) is None
     if whole and getattr(args, "write_docs", False):
         # Only a run over the whole default excerpt replaces the table in docs/benchmarks.md.
-        update_markdown_section("depth_kitti78", _markdown(out, args))
+        section = "depth_kitti78" if source == "lidar" else "depth_kitti78_tracks"
+        update_markdown_section(section, _markdown(out, args))
     return out
 
 
 def _markdown(res: dict, args: argparse.Namespace) -> str:
-    cmd = "mogs eval depth --dataset kitti78 --json kitti78.json"
+    tracks = res.get("points") == "tracks"
+    cmd = "mogs eval depth --dataset kitti78" + (" --points tracks" if tracks else "")
+    cmd += " --json kitti78.json"
+    source = (
+        "Sparse metric points = the system's own: the frontend's dense KLT tracks triangulated "
+        "(multi-view DLT + Gauss-Newton, gated, depth-edge tests: docs/frontend.md) with the PnP "
+        "poses; LiDAR serves only those poses and the ground truth (every LiDAR pixel is held "
+        "out)"
+        if tracks
+        else "Sparse metric points = LiDAR at the tracker's corners (stand-in for VI-SfM points, "
+        "no IMU in the excerpt); poses by PnP on them"
+    )
     names = {
         "no_msc_cdr": "prior, globally aligned (w/o MSC, CDR)",
         "interp_nearest": "sparse only, nearest",
@@ -385,14 +475,14 @@ def _markdown(res: dict, args: argparse.Namespace) -> str:
         "prior_raw": "flow prior itself (where confident)",
     }
     lines = [
-        "## Depth on real KITTI (kitti_raw_2011_09_26_78) against LiDAR",
+        "## Depth on real KITTI (kitti_raw_2011_09_26_78) against LiDAR"
+        + (", the system's own sparse points" if tracks else ""),
         "",
         f"Command: `{cmd}` ({res['frames']} frames, {res['gt_points']} held-out LiDAR pixels, "
         f"{res['wall_s']:.0f} s). Machine: {machine_line()}.",
         "",
-        "Sparse metric points = LiDAR at the tracker's corners (stand-in for VI-SfM points, no "
-        "IMU in the excerpt); poses by PnP on them; masks from the graph segmenter; prior from "
-        "the flow backend. Ground truth = LiDAR pixels not used as sparse input. AbsRel / RMSE "
+        source + "; masks from the graph segmenter; prior from the flow backend. Ground truth = "
+        "LiDAR pixels not used as sparse input. AbsRel / RMSE "
         "[m] / delta1, pooled over pixels. First table: on the pixels where every compared method "
         "predicts a depth (the globally aligned prior covers the fewest), so all rows use the same "
         "pixels; coverage = share of all held-out LiDAR pixels used.",
@@ -433,7 +523,13 @@ def _markdown(res: dict, args: argparse.Namespace) -> str:
         "",
         f"Flow prior: covers {pr['coverage_of_lidar']:.1%} of LiDAR pixels per frame on average; "
         f"median Huber scale vs LiDAR {pr['huber_scale_vs_lidar_median']:.3f}. PnP path length "
-        f"{loc['path_length_m']:.2f} m, {loc['sparse_points_mean']:.0f} sparse points per frame.",
+        f"{loc['path_length_m']:.2f} m, {loc['sparse_points_mean']:.0f} sparse points per frame"
+        + (
+            f" (median relative depth error against the LiDAR return at their pixel "
+            f"{loc['sparse_rel_err_median']:.1%}, 90th percentile {loc['sparse_rel_err_p90']:.1%})."
+            if tracks
+            else "."
+        ),
         "Per frame [ms]: " + ", ".join(f"{k} {v:.0f}" for k, v in res["ms_per_frame"].items()),
     ]
     return "\n".join(lines)

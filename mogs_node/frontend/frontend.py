@@ -39,6 +39,8 @@ from mogs_node.frontend.track_points import (
     TrackPointsParams,
     carry_forward,
     keyframe_points,
+    merge_points,
+    reproject_points,
 )
 from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
 from mogs_node.geometry import check_array, se3_inverse, so3_exp
@@ -171,6 +173,11 @@ class Frontend:
         )
         self._history = TrackHistory(params.points.history_frames)
         self._last_points: tuple[NDArray, KeyframePoints] | None = None  # (T_world_cam, points)
+        # the last keyframes' (T_world_cam, points, grey image): their points that a new
+        # keyframe still sees join its own
+        self._recent_points: deque[tuple[NDArray, KeyframePoints, NDArray]] = deque(
+            maxlen=max(params.points.reproject_keyframes, 1)
+        )
         self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
         self._pim_params = make_params(params.imu)
         self.imu = _ImuBuffer()
@@ -413,6 +420,7 @@ class Frontend:
         self._prev_gray = None
         self._history.reset()  # the next initialisation starts a new world frame
         self._last_points = None
+        self._recent_points.clear()
         self._ground_ratios.clear()
 
     def _measure_ground(self, image: NDArray) -> None:
@@ -549,6 +557,20 @@ class Frontend:
             self._history.set_pose(f.t_ns, self.estimator.pose(f.seq) @ self.T_imu_cam)
         pp = self.params.points
         pts = keyframe_points(self._history, self.camera.pinhole, pp)
+        image = self._history.newest_image()
+        for T_world_prev, prev, image_prev in reversed(self._recent_points):  # newest first
+            if image is None or len(prev) == 0:
+                continue
+            old = reproject_points(
+                prev,
+                se3_inverse(T_world_cam) @ T_world_prev,
+                self.camera.pinhole,
+                image_prev,
+                image,
+                radius_px=pp.patch_radius_px,
+                min_zncc=pp.reproject_min_zncc,
+            )
+            pts = merge_points(pts, old, min_distance_px=pp.min_distance_px, params=pp)
         if len(pts) < pp.carry_min_points and self._last_points is not None:
             T_world_prev, prev = self._last_points
             T_cur_prev = se3_inverse(T_world_cam) @ T_world_prev
@@ -557,6 +579,8 @@ class Frontend:
                 if len(moved) > len(pts):
                     pts = moved
         self._last_points = (T_world_cam.copy(), pts)
+        if image is not None and pp.reproject_keyframes > 0:
+            self._recent_points.append((T_world_cam.copy(), pts, image))
         return pts
 
     def _make_keyframe(self, stamp_ns: int, image: NDArray, T_world_cam: NDArray) -> KeyframeOutput:
