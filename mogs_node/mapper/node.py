@@ -19,6 +19,7 @@ takes minutes is work, not a hang (issue 23).
 from __future__ import annotations
 
 import os
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -292,6 +293,7 @@ class MapperNode(Node):
             self.log.warning("keyframe %d: camera differs from the map's; skipped", kf.keyframe_id)
             return
         d, c = depth_for_keyframe(depth, W, H)
+        t0 = time.perf_counter()
         position = np.asarray(kf.T_world_cam, np.float64)[:3, 3]
         self.submaps.reload_near(m, position)  # a region it returns to: its map first
         n_new = m.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
@@ -302,6 +304,7 @@ class MapperNode(Node):
             self.counters["keyframes_behind"] += 1
             self.counters["owed_iters"] += p.iters_per_keyframe - n_iters
         st = m.optimize(n_iters, should_stop=self._should_stop)
+        map_ms = (time.perf_counter() - t0) * 1000  # reload + insertion + window iterations
         self.counters["keyframes_mapped"] += 1
         self.publish(
             p.stats_topic,
@@ -309,12 +312,19 @@ class MapperNode(Node):
                 stamp_ns=kf.stamp_ns,
                 frame_id="world",
                 keyframe_id=kf.keyframe_id,
-                n_gaussians=int(st["n_gaussians"]),
+                n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
                 n_keyframes=int(st["n_keyframes"]),
                 iterations=int(st["iterations"]),
                 loss=float(st["loss"]),
                 psnr_db=float(st["psnr_db"]),
-                extra={"inserted": float(n_new), "pruned": st["n_pruned"], "window": st["window"]},
+                extra={
+                    "inserted": float(n_new),
+                    "pruned": st["n_pruned"],
+                    "window": st["window"],
+                    "map_ms": round(map_ms, 3),
+                    "gaussians_in_ram": float(len(m.map)),
+                    "gaussians_on_disk": float(self.submaps.gaussians_on_disk),
+                },
             ),
         )
         if p.publish_render:
