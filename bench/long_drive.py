@@ -7,8 +7,11 @@ and measures from outside the processes, in the same run:
 
 - the mapper's resident memory (psutil, every 0.5 s) against frames played and distance driven
   (the keyframes' path length): peak at frame 600 and at the end, and their ratio;
-- the mapper's time per keyframe (``/mapper/stats`` ``extra.map_ms``: submap reload, insertion and
-  the window iterations), first 10 % of the keyframes against the last 10 %;
+- the mapper's time per keyframe, first 10 % of the keyframes against the last 10 %: its CPU time
+  (the mapper process's user + system time between two ``/mapper/stats``: everything it does per
+  keyframe, and independent of what else runs on a shared machine), and for reference the wall
+  time of its core step (``/mapper/stats`` ``extra.map_ms``: submap reload, insertion, window
+  iterations);
 - keyframes made (``/frontend/keyframe``) and mapped (``/mapper/stats``): lost = made - mapped;
 - the final PLY (Gaussians in its header, bytes), streamed from the offloaded submaps;
 - the launcher's figures: kills for a missing heartbeat / for no progress, respawns, the largest
@@ -60,6 +63,8 @@ class Trace:
     mapped: dict[int, dict[str, float]] = dataclasses.field(default_factory=dict)  # id -> stats
     rss: list[tuple[float, int, float]] = dataclasses.field(default_factory=list)  # t, frames, MiB
     mapped_at: list[tuple[int, float]] = dataclasses.field(default_factory=list)  # id, t
+    cpu_ms: dict[int, float] = dataclasses.field(default_factory=dict)  # id -> mapper CPU since
+    # the previous keyframe's stats (ms)
 
 
 def _ply_vertices(path: Path) -> int:
@@ -105,6 +110,20 @@ def _launch(args: argparse.Namespace, out: Path) -> Any:
     return dataclasses.replace(launch, nodes=nodes, exit_when=())
 
 
+def _mapper_cpu_s(launcher: Launcher, procs: dict[int, psutil.Process]) -> tuple[int, float] | None:
+    """(pid, user + system CPU seconds) of the running mapper process, or None."""
+    mapper = next((c for c in launcher.children if c.name == "mapper"), None)
+    if mapper is None or mapper.proc is None or mapper.exited is not None:
+        return None
+    try:
+        if mapper.proc.pid not in procs:
+            procs[mapper.proc.pid] = psutil.Process(mapper.proc.pid)
+        t = procs[mapper.proc.pid].cpu_times()
+    except psutil.NoSuchProcess:
+        return None
+    return mapper.proc.pid, t.user + t.system
+
+
 def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: float) -> None:
     """Follow the run; once the player has finished and the mapper has mapped every keyframe
     (or nothing arrived for ``drain_s``), stop the launcher (the mapper then writes its PLY)."""
@@ -113,6 +132,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
     for t in ("/camera/image", "/frontend/keyframe", "/mapper/stats"):
         sub.subscribe(t)
     procs: dict[int, psutil.Process] = {}
+    cpu_prev: tuple[int, float] | None = None  # (pid, user + system s) at the previous stats
     last_sample = last_input = time.monotonic()
     try:
         while runner.is_alive():
@@ -128,6 +148,10 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
                 elif isinstance(m, msgs.MapStats):
                     trace.mapped[m.keyframe_id] = {**m.extra, "n_gaussians": m.n_gaussians}
                     trace.mapped_at.append((m.keyframe_id, now))
+                    cpu = _mapper_cpu_s(launcher, procs)
+                    if cpu is not None and cpu_prev is not None and cpu[0] == cpu_prev[0]:
+                        trace.cpu_ms[m.keyframe_id] = 1000 * (cpu[1] - cpu_prev[1])
+                    cpu_prev = cpu
             if now - last_sample >= 0.5:
                 last_sample = now
                 mapper = next((c for c in launcher.children if c.name == "mapper"), None)
@@ -149,11 +173,16 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
 def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict[str, Any]:
     dist = _path_lengths(trace)
     ids = [k for k, _ in trace.mapped_at]
-    ms = [float(trace.mapped[k].get("map_ms", float("nan"))) for k in ids]
-    n10 = max(1, len(ms) // 10)
     nan = float("nan")
-    first = statistics.median(ms[:n10]) if ms else nan
-    last = statistics.median(ms[-n10:]) if ms else nan
+
+    def first_last(values: list[float]) -> tuple[float, float]:
+        n10 = max(1, len(values) // 10)
+        if not values:
+            return nan, nan
+        return statistics.median(values[:n10]), statistics.median(values[-n10:])
+
+    cpu_first, cpu_last = first_last([trace.cpu_ms[k] for k in ids if k in trace.cpu_ms])
+    first, last = first_last([float(trace.mapped[k].get("map_ms", nan)) for k in ids])
     rss_600 = max((r for _, f, r in trace.rss if f <= RSS_FRAME), default=float("nan"))
     rss_end = max((r for _, _, r in trace.rss), default=float("nan"))
     ply = out / "map.ply"
@@ -168,9 +197,12 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
         "rss_mib_600": round(rss_600, 1),
         "rss_mib_end": round(rss_end, 1),
         "rss_end_over_rss_600": round(rss_end / rss_600, 3),
-        "keyframe_ms_first10": round(first, 1),
-        "keyframe_ms_last10": round(last, 1),
-        "keyframe_time_ratio_last_first": round(last / first, 3),
+        "keyframe_cpu_ms_first10": round(cpu_first, 1),
+        "keyframe_cpu_ms_last10": round(cpu_last, 1),
+        "keyframe_time_ratio_last_first": round(cpu_last / cpu_first, 3),
+        "keyframe_wall_ms_first10": round(first, 1),
+        "keyframe_wall_ms_last10": round(last, 1),
+        "keyframe_wall_ratio_last_first": round(last / first, 3),
         "gaussians": _ply_vertices(ply) if ply.exists() else 0,
         "ply_bytes": ply.stat().st_size if ply.exists() else 0,
         "gaussians_in_ram_end": int(trace.mapped[ids[-1]].get("gaussians_in_ram", 0)) if ids else 0,
@@ -210,8 +242,22 @@ def _plot(trace: Trace, out_png: Path) -> None:
     ax[0].set_ylabel("mapper RSS [MiB]")
     ax[0].grid(alpha=0.3)
     ax[1].plot(
-        [dist[k] for k in ids], [trace.mapped[k].get("map_ms", np.nan) for k in ids], ".", ms=3
+        [dist[k] for k in ids],
+        [trace.mapped[k].get("map_ms", np.nan) for k in ids],
+        ".",
+        ms=3,
+        color="0.7",
+        label="wall time of the core step (shared machine)",
     )
+    cpu_ids = [k for k in ids if k in trace.cpu_ms]
+    ax[1].plot(
+        [dist[k] for k in cpu_ids],
+        [trace.cpu_ms[k] for k in cpu_ids],
+        ".",
+        ms=3,
+        label="mapper process CPU time",
+    )
+    ax[1].legend(loc="upper left", fontsize=8)
     ax[1].set_ylabel("mapper time per keyframe [ms]")
     ax[1].set_xlabel("distance driven [m]")
     ax[1].grid(alpha=0.3)
@@ -261,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
             {
                 "rss": trace.rss,
                 "mapped": [[k, t, trace.mapped[k]] for k, t in trace.mapped_at],
+                "cpu_ms": trace.cpu_ms,
                 "distance_m": _path_lengths(trace),
             },
             default=float,
@@ -301,8 +348,9 @@ checkpoints, offloaded submaps); the report node is left out.
 | distance driven (keyframe path) [m] | {f["distance_m"]} |
 | mapper peak RSS at frame {RSS_FRAME} / at the end [MiB] | {f["rss_mib_600"]} / {f["rss_mib_end"]} |
 | `rss_end_over_rss_600` | {f["rss_end_over_rss_600"]} |
-| mapper time per keyframe, median of first / last 10 % [ms] | {f["keyframe_ms_first10"]} / {f["keyframe_ms_last10"]} |
-| `keyframe_time_ratio_last_first` | {f["keyframe_time_ratio_last_first"]} |
+| mapper CPU time per keyframe, median of first / last 10 % [ms] | {f["keyframe_cpu_ms_first10"]} / {f["keyframe_cpu_ms_last10"]} |
+| `keyframe_time_ratio_last_first` (CPU time) | {f["keyframe_time_ratio_last_first"]} |
+| wall time of the core step, first / last 10 % [ms] (ratio; shared machine) | {f["keyframe_wall_ms_first10"]} / {f["keyframe_wall_ms_last10"]} ({f["keyframe_wall_ratio_last_first"]}) |
 | Gaussians in the final PLY / its bytes | {f["gaussians"]} / {f["ply_bytes"]} |
 | Gaussians in RAM / on disk at the end | {f["gaussians_in_ram_end"]} / {f["gaussians_on_disk_end"]} |
 | kills for no heartbeat / for no progress | {f["heartbeat_kills"]} / {f["progress_kills"]} |

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T
 from mogs_node.mapper.checkpoint import load_checkpoint_with_extra, save_checkpoint
@@ -204,3 +207,58 @@ def test_submap_params_are_checked() -> None:
     with pytest.raises(ConfigError, match="length_m"):
         SubmapParams(length_m=0.0)
     assert not SubmapParams(offload_distance_m=0.0).enabled
+
+
+def test_mapper_node_offloads_streams_its_ply_and_resumes(inproc_bus, tmp_path) -> None:
+    """The node shell: regions behind go to disk, the incremental updates and the PLY still hold
+    the whole drive, and a resumed node restores the same map from its checkpoint and files."""
+    from test_mapper_node import messages
+
+    from mogs_node.bus import Publisher, Subscriber
+    from mogs_node.mapper.node import MapperNode
+
+    bus, ctx = inproc_bus
+    params = {
+        "iters_per_keyframe": 2,
+        "threads": 1,
+        "ply_path": str(tmp_path / "map.ply"),
+        "checkpoint_dir": str(tmp_path / "ck"),
+        "checkpoint_every_keyframes": 1,
+        "submap_length_m": 15.0,
+        "offload_distance_m": 25.0,
+        "reload_distance_m": 12.0,
+        "publish_render": False,
+    }
+    node = MapperNode("mapper", params, bus, context=ctx, diagnostics_period_s=0)
+    watcher = Subscriber(bus, context=ctx)
+    for topic in ("/mapper/stats", "/mapper/gaussians"):
+        watcher.subscribe(topic)
+    pub = Publisher(bus, context=ctx)
+    assert pub.wait_for_subscriber("/metrizer/depth", 5)
+    assert node._pub.wait_for_subscriber("/mapper/gaussians", 5)
+    for k in range(6):
+        for m in messages(k, STEP_M * k):
+            topic = "/metrizer/depth" if isinstance(m, msgs.DepthMap) else "/frontend/keyframe"
+            pub.publish(topic, m)
+    stats, live = [], set()
+    deadline = time.monotonic() + 120
+    while len(stats) < 6 and time.monotonic() < deadline:
+        node.spin_once(50)
+        env = watcher.receive(timeout_ms=20)
+        while env is not None:
+            if env.topic == "/mapper/stats":
+                stats.append(env.msg)
+            else:
+                live = (live | set(env.msg.ids.tolist())) - set(env.msg.removed_ids.tolist())
+            env = watcher.receive(timeout_ms=20)
+    last = stats[-1]
+    assert last.extra["gaussians_on_disk"] > 0 and node.counters["submap_offloads"] >= 1
+    assert last.n_gaussians == last.extra["gaussians_in_ram"] + last.extra["gaussians_on_disk"]
+    assert len(live) == last.n_gaussians  # offloading removed nothing from the replica
+    node.close()  # checkpoint + PLY streamed from the submaps
+    first_ply = (tmp_path / "map.ply").read_bytes()
+    assert len(read_gaussian_ply(tmp_path / "map.ply")["means"]) == last.n_gaussians
+    resumed = MapperNode("m2", {**params, "resume": True}, bus, context=ctx, diagnostics_period_s=0)
+    assert resumed.mapper is not None and resumed.mapper.offloaded_kfs == node.mapper.offloaded_kfs
+    resumed.close()
+    assert (tmp_path / "map.ply").read_bytes() == first_ply
