@@ -285,6 +285,9 @@ class PlayerNode(Node):
         self.counters["frames_total"] = self.total_frames
         if p.fast:
             self.subscribe(p.ack_topic, self._on_ack, reliable=True)
+            # a replay waits for a pipeline that works (issue 23): the ack timeout runs only
+            # while no node reports being busy in its heartbeat (mogs_node/heartbeat.py)
+            self.subscribe("/diagnostics", self._on_heartbeat, reliable=False, queue_size=64)
             if p.max_keyframes_in_flight > 0:
                 self.subscribe(p.keyframe_topic, self._on_keyframe, reliable=True)
                 self.subscribe(p.keyframe_done_topic, self._on_keyframe_done, reliable=True)
@@ -385,6 +388,11 @@ class PlayerNode(Node):
     def _on_keyframe_done(self, msg: msgs.Message) -> None:
         self.keyframes.ack(msg.stamp_ns)
         self.reschedule(self._tick_timer, 0.0)
+
+    def _on_heartbeat(self, msg: msgs.Message) -> None:
+        busy = getattr(msg, "counters", {}).get("busy_s", 0.0)
+        if busy > 0 and getattr(msg, "node", self.name) != self.name and self._blocked_since:
+            self._blocked_since = max(self._blocked_since, time.monotonic())
 
     def _may_send_image(self, now: float) -> bool:
         if self.frames.can_send() and self.keyframes.can_send():

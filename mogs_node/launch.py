@@ -22,6 +22,14 @@ The launcher prefixes each child's log lines with its name, respawns crashed nod
 on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
 Children get PR_SET_PDEATHSIG so that they never outlive a killed launcher.
 
+Liveness (issue 23): a node's heartbeat comes from a thread of its own (:mod:`mogs_node.heartbeat`),
+so a node that computes is never silent. The launcher kills (then respawns by policy) a node whose
+heartbeat stopped for ``heartbeat_timeout_s`` (a dead or frozen interpreter), and a node whose
+heartbeat says it has been busy without progress (``busy_s``) for ``progress_timeout_s`` (stuck in
+one handler, however alive its heartbeat thread). Its figures (:meth:`Launcher.figures`: kills by
+cause, respawns, the largest gap between two heartbeats of each node) go into the run's
+``summary.json`` under ``launch`` and ``nodes.<name>.heartbeat_gap_max_s``.
+
 A failure that the run cannot recover from ends it: the other nodes are stopped and the launcher
 exits with code 1, its last line naming the node and its error (``[launch] run failed: ...``).
 Such failures are a ``respawn: never`` node exiting non-zero, a node that cannot start with its
@@ -69,9 +77,13 @@ from mogs_node.supervision import (
     CHECKPOINT_FILES,
     EXIT_NODE_FAILED,
     JOURNAL_FILES,
+    SUBMAP_FILES,
     TAIL_LINES,
+    Beat,
     error_of,
     failure_reason,
+    kill_reason,
+    merge_launch_figures,
     remove_run_state,
 )
 
@@ -80,6 +92,7 @@ __all__ = [
     "Launcher",
     "NodeSpec",
     "load_launch_file",
+    "respawns_without_journal",
     "run_dir_overrides",
 ]
 
@@ -101,6 +114,9 @@ class NodeSpec:
     heartbeat_timeout_s: float = (
         30.0  # kill + respawn a node silent on /diagnostics this long (0: off)
     )
+    # kill + respawn a node busy this long without progress (its heartbeat's busy_s; 0: off):
+    # one step of real work may take minutes on a loaded machine, a stuck node never moves
+    progress_timeout_s: float = 900.0
     # a node not yet heard from at all (imports, model loading, a first-use compile) gets this
     # long before heartbeat supervision applies (a startup probe, as in Kubernetes)
     startup_timeout_s: float = 300.0
@@ -163,6 +179,7 @@ def parse_launch(
             "max_respawns",
             "respawn_delay_s",
             "heartbeat_timeout_s",
+            "progress_timeout_s",
             "startup_timeout_s",
             "host",
             "env",
@@ -193,6 +210,7 @@ def parse_launch(
                 max_respawns=int(nd.get("max_respawns", 5)),
                 respawn_delay_s=float(nd.get("respawn_delay_s", 0.5)),
                 heartbeat_timeout_s=float(nd.get("heartbeat_timeout_s", 30.0)),
+                progress_timeout_s=float(nd.get("progress_timeout_s", 900.0)),
                 startup_timeout_s=float(nd.get("startup_timeout_s", 300.0)),
                 host=str(nd.get("host", "localhost")),
                 env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
@@ -230,17 +248,39 @@ def load_launch_file(path: str | Path, overrides: dict[str, Any] | None = None) 
     return parse_launch(data, path=p, overrides=overrides)
 
 
-def _params_fields(cls: str) -> set[str]:
-    """Parameter names of the node class ``module:Class`` (imports the module)."""
-    import dataclasses
+def _node_class(cls: str) -> type:
+    """The node class ``module:Class`` (imports the module)."""
     import importlib
 
     module, _, name = cls.partition(":")
     try:
-        node_cls = getattr(importlib.import_module(module), name)
+        return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as err:
         raise ConfigError(f"cannot import node class {cls}: {err}") from err
-    return {f.name for f in dataclasses.fields(node_cls.Params)}
+
+
+def _params_fields(cls: str) -> set[str]:
+    """Parameter names of the node class ``module:Class`` (imports the module)."""
+    import dataclasses
+
+    return {f.name for f in dataclasses.fields(_node_class(cls).Params)}
+
+
+def respawns_without_journal(launch: LaunchFile) -> list[str]:
+    """Nodes that are respawned after a crash and would catch up from a journal (their ``setup``
+    calls :meth:`~mogs_node.node.Node.catch_up`), in a launch file without a journal node: a
+    respawned one starts from nothing (a mapper loses every keyframe before its last checkpoint).
+    """
+    if any(s.cls.endswith(":JournalNode") for s in launch.nodes):
+        return []
+    out = []
+    for spec in launch.nodes:
+        if spec.respawn == "never" or spec.max_respawns <= 0:
+            continue
+        setup = getattr(_node_class(spec.cls), "setup", None)
+        if setup is not None and "catch_up" in setup.__code__.co_names:
+            out.append(spec.name)
+    return out
 
 
 def run_dir_overrides(launch: LaunchFile, run_dir: str | Path, *, resume: bool) -> dict[str, dict]:
@@ -315,8 +355,10 @@ class Launcher:
         self._out_lock = threading.Lock()
         self.children: list[_Child] = []
         self.failure: str | None = None  # "NODE REASON: ERROR" of a failure that ended the run
-        self._heartbeats: dict[str, tuple[float, int]] = {}  # node -> (monotonic time, pid)
+        self._heartbeats: dict[str, Beat] = {}  # node -> its latest heartbeat
+        self._gap_max_s: dict[str, float] = {}  # node -> largest interval between two heartbeats
         self._hb_lock = threading.Lock()
+        self.kills: dict[str, int] = {"heartbeat": 0, "progress": 0}  # by cause
         bus_json = json.dumps(launch.bus.to_dict())
         py = sys.executable
         self._common_env: dict[str, str] = {}
@@ -330,6 +372,7 @@ class Launcher:
             if launch.allow_remote:
                 argv.append("--allow-remote")
             self.children.append(_Child("broker", argv, {}, None))
+        self.report_dir: Path | None = None  # summary.json there gets the launcher's figures
         report_dir = next(
             (
                 s.params.get("out_dir", "runs/latest")
@@ -338,6 +381,8 @@ class Launcher:
             ),
             None,
         )
+        if report_dir:
+            self.report_dir = Path(report_dir)
         for spec in launch.nodes:
             params = dict(spec.params)
             if spec.cls.endswith(":JournalNode") and "dir" not in params and report_dir:
@@ -345,7 +390,9 @@ class Launcher:
             if spec.cls.endswith(":JournalNode") and params.get("dir"):
                 self._state.append((Path(params["dir"]), JOURNAL_FILES))
             if params.get("checkpoint_dir"):
-                self._state.append((Path(params["checkpoint_dir"]), CHECKPOINT_FILES))
+                ck = Path(params["checkpoint_dir"])
+                self._state.append((ck / "submaps", SUBMAP_FILES))  # the mapper's offloaded regions
+                self._state.append((ck, CHECKPOINT_FILES))
             if spec.host not in ("localhost", "127.0.0.1", os.uname().nodename):
                 log.info("node %s runs on host %s: not started here", spec.name, spec.host)
                 continue
@@ -436,6 +483,8 @@ class Launcher:
             self._stop.set()
             watcher.join(timeout=2.0)  # its last word: why the run made no keyframe, if so
             self.shutdown()
+        if self.report_dir is not None:
+            merge_launch_figures(self.report_dir / "summary.json", self.figures())
         if self.failure is not None:
             self._print(f"[launch] run failed: {self.failure}")
             return EXIT_NODE_FAILED
@@ -467,8 +516,7 @@ class Launcher:
                 env = sub.receive(timeout_ms=200)
                 now = time.monotonic()
                 if env is not None and isinstance(env.msg, msgs.Diagnostics):
-                    with self._hb_lock:
-                        self._heartbeats[env.msg.node] = (now, env.msg.pid)
+                    self._on_heartbeat(env.msg, now)
                 if doctor is None:
                     continue
                 lines = [] if env is None else doctor.observe(env.topic, env.msg, now)
@@ -485,24 +533,58 @@ class Launcher:
         finally:
             ctx.term()
 
+    def _on_heartbeat(self, msg: Any, now: float) -> None:
+        """Record a node's heartbeat and the gap since its previous one (same process)."""
+        busy = float(msg.counters.get("busy_s", 0.0))
+        what = msg.status.removeprefix("busy: ") if msg.status.startswith("busy: ") else ""
+        with self._hb_lock:
+            prev = self._heartbeats.get(msg.node)
+            if prev is not None and prev.pid == msg.pid and msg.status != "stopped":
+                gap = now - prev.t
+                self._gap_max_s[msg.node] = max(self._gap_max_s.get(msg.node, 0.0), gap)
+            self._heartbeats[msg.node] = Beat(now, msg.pid, busy, what)
+
     def _check_heartbeat(self, child: _Child, now: float) -> None:
-        """Kill a running node whose heartbeat stopped (hung); the respawn policy then applies."""
-        timeout = child.spec.heartbeat_timeout_s if child.spec is not None else 0.0
-        if timeout <= 0 or child.proc is None or child.exited is not None:
+        """Kill a running node that is hung (no heartbeat) or stuck (busy without progress);
+        the respawn policy then applies."""
+        spec = child.spec
+        if spec is None or child.proc is None or child.exited is not None:
             return
         if child.killed_pid == child.proc.pid:  # killed, not yet reaped: said once
             return
         with self._hb_lock:
             seen = self._heartbeats.get(child.name)
-        if seen is not None and seen[1] == child.proc.pid:
-            silent = now - seen[0]
-        else:  # not heard from this process yet: allow for start-up (imports, model loading)
-            silent = now - child.started_at
-            timeout = max(timeout, child.spec.startup_timeout_s)
-        if silent > timeout:
-            self._print(f"[launch] {child.name} sent no heartbeat for {silent:.1f} s: killing it")
-            child.killed_pid = child.proc.pid
-            child.proc.kill()
+        if seen is None or seen.pid != child.proc.pid:
+            seen = None  # not heard from this process yet: start-up (imports, model loading)
+        why = kill_reason(
+            seen,
+            now,
+            started_at=child.started_at,
+            heartbeat_timeout_s=spec.heartbeat_timeout_s,
+            progress_timeout_s=spec.progress_timeout_s,
+            startup_timeout_s=spec.startup_timeout_s,
+        )
+        if why is None:
+            return
+        cause, text = why
+        self.kills[cause] += 1
+        self._print(f"[launch] {child.name} {text}: killing it")
+        child.killed_pid = child.proc.pid
+        child.proc.kill()
+
+    def figures(self) -> dict[str, Any]:
+        """The launcher's figures of the run: kills by cause, respawns per node, and the largest
+        interval between two heartbeats of each node (seconds, as received here)."""
+        with self._hb_lock:
+            gaps = dict(self._gap_max_s)
+        return {
+            "launch": {
+                "heartbeat_kills": self.kills["heartbeat"],
+                "progress_kills": self.kills["progress"],
+                "respawns": {c.name: c.respawns for c in self.children if c.respawns},
+            },
+            "nodes": {n: {"heartbeat_gap_max_s": round(g, 3)} for n, g in sorted(gaps.items())},
+        }
 
     def _supervise(self) -> bool:
         """Reap, respawn; True when the launch is complete (exit_when nodes done)."""

@@ -8,7 +8,10 @@ subscriptions, and handlers publish results. The shell owns everything else:
   topics keep only the latest message (older ones are dropped and counted);
 - handler exceptions are caught, logged and counted: a node never dies of bad input;
 - ``/diagnostics`` heartbeat with counters (received, published, dropped, lost, malformed,
-  handler_errors, queue_depth, loop_latency_ms) every ``diagnostics_period_s``;
+  handler_errors, queue_depth, loop_latency_ms) every ``diagnostics_period_s``, sent by a thread of
+  its own while :meth:`Node.run` runs (:mod:`mogs_node.heartbeat`): a handler that computes for
+  minutes does not silence it; the heartbeat says what the loop is busy with and for how long
+  (``busy_s``), and long work calls :meth:`Node.progress` to say it still advances;
 - clean shutdown on SIGINT/SIGTERM: stop reading, call ``teardown``, flush outgoing messages;
 - catch-up after a restart (:meth:`Node.catch_up`): a respawned node replays its inputs from the
   journal (:mod:`mogs_node.journal`) before reading live messages, does not re-publish outputs the
@@ -37,6 +40,7 @@ from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber
 from mogs_node.errors import ConfigError, DatasetError, ModelError, MogsError
 from mogs_node.failure_log import FailureLog
+from mogs_node.heartbeat import DIAGNOSTICS_TOPIC, Heartbeat, Progress
 
 __all__ = [
     "CATCH_UP_ENV",
@@ -49,7 +53,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DIAGNOSTICS_TOPIC = "/diagnostics"
 #: set to "1" by the launcher for a respawned node and on ``mogs launch --resume``
 CATCH_UP_ENV = "MOGS_CATCH_UP"
 #: exit code of a node that cannot start with its configuration (sysexits' EX_CONFIG): a typo'd or
@@ -222,6 +225,8 @@ class Node:
         self._replayed: dict[str, set[int]] = {}  # topic -> keys replayed from the journal
         self._published_keys: dict[str, set[int]] = {}  # topic -> keys the journal already has
         self._t0 = time.monotonic()
+        self.liveness = Progress()  # what the loop is busy with (read by the heartbeat thread)
+        self._heartbeat: Heartbeat | None = None  # started by run()
         self.counters: dict[str, float] = {
             "received": 0,
             "published": 0,
@@ -427,6 +432,7 @@ class Node:
                 return
             sub.handled.add(key)
         t0 = time.perf_counter()
+        self.liveness.start(f"handler of {env.topic}")
         try:
             sub.handler(env.msg)
         except MogsError as err:
@@ -437,6 +443,8 @@ class Node:
         except Exception as err:  # a node never dies of one message; the traceback is logged
             self.counters["handler_errors"] += 1
             self.failures.failed(env.topic, err, f"handler failed on seq {env.seq}")
+        finally:
+            self.liveness.done()
         dt_ms = (time.perf_counter() - t0) * 1000
         self._latency_ewma_ms = 0.9 * self._latency_ewma_ms + 0.1 * dt_ms
         self.counters["handler_ms_max"] = max(self.counters["handler_ms_max"], dt_ms)
@@ -451,6 +459,11 @@ class Node:
             return True
         del self._replayed[env.topic]  # past the overlap: live order is publication order
         return False
+
+    def progress(self) -> None:
+        """Say that the current (long) work advanced, e.g. once per optimisation iteration:
+        the launcher kills a node busy for ``progress_timeout_s`` without any progress."""
+        self.liveness.moved()
 
     def request_stop(self) -> None:
         """Ask the run loop to finish (thread- and signal-safe)."""
@@ -499,7 +512,14 @@ class Node:
         )
 
     def publish_diagnostics(self) -> None:
-        self.publish(DIAGNOSTICS_TOPIC, self.diagnostics())
+        """Send the node's diagnostics now: through the heartbeat thread while it runs (its
+        socket is its own), else from this thread."""
+        hb = self._heartbeat
+        if hb is not None and hb.running:
+            hb.offer(self.diagnostics())
+            self.counters["published"] += 1
+        else:
+            self.publish(DIAGNOSTICS_TOPIC, self.diagnostics())
 
     # ------------------------------------------------------------------ loop
 
@@ -568,12 +588,15 @@ class Node:
         for timer in self._timers:
             if now >= timer[1]:
                 timer[1] = max(timer[1] + timer[0], now)
+                name = getattr(timer[2], "__name__", str(timer[2]))
+                self.liveness.start(f"timer {name}")
                 try:
                     timer[2]()
                 except Exception as err:
                     self.counters["handler_errors"] += 1
-                    name = getattr(timer[2], "__name__", str(timer[2]))
                     self.failures.failed(f"timer {name}", err, "failed")
+                finally:
+                    self.liveness.done()
 
     def spin_once(self, timeout_ms: int = 100) -> None:
         """Wait up to ``timeout_ms`` for input, then handle everything queued and due timers."""
@@ -643,6 +666,16 @@ class Node:
                 signal.signal(sig, lambda *_: self._stop.set())
         end = None if duration_s is None else time.monotonic() + duration_s
         self.log.info("node %s up (pid %d)", self.name, os.getpid())
+        if self.diagnostics_period_s > 0 and self._heartbeat is None:
+            self._heartbeat = Heartbeat(
+                self.bus,
+                self._ctx,
+                self.diagnostics_period_s,
+                self.liveness,
+                on_error=lambda err: self.failures.failed("heartbeat", err, "failed"),
+            )
+            self._heartbeat.start()
+            self.publish_diagnostics()  # the first heartbeat: subscriptions are in place
         try:
             while not self._stop.is_set():
                 self.spin_once(100)
@@ -658,11 +691,20 @@ class Node:
             self.teardown()
         except Exception:
             self.log.exception("teardown failed")
+        hb, self._heartbeat = self._heartbeat, None
+        if hb is not None:
+            hb.stop()
         try:
             if self.diagnostics_period_s > 0:  # the last heartbeat says the node has stopped
-                self.publish(DIAGNOSTICS_TOPIC, self.diagnostics(status="stopped"))
+                final = self.diagnostics(status="stopped")
+                if hb is not None:
+                    hb.send_final(final)
+                else:
+                    self.publish(DIAGNOSTICS_TOPIC, final)
         except Exception:  # pragma: no cover
             self.log.exception("final diagnostics failed")
+        if hb is not None:
+            hb.close()
         if self._sub is not None:
             self._sub.close()
         self._pub.close()

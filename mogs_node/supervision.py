@@ -4,7 +4,10 @@
   that cannot start with its configuration, :data:`~mogs_node.node.EXIT_CONFIG`, never respawned,
   a node out of respawns) or a respawn is due;
 - :func:`error_of`: the error line to name, from the last lines a node printed;
-- :func:`remove_run_state`: the journal and checkpoint files of a run that ended cleanly.
+- :func:`remove_run_state`: the journal and checkpoint files of a run that ended cleanly;
+- :func:`kill_reason`: whether a running node is hung (no heartbeat) or stuck (busy without
+  progress), from its latest heartbeat (issue 23);
+- :func:`merge_launch_figures`: the launcher's figures into a run's ``summary.json``.
 
 Pure decisions over exit codes and text, plus one file-removal helper; no processes, no bus.
 """
@@ -12,19 +15,27 @@ Pure decisions over exit codes and text, plus one file-removal helper; no proces
 from __future__ import annotations
 
 import contextlib
+import json
+import os
 import re
 import signal
 from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from mogs_node.node import EXIT_CONFIG
 
 __all__ = [
+    "Beat",
     "CHECKPOINT_FILES",
     "EXIT_NODE_FAILED",
     "JOURNAL_FILES",
+    "SUBMAP_FILES",
     "error_of",
     "failure_reason",
+    "kill_reason",
+    "merge_launch_figures",
     "remove_run_state",
 ]
 
@@ -41,6 +52,8 @@ _TRACEBACK_END = re.compile(r"^(?:[A-Za-z_][\w.]*\.)?[A-Z]\w*(?:Error|Exception|
 #: mapper.ckpt, one moved aside as corrupt, a temporary file of an interrupted save)
 JOURNAL_FILES = ("journal.log",)
 CHECKPOINT_FILES = ("*.ckpt", "*.ckpt.corrupt", ".*.ckpt.*.tmp")
+#: files of a mapper's ``checkpoint_dir/submaps`` (regions of a long drive offloaded to disk)
+SUBMAP_FILES = ("submap_*.pt", ".submap_*.tmp")
 
 
 def remove_run_state(folders: list[tuple[Path, tuple[str, ...]]]) -> int:
@@ -97,3 +110,68 @@ def _signal_name(signum: int) -> str:
         return signal.Signals(signum).name
     except ValueError:
         return f"signal {signum}"
+
+
+@dataclass(frozen=True)
+class Beat:
+    """A node's latest heartbeat as the launcher received it."""
+
+    t: float  # monotonic time of arrival
+    pid: int
+    busy_s: float  # seconds its run loop had then been busy without progress (0: idle)
+    busy_with: str = ""  # what it was busy with ("handler of /topic", "timer name")
+
+
+def kill_reason(
+    beat: Beat | None,
+    now: float,
+    *,
+    started_at: float,
+    heartbeat_timeout_s: float,
+    progress_timeout_s: float,
+    startup_timeout_s: float,
+) -> tuple[str, str] | None:
+    """``(cause, text)`` when a running node must be killed, else None.
+
+    ``beat``: the node's latest heartbeat from its current process (None: none yet). Causes:
+    ``"heartbeat"``, silent for ``heartbeat_timeout_s`` (before its first heartbeat: for the
+    larger of that and ``startup_timeout_s``); ``"progress"``, busy without progress for
+    ``progress_timeout_s`` (its reported ``busy_s`` plus the time since that heartbeat). A timeout
+    of 0 turns that check off.
+    """
+    if beat is None:
+        silent = now - started_at
+        timeout = max(heartbeat_timeout_s, startup_timeout_s) if heartbeat_timeout_s > 0 else 0
+        if timeout > 0 and silent > timeout:
+            return "heartbeat", f"sent no heartbeat for {silent:.1f} s since it started"
+        return None
+    silent = now - beat.t
+    if heartbeat_timeout_s > 0 and silent > heartbeat_timeout_s:
+        return "heartbeat", f"sent no heartbeat for {silent:.1f} s"
+    if progress_timeout_s > 0 and beat.busy_s > 0:
+        stuck = beat.busy_s + silent
+        if stuck > progress_timeout_s:
+            what = f" ({beat.busy_with})" if beat.busy_with else ""
+            return "progress", f"made no progress for {stuck:.1f} s{what}"
+    return None
+
+
+def merge_launch_figures(summary_path: Path, figures: dict[str, Any]) -> bool:
+    """Add the launcher's ``figures`` (``launch`` and ``nodes.<name>.*``) to a run's
+    ``summary.json`` if the run wrote one; returns whether it did. Written atomically."""
+    if not summary_path.is_file():
+        return False
+    try:
+        summary = json.loads(summary_path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    if not isinstance(summary, dict):
+        return False
+    summary["launch"] = figures.get("launch", {})
+    nodes = summary.setdefault("nodes", {})
+    for name, values in figures.get("nodes", {}).items():
+        nodes.setdefault(name, {}).update(values)
+    tmp = summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    os.replace(tmp, summary_path)
+    return True

@@ -21,7 +21,16 @@ from mogs_node.launch import parse_launch
 from mogs_node.node import EXIT_CONFIG
 from mogs_node.supervision import EXIT_NODE_FAILED, error_of, failure_reason
 
-NODE_NAMES = ["frontend", "mapper", "metrizer", "player", "prior", "report", "segmentation"]
+NODE_NAMES = [
+    "frontend",
+    "journal",
+    "mapper",
+    "metrizer",
+    "player",
+    "prior",
+    "report",
+    "segmentation",
+]
 
 
 def _mogs(*args: str, timeout_s: float, tmp_path: Path) -> subprocess.CompletedProcess[str]:

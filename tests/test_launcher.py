@@ -158,18 +158,25 @@ def test_hung_node_is_killed_and_respawned(tmp_path: Path, ipc_endpoints) -> Non
                 "class": "mogs_node.demo_nodes:Recorder",
                 "params": {"topics": ["/frontend/keyframe"], "hang_after": 40},
                 "heartbeat_timeout_s": 2.0,
+                "progress_timeout_s": 3.0,
                 "respawn_delay_s": 0.2,
             },
         ],
     }
     with _launched(tmp_path, launch, ipc_endpoints) as (proc, sub):
         first = _diag_until(sub, lambda d: d.node == "sink" and d.counters["received"] >= 1, 30)
-        # the sink hangs on its 40th keyframe; the launcher must notice the silence and respawn it
+        # the sink hangs on its 40th keyframe: its heartbeat thread goes on ("busy"), its progress
+        # stops; the launcher must kill it within its progress timeout and respawn it
+        busy = _diag_until(sub, lambda d: d.node == "sink" and d.status.startswith("busy"), 40)
+        assert busy.pid == first.pid and busy.status == "busy: handler of /frontend/keyframe"
         _diag_until(sub, lambda d: d.node == "sink" and d.pid != first.pid, 40)
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=10)
     text = out.decode()
-    assert "sent no heartbeat" in text and "respawning sink" in text
+    assert "sink made no progress for" in text and "respawning sink" in text
+    stuck_s = float(text.split("sink made no progress for ")[1].split(" s")[0])
+    assert 3.0 < stuck_s < 5.0  # killed within its timeout (the launcher looks every 0.1 s)
+    assert "sent no heartbeat" not in text
     assert proc.returncode == 0
 
 

@@ -15,7 +15,12 @@ from pathlib import Path
 import yaml
 
 from mogs_node.errors import ConfigError
-from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
+from mogs_node.launch import (
+    Launcher,
+    load_launch_file,
+    respawns_without_journal,
+    run_dir_overrides,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,6 +76,14 @@ def command(args: argparse.Namespace) -> int:
             merged.setdefault(node, {}).update(params)
         overrides = merged
     launch = load_launch_file(args.file, overrides=overrides)
+    lonely = respawns_without_journal(launch)
+    if lonely:
+        print(
+            f"[launch] warning: no journal node in {args.file}: a respawned {', '.join(lonely)} "
+            "has nothing to catch up from (add `class: mogs_node.journal.node:JournalNode`, "
+            "docs/reliability.md)",
+            flush=True,
+        )
     launcher = Launcher(
         launch, grace_s=args.grace, resume=bool(args.resume), keep_journal=args.keep_journal
     )

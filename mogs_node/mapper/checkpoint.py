@@ -7,6 +7,10 @@ window, the iteration counter, the pending change log and the random generator's
 :class:`MapperParams` it ran with. A mapper restored from it renders identically and its next
 optimisation step equals that of the mapper that wrote it.
 
+Long drives (:mod:`mogs_node.mapper.submaps`): the keyframes of offloaded regions are stored empty
+(their data lives in the submap files, listed in the ``extra`` record the node passes in), and the
+Gaussians in RAM are the checkpoint's; a restored mapper plus its submap files is the whole map.
+
 Format (version :data:`CHECKPOINT_VERSION`): ``torch.save`` of a dict holding only tensors, a
 JSON string (``meta``) and a SHA-256 digest of both (``sha256``), read back with
 ``torch.load(weights_only=True)``: no pickled Python objects are ever executed, and a flipped bit
@@ -42,6 +46,7 @@ __all__ = [
     "integrated_keyframe_ids",
     "latest_checkpoint",
     "load_checkpoint",
+    "load_checkpoint_with_extra",
     "save_checkpoint",
 ]
 
@@ -72,7 +77,7 @@ def _params_from_dict(d: dict[str, Any]) -> MapperParams:
     return MapperParams(**d)
 
 
-def _state(mapper: GaussianMapper) -> dict[str, Any]:
+def _state(mapper: GaussianMapper, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     m = mapper.map
     tensors: dict[str, torch.Tensor] = {
         "map.ids": m.ids,
@@ -122,6 +127,8 @@ def _state(mapper: GaussianMapper) -> dict[str, Any]:
         "keyframes": kfs,
         "integrated_keyframe_ids": sorted(kf.keyframe_id for kf in mapper.keyframes),
         "rng_state": mapper._rng.bit_generator.state,
+        "offloaded_kfs": sorted(mapper.offloaded_kfs),
+        "extra": extra or {},
     }
     tensors = {k: v.detach().cpu().contiguous().clone() for k, v in tensors.items()}
     meta_json = json.dumps(meta)
@@ -139,11 +146,14 @@ def _digest(meta_json: str, tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def save_checkpoint(mapper: GaussianMapper, path: str | os.PathLike[str]) -> Path:
-    """Write ``mapper``'s state to ``path`` atomically (temp file, fsync, rename); returns it."""
+def save_checkpoint(
+    mapper: GaussianMapper, path: str | os.PathLike[str], extra: dict[str, Any] | None = None
+) -> Path:
+    """Write ``mapper``'s state to ``path`` atomically (temp file, fsync, rename); returns it.
+    ``extra``: a JSON record kept beside it (the node's submap store)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    state = _state(mapper)
+    state = _state(mapper, extra)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -179,8 +189,9 @@ def _tensor(t: dict[str, Any], key: str, path: Path, shape: tuple[int | None, ..
 def _keyframe_image(
     t: dict[str, Any], key: str, path: Path, hw: tuple[int, int], version: int
 ) -> torch.Tensor:
-    """The [H, W, 3] uint8 image of a keyframe; version 1 stored u8 / 255 in f32 (exact back)."""
-    v = _tensor(t, key, path, (*hw, 3))
+    """The [H, W, 3] uint8 image of a keyframe; version 1 stored u8 / 255 in f32 (exact back).
+    An offloaded keyframe (``hw`` (0, 0)) has an empty [0, 0, 0] placeholder."""
+    v = _tensor(t, key, path, (0, 0, 0) if hw == (0, 0) else (*hw, 3))
     if version == 1 and v.dtype == torch.float32:
         return (v * 255.0).round().clamp(0, 255).to(torch.uint8)
     if v.dtype != torch.uint8:
@@ -227,9 +238,17 @@ def load_checkpoint(
     backend); None keeps the saved ones. Raises :class:`CheckpointError` for a missing, truncated,
     corrupt or wrong-version file.
     """
+    return load_checkpoint_with_extra(path, params)[0]
+
+
+def load_checkpoint_with_extra(
+    path: str | os.PathLike[str], params: MapperParams | None = None
+) -> tuple[GaussianMapper, dict[str, Any]]:
+    """:func:`load_checkpoint`, and the ``extra`` record saved with it (``{}`` if none)."""
     path = Path(path)
     meta, t = _read(path)
     try:
+        offloaded = {int(i) for i in meta.get("offloaded_kfs", [])}
         saved_params = _params_from_dict(meta["params"])
         fx, fy, cx, cy = (float(x) for x in meta["K"])
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -252,12 +271,13 @@ def load_checkpoint(
             raise CheckpointError(f"checkpoint {path}: Gaussian ids are not increasing")
         mapper.map = gm
         for i, rec in enumerate(meta["keyframes"]):
+            hw = (0, 0) if i in offloaded else (H, W)  # offloaded: data in its submap file
             kf = KeyframeState(
                 keyframe_id=int(rec["keyframe_id"]),
                 index=int(rec["index"]),
-                image=_keyframe_image(t, f"kf{i}.image", path, (H, W), int(meta["version"])),
-                depth_m=_tensor(t, f"kf{i}.depth_m", path, (H, W)),
-                confidence=_tensor(t, f"kf{i}.confidence", path, (H, W)),
+                image=_keyframe_image(t, f"kf{i}.image", path, hw, int(meta["version"])),
+                depth_m=_tensor(t, f"kf{i}.depth_m", path, hw),
+                confidence=_tensor(t, f"kf{i}.confidence", path, hw),
                 T_cam_world=_tensor(t, f"kf{i}.T_cam_world", path, (4, 4)),
                 exposure_ab=_tensor(t, f"kf{i}.exposure_ab", path, (2,)),
                 visible_ids=_tensor(t, f"kf{i}.visible_ids", path, (None,)).numpy().copy(),
@@ -294,11 +314,15 @@ def load_checkpoint(
         mapper.n_pruned = int(meta["n_pruned"])
         mapper.n_densified = int(meta["n_densified"])
         mapper._rng.bit_generator.state = meta["rng_state"]
+        mapper.offloaded_kfs = offloaded
+        extra = meta.get("extra") or {}
+        if not isinstance(extra, dict):
+            raise CheckpointError(f"checkpoint {path}: malformed extra record")
     except CheckpointError:
         raise
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"checkpoint {path}: malformed record ({err!r})") from err
-    return mapper
+    return mapper, extra
 
 
 def integrated_keyframe_ids(mapper: GaussianMapper) -> set[int]:

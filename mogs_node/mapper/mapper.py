@@ -148,6 +148,8 @@ class GaussianMapper:
         self.map = GaussianMap(self.device)
         self.keyframes: list[KeyframeState] = []
         self.window: list[int] = []  # indices into self.keyframes, newest first
+        # keyframes whose images are on disk with their region (mapper/submaps.py): not sampled
+        self.offloaded_kfs: set[int] = set()
         self.iterations = 0
         self.last_loss = float("nan")
         self.last_psnr_db = float("nan")
@@ -310,7 +312,11 @@ class GaussianMapper:
         self._grad_count = torch.zeros(len(self.map), device=self.device)
         lrs = self._lrs()
         newest = self.window[0]
-        past = [k.index for k in self.keyframes if k.index not in self.window]
+        past = [
+            k.index
+            for k in self.keyframes
+            if k.index not in self.window and k.index not in self.offloaded_kfs
+        ]
         fixed_pose = max(self.window) if len(self.window) == 1 else min(self.window)
         prev_err = None
         for it in range(n_iters):

@@ -8,11 +8,18 @@ iterations). After each keyframe it publishes ``/mapper/stats`` (:class:`~mogs_n
 (:class:`~mogs_node.msgs.GaussianUpdate`: only the Gaussians added or changed since the previous
 message and the removed ids, never the whole map). On shutdown (and every ``ply_every_kf``
 keyframes) the map is written to ``ply_path`` as a standard 3DGS PLY.
+
+Long drives: regions the vehicle has left go to disk and come back when it returns
+(:mod:`mogs_node.mapper.submaps`; ``offload_distance_m``), the PLY is streamed from them, and
+checkpoints record which regions are on disk (their files live in ``checkpoint_dir/submaps``).
+Each window iteration tells the node shell it advanced (:meth:`Node.progress`): a window step that
+takes minutes is work, not a hang (issue 23).
 """
 
 from __future__ import annotations
 
 import os
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -29,13 +36,14 @@ from mogs_node.mapper.checkpoint import (
     CheckpointError,
     integrated_keyframe_ids,
     latest_checkpoint,
-    load_checkpoint,
+    load_checkpoint_with_extra,
     save_checkpoint,
 )
 from mogs_node.mapper.composite import load_cpp_extension
 from mogs_node.mapper.insertion import InsertionParams
-from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply, resolve_device
+from mogs_node.mapper.mapper import GaussianMapper, MapperParams, resolve_device
 from mogs_node.mapper.rasterizer import RasterParams
+from mogs_node.mapper.submaps import SubmapError, SubmapParams, SubmapStore, write_map_ply
 from mogs_node.node import CATCH_UP_ENV, Node
 
 __all__ = ["KeyframeDepthPairs", "MapperNode", "MapperNodeParams"]
@@ -76,6 +84,10 @@ class MapperNodeParams:
     checkpoint_dir: str = ""  # save the mapper state here (checkpoint.py; "" = never)
     checkpoint_every_keyframes: int = 5  # ... every n mapped keyframes and on shutdown
     resume: bool = False  # on start, load checkpoint_dir's checkpoint (if any) first
+    submap_length_m: float = 50.0  # long drives: distance travelled per submap (submaps.py)
+    offload_distance_m: float = 150.0  # a region left farther behind goes to disk (0: never)
+    reload_distance_m: float = 100.0  # ... and comes back when the camera is this near again
+    submap_dir: str = ""  # offloaded regions ("": checkpoint_dir/submaps, else a temp folder)
     keyframe_topic: str = "/frontend/keyframe"  # input keyframes
     depth_topic: str = "/metrizer/depth"  # input metric depth
     stats_topic: str = "/mapper/stats"  # output statistics
@@ -91,6 +103,19 @@ class MapperNodeParams:
             raise ConfigError("mapper.checkpoint_every_keyframes: must be >= 1")
         if self.resume and not self.checkpoint_dir:
             raise ConfigError("mapper.resume: needs checkpoint_dir")
+        self.submap_params()  # validates the submap settings
+
+    def submap_params(self) -> SubmapParams:
+        return SubmapParams(
+            length_m=self.submap_length_m,
+            offload_distance_m=self.offload_distance_m,
+            reload_distance_m=self.reload_distance_m,
+        )
+
+    def submap_folder(self) -> Path | None:
+        if self.submap_dir:
+            return Path(self.submap_dir)
+        return Path(self.checkpoint_dir) / "submaps" if self.checkpoint_dir else None
 
     def mapper_params(self) -> MapperParams:
         return MapperParams(
@@ -163,6 +188,7 @@ class MapperNode(Node):
         self.pairs = KeyframeDepthPairs(p.max_pending)
         self.mapper: GaussianMapper | None = None
         self.integrated_keyframe_ids: set[int] = set()  # keyframes in the map (restart catch-up)
+        self.submaps = SubmapStore(p.submap_params(), p.submap_folder())
         restarted = os.environ.get(CATCH_UP_ENV) == "1"  # respawned after a crash, or --resume
         ck = (
             latest_checkpoint(p.checkpoint_dir)
@@ -171,8 +197,11 @@ class MapperNode(Node):
         )
         if ck is not None:
             try:
-                self.mapper = load_checkpoint(ck, p.mapper_params())
-            except CheckpointError as err:
+                self.mapper, extra = load_checkpoint_with_extra(ck, p.mapper_params())
+                self._restore_submaps(self.mapper, extra.get("submaps"))
+            except (CheckpointError, SubmapError) as err:
+                self.mapper = None
+                self.submaps = SubmapStore(p.submap_params(), p.submap_folder())
                 # not a crash loop under respawn: keep the file for inspection and rebuild the
                 # map from the journal (catch-up replays every keyframe when none is integrated)
                 bad = ck.with_name(ck.name + ".corrupt")
@@ -213,6 +242,21 @@ class MapperNode(Node):
         # checkpoint: the map is rebuilt in the same order); /mapper/stats not sent twice
         self.catch_up((p.keyframe_topic, p.depth_topic), (p.stats_topic,))
 
+    def _restore_submaps(self, mapper: GaussianMapper, state: dict[str, Any] | None) -> None:
+        """The submap record of a checkpoint (None: one written before submaps existed)."""
+        if state is not None:
+            self.submaps.restore(state, mapper)
+            return
+        if mapper.offloaded_kfs:
+            raise SubmapError("checkpoint: keyframes offloaded but no submap record")
+        for kf in mapper.keyframes:
+            self.submaps.add_keyframe(kf.index, kf.T_world_cam)
+
+    def _should_stop(self) -> bool:
+        """Polled before each window iteration: it advanced (liveness), and stop on request."""
+        self.progress()
+        return self.stopping
+
     def _integrated(self, keyframe_id: int) -> bool:
         return keyframe_id in getattr(self, "integrated_keyframe_ids", ())
 
@@ -233,7 +277,7 @@ class MapperNode(Node):
         if self.mapper is None or self.queue_depth or self.counters["owed_iters"] <= 0:
             return
         n = min(self.params.idle_iters_per_tick, self.counters["owed_iters"])
-        self.mapper.optimize(n, should_stop=lambda: self.stopping)
+        self.mapper.optimize(n, should_stop=self._should_stop)
         self.counters["owed_iters"] -= n
 
     def on_diagnostics(self, m: msgs.Diagnostics) -> None:
@@ -307,13 +351,19 @@ class MapperNode(Node):
             self.log.warning("keyframe %d: camera differs from the map's; skipped", kf.keyframe_id)
             return
         d, c = depth_for_keyframe(depth, W, H)
+        t0, c0 = time.perf_counter(), time.process_time()
+        position = np.asarray(kf.T_world_cam, np.float64)[:3, 3]
+        self.submaps.reload_near(m, position)  # a region it returns to: its map first
         n_new = m.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
+        self.submaps.add_keyframe(m.keyframes[-1].index, kf.T_world_cam)
         self.integrated_keyframe_ids.add(int(kf.keyframe_id))
         n_iters = self.iterations_for_next_keyframe()
         if n_iters < p.iters_per_keyframe:
             self.counters["keyframes_behind"] += 1
             self.counters["owed_iters"] += p.iters_per_keyframe - n_iters
-        st = m.optimize(n_iters, should_stop=lambda: self.stopping)
+        st = m.optimize(n_iters, should_stop=self._should_stop)
+        map_ms = (time.perf_counter() - t0) * 1000  # reload + insertion + window iterations
+        map_cpu_ms = (time.process_time() - c0) * 1000  # the same in CPU time (load-independent)
         self.counters["keyframes_mapped"] += 1
         self.last_stamp_ns = int(kf.stamp_ns)
         self.publish(
@@ -322,12 +372,20 @@ class MapperNode(Node):
                 stamp_ns=kf.stamp_ns,
                 frame_id="world",
                 keyframe_id=kf.keyframe_id,
-                n_gaussians=int(st["n_gaussians"]),
+                n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
                 n_keyframes=int(st["n_keyframes"]),
                 iterations=int(st["iterations"]),
                 loss=float(st["loss"]),
                 psnr_db=float(st["psnr_db"]),
-                extra={"inserted": float(n_new), "pruned": st["n_pruned"], "window": st["window"]},
+                extra={
+                    "inserted": float(n_new),
+                    "pruned": st["n_pruned"],
+                    "window": st["window"],
+                    "map_ms": round(map_ms, 3),
+                    "map_cpu_ms": round(map_cpu_ms, 3),
+                    "gaussians_in_ram": float(len(m.map)),
+                    "gaussians_on_disk": float(self.submaps.gaussians_on_disk),
+                },
             ),
         )
         if p.publish_render:
@@ -342,12 +400,22 @@ class MapperNode(Node):
                 ),
             )
         self.publish_update(kf.keyframe_id, kf.stamp_ns)
+        self.submaps.offload_far(m, position)  # after the drain: offloaded rows are published
+        self.counters.update(
+            {
+                "gaussians_in_ram": len(m.map),
+                "gaussians_on_disk": self.submaps.gaussians_on_disk,
+                "submaps_on_disk": len(self.submaps.offloaded),
+                "submap_offloads": self.submaps.counters["offloads"],
+                "submap_reloads": self.submaps.counters["reloads"],
+            }
+        )
         if (
             p.ply_path
             and p.ply_every_kf
             and self.counters["keyframes_mapped"] % p.ply_every_kf == 0
         ):
-            export_ply(m, p.ply_path)
+            write_map_ply(m, self.submaps, p.ply_path)
         if (
             p.checkpoint_dir
             and self.counters["keyframes_mapped"] % p.checkpoint_every_keyframes == 0
@@ -378,7 +446,12 @@ class MapperNode(Node):
         p: MapperNodeParams = self.params
         if p.checkpoint_dir and self.mapper is not None:
             try:
-                save_checkpoint(self.mapper, Path(p.checkpoint_dir) / CHECKPOINT_NAME)
+                save_checkpoint(
+                    self.mapper,
+                    Path(p.checkpoint_dir) / CHECKPOINT_NAME,
+                    extra={"submaps": self.submaps.state()},
+                )
+                self.submaps.pin()  # submap files no checkpoint refers to any more go
                 self.counters["checkpoints_saved"] = self.counters.get("checkpoints_saved", 0) + 1
             except OSError:  # a full or read-only disk must not stop the mapping
                 self.counters["checkpoint_errors"] = self.counters.get("checkpoint_errors", 0) + 1
@@ -388,8 +461,16 @@ class MapperNode(Node):
         p: MapperNodeParams = self.params
         self.save_checkpoint()
         if p.ply_path and self.mapper is not None:
-            export_ply(self.mapper, p.ply_path)
-            self.log.info("map written to %s (%d Gaussians)", p.ply_path, len(self.mapper.map))
+            n = write_map_ply(self.mapper, self.submaps, p.ply_path)
+            self.log.info(
+                "map written to %s (%d Gaussians, %d streamed from %d offloaded submaps)",
+                p.ply_path,
+                n,
+                self.submaps.gaussians_on_disk,
+                len(self.submaps.offloaded),
+            )
+        if not p.checkpoint_dir:
+            self.submaps.close()
 
 
 def with_params(params: MapperNodeParams, **kw: Any) -> MapperNodeParams:

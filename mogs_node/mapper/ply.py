@@ -5,19 +5,31 @@ One binary little-endian ``vertex`` element with float32 properties, in this ord
 Colours are degree-0 spherical-harmonic coefficients (``f_dc = (rgb - 0.5) / C0``,
 ``C0 = 0.28209479177387814``), ``opacity`` is the logit, ``scale_*`` are log standard deviations,
 ``rot_*`` is the quaternion w, x, y, z (unnormalised is allowed), normals are zero.
+
+:func:`write_gaussian_ply_stream` writes a map chunk by chunk (the offloaded submaps of a long
+drive, :mod:`mogs_node.mapper.submaps`) without holding it in memory; the file is written to a
+temporary name and renamed, so a reader never sees half a map.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData
 
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import check_array
 
-__all__ = ["PLY_PROPERTIES", "SH_C0", "read_gaussian_ply", "write_gaussian_ply"]
+__all__ = [
+    "PLY_PROPERTIES",
+    "SH_C0",
+    "read_gaussian_ply",
+    "write_gaussian_ply",
+    "write_gaussian_ply_stream",
+]
 
 SH_C0 = 0.28209479177387814
 PLY_PROPERTIES = (
@@ -51,12 +63,25 @@ def write_gaussian_ply(
 ) -> Path:
     """Write N Gaussians: ``means`` [N, 3], ``quats_wxyz`` [N, 4], ``log_scales`` [N, 3],
     ``opacity_logit`` [N], ``colors_rgb`` [N, 3] in [0, 1]. Returns the path."""
-    m = check_array("means", means, shape=(None, 3), dtype=np.floating)
+    chunk = {
+        "means": means,
+        "quats_wxyz": quats_wxyz,
+        "log_scales": log_scales,
+        "opacity_logit": opacity_logit,
+        "colors": colors_rgb,
+    }
+    return write_gaussian_ply_stream(path, len(np.asarray(means)), [chunk])
+
+
+def _vertex_records(chunk: Mapping[str, np.ndarray]) -> np.ndarray:
+    """One chunk (``means`` [n, 3], ``quats_wxyz`` [n, 4], ``log_scales`` [n, 3],
+    ``opacity_logit`` [n], ``colors`` [n, 3] in [0, 1]) as PLY vertex records."""
+    m = check_array("means", chunk["means"], shape=(None, 3), dtype=np.floating)
     n = len(m)
-    q = check_array("quats_wxyz", quats_wxyz, shape=(n, 4), dtype=np.floating)
-    s = check_array("log_scales", log_scales, shape=(n, 3), dtype=np.floating)
-    o = check_array("opacity_logit", opacity_logit, shape=(n,), dtype=np.floating)
-    c = check_array("colors_rgb", colors_rgb, shape=(n, 3), dtype=np.floating)
+    q = check_array("quats_wxyz", chunk["quats_wxyz"], shape=(n, 4), dtype=np.floating)
+    s = check_array("log_scales", chunk["log_scales"], shape=(n, 3), dtype=np.floating)
+    o = check_array("opacity_logit", chunk["opacity_logit"], shape=(n,), dtype=np.floating)
+    c = check_array("colors_rgb", chunk["colors"], shape=(n, 3), dtype=np.floating)
     data = np.zeros(n, dtype=[(name, "<f4") for name in PLY_PROPERTIES])
     for i, k in enumerate("xyz"):
         data[k] = m[:, i]
@@ -65,9 +90,34 @@ def write_gaussian_ply(
     data["opacity"] = o
     for i in range(4):
         data[f"rot_{i}"] = q[:, i]
+    return data
+
+
+def write_gaussian_ply_stream(
+    path: str | Path, n: int, chunks: Iterable[Mapping[str, np.ndarray]]
+) -> Path:
+    """Write ``n`` Gaussians given as ``chunks`` (each as :func:`_vertex_records` takes it),
+    one chunk in memory at a time; the chunks must hold exactly ``n`` rows. Returns the path."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(data, "vertex")], text=False).write(str(p))
+    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {int(n)}\n"
+    header += "".join(f"property float {name}\n" for name in PLY_PROPERTIES) + "end_header\n"
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    written = 0
+    try:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            for chunk in chunks:
+                data = _vertex_records(chunk)
+                written += len(data)
+                if written > n:
+                    break
+                f.write(data.tobytes())
+        if written != n:
+            raise DatasetError(f"{p}: {written} Gaussians in the chunks, the header says {n}")
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
     return p
 
 
