@@ -28,7 +28,9 @@ from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams, K
 from mogs_node.frontend.ground import GroundParams
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
+from mogs_node.frontend.platform import PlatformBounds
 from mogs_node.frontend.preintegration import ImuNoise
+from mogs_node.frontend.time_offset import TimeOffsetParams
 from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.frontend.tracker import TrackerParams
 from mogs_node.geometry import PinholeCamera
@@ -71,6 +73,9 @@ class FrontendNodeParams:
     T_imu_cam: tuple[float, ...] = _KITTI_T_IMU_CAM  # camera pose in the IMU frame, row-major 4x4
     time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns
     init_mode: str = "auto"  # 'auto', 'static' or 'dynamic'
+    platform: str = "car"  # 'car', 'handheld' or 'drone' (motion bounds, keyframe rate cap)
+    bounds: dict[str, Any] = field(default_factory=dict)  # PlatformBounds fields (overrides)
+    time_offset: dict[str, Any] = field(default_factory=dict)  # TimeOffsetParams fields
     tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
     estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
     keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
@@ -100,9 +105,16 @@ class FrontendNodeParams:
             "init": parse_params(InitParams, self.init, where=f"{where}.init"),
             "imu": parse_params(ImuNoise, self.imu, where=f"{where}.imu"),
             "ground": parse_params(GroundParams, self.ground, where=f"{where}.ground"),
+            "bounds": parse_params(PlatformBounds, self.bounds, where=f"{where}.bounds"),
+            "time_offset": parse_params(
+                TimeOffsetParams, self.time_offset, where=f"{where}.time_offset"
+            ),
         }
         params = FrontendParams(
-            init_mode=self.init_mode, time_offset_ns=self.time_offset_ns, **groups
+            init_mode=self.init_mode,
+            time_offset_ns=self.time_offset_ns,
+            platform=self.platform,
+            **groups,
         )
         cam = CameraModel(
             PinholeCamera(self.fx_px, self.fy_px, self.cx_px, self.cy_px, self.width, self.height),
@@ -211,4 +223,5 @@ class FrontendNode(Node):
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
         d = super().diagnostics(status)
         d.counters.update({f"frontend_{k}": float(v) for k, v in self.frontend.counters.items()})
+        d.counters.update({f"frontend_{k}": v for k, v in self.frontend.figures().items()})
         return d
