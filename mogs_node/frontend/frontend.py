@@ -447,6 +447,7 @@ class Frontend:
         reason = motion_violation(self.profile, stamps[-2:], T[-2:], v[-2:])
         if reason is None:
             return "tracking" if status != "reset" else status
+        self.counters["divergence_resets"] += 1  # an implausible solution is a divergence
         self._reset(reason.split(":", 1)[0], f"frame {idx}: {reason} ({self.profile.name})")
         return "reset"
 
