@@ -482,6 +482,7 @@ class Frontend:
             "time_offset_sigma_ms": e.sigma_ns / 1e6 if e is not None else float("nan"),
             "time_offset_pairs": float(self.clock.pairs),
             "keyframes_per_s": self.counters["keyframes"] / span_s if span_s > 0 else 0.0,
+            **{f"init_rejected_{k}": float(v) for k, v in self._dyn_init.rejections.items()},
         }
 
     def _measure_ground(self, image: NDArray) -> None:
