@@ -125,3 +125,36 @@ def test_keyframe_rate_cap(car_drive) -> None:
     t = np.array([o.stamp_ns for o in outs if o.keyframe is not None]) * 1e-9
     assert len(t) >= 3 and np.diff(t).min() >= 0.45 - 1e-6
     assert fe.figures()["keyframes_per_s"] <= 1 / 0.45 * 1.01
+
+
+def test_figures_reach_summary_and_report(car_drive, tmp_path) -> None:
+    """The frontend's figures, as the report node receives them from ``/diagnostics``
+    (``frontend_<name>``), become ``summary.json``'s ``frontend`` section and a report line."""
+    from mogs_node.frontend.node import FrontendNodeParams
+    from mogs_node.report.collect import RunCollector, summarise, write_report
+
+    seq, images = car_drive
+    fe, _ = _run(seq, images, "car", max_speed_m_s=4.0)
+    fe.counters["resets_speed"] = 2  # as _reset counts them
+    diag = {f"frontend_{k}": float(v) for k, v in fe.counters.items()}
+    diag.update({f"frontend_{k}": v for k, v in fe.figures().items()})
+    c = RunCollector()
+    c.frontend_figures = {k[9:]: v for k, v in diag.items()}
+    for k in range(5):
+        c.gt_poses[k] = c.odometry[k] = make_T(np.eye(3), np.array([k, 0.1 * k * k, 0.0]))
+    out = summarise(c)["frontend"]
+    assert out["time_offset_ms"] == 0.0 and out["resets"] == {"speed": 2}
+    assert out["init_rejected"]["speed"] >= 1
+    assert out["keyframes_per_s"] == 0.0  # never initialised: no keyframe
+    write_report(tmp_path / "report.md", summarise(c))
+    assert "Camera-IMU time offset 0.0 ms" in (tmp_path / "report.md").read_text()
+    # the launch parameters of the node build the same groups
+    p, _, _ = FrontendNodeParams(
+        platform="handheld",
+        bounds={"max_speed_m_s": 3},
+        time_offset={"enabled": False, "search_ms": 80},
+    ).build()
+    assert p.platform == "handheld" and p.bounds.max_speed_m_s == 3.0
+    assert not p.time_offset.enabled and p.time_offset.search_ms == 80.0
+    with pytest.raises(ConfigError, match="frontend.time_offset"):
+        FrontendNodeParams(time_offset={"search": 1}).build()
