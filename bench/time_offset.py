@@ -25,6 +25,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+import numpy as np  # noqa: E402
+
 from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.frontend.camera import CameraModel  # noqa: E402
 from mogs_node.frontend.frontend import Frontend, FrontendParams  # noqa: E402
@@ -107,10 +109,16 @@ def main() -> int:
     ap.add_argument("--no-contrast", action="store_true", help="skip the runs with estimation off")
     ap.add_argument("--json", default=None)
     ap.add_argument("--write-docs", action="store_true")
+    ap.add_argument("--cache", default=None, help=".npy of the rendered images (made if absent)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     base = make_sequence(SimConfig(motion="handheld", n_frames=args.frames, width=621, height=188))
-    images = [base.render(i).rgb for i in range(len(base))]
+    if args.cache and Path(args.cache).exists():
+        images = list(np.load(args.cache, mmap_mode="r"))
+    else:
+        images = [base.render(i).rgb for i in range(len(base))]
+        if args.cache:
+            np.save(args.cache, np.stack(images))
     params = FrontendParams(
         platform=args.platform,
         keyframes=KeyframeParams(min_parallax_px=20.0, max_interval_s=1.0),  # launch/bag.yaml's

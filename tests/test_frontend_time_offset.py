@@ -14,6 +14,7 @@ from mogs_node.frontend.time_offset import (
     TimeOffsetParams,
     estimate_time_offset,
     gyro_integral,
+    gyro_variation,
     rotation_from_tracks,
 )
 from mogs_node.geometry import so3_exp
@@ -146,3 +147,16 @@ def test_params_are_validated() -> None:
         TimeOffsetParams(step_ms=0.0)
     with pytest.raises(ConfigError, match="time_offset"):
         TimeOffsetParams(min_pairs=2)
+
+
+def test_gyro_variation_tells_rotation_changes_apart() -> None:
+    """A steady turn has no variation (the offset is unobservable and harmless: no waiting);
+    head-turn-like rates have plenty."""
+    steady = ImuSamples(
+        np.arange(0, 3_000_000_000, 5_000_000, dtype=np.int64),
+        np.tile([0.0, 0.0, 0.3], (600, 1)),
+        np.tile([0.0, 0.0, 9.81], (600, 1)),
+    )
+    assert gyro_variation(steady, 2_900_000_000) == pytest.approx(0.0, abs=1e-12)
+    assert gyro_variation(_imu(4.0), 3_000_000_000) > TimeOffsetParams().init_wait_gyro_std_rad_s
+    assert gyro_variation(steady, -5_000_000_000) == 0.0  # no samples in the span

@@ -34,7 +34,11 @@ from mogs_node.frontend.initialization import (
 from mogs_node.frontend.keyframes import KeyframeParams, is_keyframe, omega_weight
 from mogs_node.frontend.platform import PlatformBounds, motion_violation, platform_profile
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
-from mogs_node.frontend.time_offset import TimeOffsetEstimator, TimeOffsetParams
+from mogs_node.frontend.time_offset import (
+    TimeOffsetEstimator,
+    TimeOffsetParams,
+    gyro_variation,
+)
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
@@ -185,6 +189,7 @@ class Frontend:
             params.time_offset, params.time_offset_ns, camera.K, self.T_imu_cam[:3, :3]
         )
         self._first_stamp_ns: int | None = None
+        self._init_offset_ns: int | None = None  # the offset a dynamic initialisation used
         self._reset_logged: set[str] = set()
         self._pim_params = make_params(params.imu)
         self.imu = _ImuBuffer()
@@ -465,6 +470,12 @@ class Frontend:
         big = abs(est.offset_ns - self.time_offset_ns) > 2e6 * self.params.time_offset.max_sigma_ms
         if (first or big) and not self.initialized:
             self._dyn_init.reset()
+        if (
+            self.initialized
+            and self._init_offset_ns is not None
+            and abs(est.offset_ns - self._init_offset_ns) > 1e6 * self.params.time_offset.reinit_ms
+        ):  # initialised with a wrong offset (it was not known yet): once more with this one
+            self._reset("time_offset", f"time offset {est.offset_ns / 1e6:.1f} ms")
         if first or big:
             log.info(
                 "camera-IMU time offset %.1f ms (+-%.1f)", est.offset_ns / 1e6, est.sigma_ns / 1e6
@@ -580,6 +591,7 @@ class Frontend:
                 tl,
             )
             self.counters["static_inits"] += 1
+            self._init_offset_ns = None  # a static start does not depend on the offset
             self._last_kf = (t_ns, ids, uv)
             log.info("static initialisation at %.3f s", t_ns * 1e-9)
             return
@@ -590,6 +602,7 @@ class Frontend:
             and self.clock.estimate is None
             and (t_ns - self.time_offset_ns - self._first_stamp_ns) * 1e-9
             < p.time_offset.init_wait_s
+            and gyro_variation(imu, t_ns) > p.time_offset.init_wait_gyro_std_rad_s
         ):
             self.counters["init_waiting_time_offset"] = (
                 self.counters.get("init_waiting_time_offset", 0) + 1
@@ -604,6 +617,7 @@ class Frontend:
             f = est.frames[-1]
             self._last_kf = (f.t_ns, f.ids, f.uv_px)
             self.counters["dynamic_inits"] += 1
+            self._init_offset_ns = self.time_offset_ns
             log.info(
                 "dynamic initialisation at %.3f s (speed %.2f m/s)",
                 f.t_ns * 1e-9,

@@ -29,6 +29,7 @@ from mogs_node.geometry import check_array, so3_log
 
 __all__ = [
     "OffsetEstimate",
+    "gyro_variation",
     "TimeOffsetEstimator",
     "TimeOffsetParams",
     "estimate_time_offset",
@@ -52,7 +53,12 @@ class TimeOffsetParams:
     ransac_px: float = 1.0  # RANSAC threshold of the essential matrix (undistorted px)
     solve_every: int = 10  # frames between two solves
     init_wait_s: float = 15.0  # the dynamic initialisation waits at most this long (camera
-    # time since the first frame) for a first estimate, then goes on with the launch value
+    # time since the first frame) for a first estimate, then goes on with the launch value ...
+    init_wait_gyro_std_rad_s: float = 0.1  # ... and only while the gyro over the last 2 s varies
+    # more than this (rotation changes: the offset matters and will be estimated; a car driving
+    # straight initialises at once, the offset being neither observable nor harmful then)
+    reinit_ms: float = 5.0  # a usable estimate this far from the value the running window was
+    # initialised with re-initialises it once (counted as resets_time_offset)
 
     def __post_init__(self) -> None:
         if self.search_ms <= 0 or not 0 < self.step_ms <= self.search_ms:
@@ -114,6 +120,15 @@ def gyro_integral(imu: ImuSamples, t_ns: NDArray) -> NDArray[np.float64]:
         w = g[i] + (g[i + 1] - g[i]) * (f / span)[:, None]
         out[inside] = cum[i] + 0.5 * (g[i] + w) * f[:, None]
     return out.reshape(*q.shape, 3)
+
+
+def gyro_variation(imu: ImuSamples, t_ns: int, span_s: float = 2.0) -> float:
+    """Norm of the per-axis standard deviation of the gyro over ``[t - span, t]`` (rad/s): how
+    much the rotation rate changes, what makes the offset observable (0 without samples)."""
+    m = (imu.stamps_ns <= t_ns) & (imu.stamps_ns >= t_ns - int(span_s * 1e9))
+    if m.sum() < 2:
+        return 0.0
+    return float(np.linalg.norm(np.std(imu.gyro_rad_s[m], axis=0)))
 
 
 def estimate_time_offset(
