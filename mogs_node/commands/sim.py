@@ -5,6 +5,7 @@ Examples::
     mogs sim --preview sim.png                                   # a picture only
     mogs sim --out /tmp/sim_kitti --frames 50 --size 621x188      # KITTI-raw layout
     mogs sim --out /tmp/sim.mcap --format mcap --trajectory oxts  # MCAP rosbag2
+    mogs sim --motion handheld --time-offset-ms 50 --format rosbag2 --out /tmp/walk  # a walk
 """
 
 from __future__ import annotations
@@ -59,7 +60,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--oxts-dir", default=None, help="OXTS folder for --trajectory oxts")
     parser.add_argument(
-        "--speed", type=float, default=10.0, help="mean speed of the synthetic drive (m/s)"
+        "--motion",
+        choices=["car", "handheld"],
+        default="car",
+        help="synthetic: a car drive, or a handheld walk (1.4 m/s, step bounce, head turns up "
+        "to 90 deg/s, hand shake)",
+    )
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        help="mean speed of the synthetic trajectory (m/s; default 10 car, 1.4 handheld)",
+    )
+    parser.add_argument(
+        "--time-offset-ms",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="camera stamps shifted against the IMU: a frame taken at IMU time t is stamped "
+        "t - MS (the frontend's time_offset_ns convention, t_imu = t_cam + offset); all formats",
     )
     parser.add_argument("--fps", type=float, default=10.0, help="camera frame rate (Hz)")
     parser.add_argument("--imu-rate", type=float, default=200.0, help="IMU rate (Hz)")
@@ -102,6 +121,8 @@ def command(args: argparse.Namespace) -> int:
         oxts_dir=args.oxts_dir,
         imu_rate_hz=args.imu_rate,
         static_start_s=args.static_start,
+        motion=args.motion,
+        time_offset_ns=int(round(args.time_offset_ms * 1e6)),
     )
     if args.no_imu_noise:
         cfg = replace(cfg, imu_noise=ImuNoiseParams(enabled=False))

@@ -75,7 +75,12 @@ def _lookup(keys: NDArray, vals: NDArray, q: NDArray, default: int) -> NDArray[n
 
 
 class EstimatorDivergedError(MogsError, RuntimeError):
-    """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise."""
+    """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise.
+    ``reason`` names the cause in one word (``solve_failed``, ``speed``, ``gyro_bias``, ...)."""
+
+    def __init__(self, message: str, reason: str = "diverged") -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 @dataclass(frozen=True)
@@ -483,21 +488,25 @@ class VioEstimator:
             self.last_n_factors = int(graph.size())
             self.last_imu_error = float(sum(f.error(self.values) for f in self._imu.values()))
         except RuntimeError as err:
-            raise EstimatorDivergedError(f"window solve failed: {err}") from err
+            raise EstimatorDivergedError(f"window solve failed: {err}", "solve_failed") from err
         p = self.params
         k = self.newest_seq
         b = self._bias(k)
         speed = float(np.linalg.norm(self.values.atVector(V(k))))
-        if (
-            not np.all(np.isfinite(self.pose(k)))
-            or not np.isfinite(speed)
-            or speed > p.max_speed_m_s
-            or np.linalg.norm(b.gyroscope()) > p.max_gyro_bias_rad_s
-            or np.linalg.norm(b.accelerometer()) > p.max_accel_bias_m_s2
-        ):
+        reason = None
+        if not np.all(np.isfinite(self.pose(k))) or not np.isfinite(speed):
+            reason = "not_finite"
+        elif speed > p.max_speed_m_s:
+            reason = "speed"
+        elif np.linalg.norm(b.gyroscope()) > p.max_gyro_bias_rad_s:
+            reason = "gyro_bias"
+        elif np.linalg.norm(b.accelerometer()) > p.max_accel_bias_m_s2:
+            reason = "accel_bias"
+        if reason is not None:
             raise EstimatorDivergedError(
-                f"state out of bounds: speed {speed:.1f} m/s, bias "
-                f"gyro {b.gyroscope()}, accel {b.accelerometer()}"
+                f"state out of bounds ({reason}): speed {speed:.1f} m/s, bias "
+                f"gyro {b.gyroscope()}, accel {b.accelerometer()}",
+                reason,
             )
 
     def _reproj(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
@@ -672,6 +681,13 @@ class VioEstimator:
                 "priors": float(len(self._priors)),
             },
         )
+
+    def window_states(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Stamps [F] (IMU time), ``T_world_imu`` [F, 4, 4] and velocities [F, 3] of the window."""
+        stamps = np.array([f.t_ns for f in self.frames], np.int64)
+        T = np.stack([self.pose(f.seq) for f in self.frames])
+        v = np.stack([np.asarray(self.values.atVector(V(f.seq)), float) for f in self.frames])
+        return stamps, T, v
 
     def newest_landmarks(self) -> LandmarkView:
         """Triangulated landmarks seen in the newest frame, in its camera frame."""

@@ -32,7 +32,13 @@ from mogs_node.frontend.initialization import (
     static_init,
 )
 from mogs_node.frontend.keyframes import KeyframeParams, is_keyframe, omega_weight
+from mogs_node.frontend.platform import PlatformBounds, motion_violation, platform_profile
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
+from mogs_node.frontend.time_offset import (
+    TimeOffsetEstimator,
+    TimeOffsetParams,
+    gyro_variation,
+)
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
@@ -68,7 +74,12 @@ class FrontendParams:
     init_mode: str = "auto"  # 'auto' (static when still, else dynamic), 'static' or 'dynamic'
     window_every_frame: bool = True  # every frame enters the estimator's window (not only the
     # published keyframes): shorter window span, more IMU-vision coupling, better accuracy
-    time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns (camera-IMU time offset)
+    time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns (camera-IMU time offset): the
+    # prior of the estimate (time_offset.enabled), the value used as it is otherwise
+    time_offset: TimeOffsetParams = field(default_factory=TimeOffsetParams)  # its estimation
+    platform: str = "car"  # 'car', 'handheld' or 'drone': bounds on plausible motion and the
+    # keyframe rate cap (frontend/platform.py, docs/frontend.md "Platform profiles")
+    bounds: PlatformBounds = field(default_factory=PlatformBounds)  # overrides of its bounds
     max_imu_gap_s: float = 0.05  # a larger hole in the IMU stream between frames resets the window
     max_pending_frames: int = 5  # frames waiting for their IMU; older ones are dropped (counted)
     imu_history_s: float = 30.0  # IMU kept in memory
@@ -179,6 +190,14 @@ class Frontend:
             maxlen=max(params.points.reproject_keyframes, 1)
         )
         self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
+        self.profile = platform_profile(params.platform, params.bounds)
+        self.time_offset_ns = int(params.time_offset_ns)  # the one in use (estimated or prior)
+        self.clock = TimeOffsetEstimator(
+            params.time_offset, params.time_offset_ns, camera.K, self.T_imu_cam[:3, :3]
+        )
+        self._first_stamp_ns: int | None = None
+        self._init_offset_ns: int | None = None  # the offset a dynamic initialisation used
+        self._reset_logged: set[str] = set()
         self._pim_params = make_params(params.imu)
         self.imu = _ImuBuffer()
         self._pending: deque[tuple[int, NDArray]] = deque()
@@ -187,7 +206,13 @@ class Frontend:
         self._frame_index = 0
         self._keyframe_id = 0
         self._dyn_init = DynamicInitializer(
-            params.init, params.estimator, camera.pinhole, self.T_imu_cam, params.imu, params.ground
+            params.init,
+            params.estimator,
+            camera.pinhole,
+            self.T_imu_cam,
+            params.imu,
+            params.ground,
+            self.profile,
         )
         self._last_kf: tuple[int, NDArray, NDArray] | None = None
         self._undistort_maps = None
@@ -303,9 +328,7 @@ class Frontend:
         out = []
         last = self.imu.last_ns
         while (
-            self._pending
-            and last is not None
-            and self._pending[0][0] + self.params.time_offset_ns <= last
+            self._pending and last is not None and self._pending[0][0] + self.time_offset_ns <= last
         ):
             stamp, img = self._pending.popleft()
             out.append(self._process(stamp, img))
@@ -315,11 +338,12 @@ class Frontend:
 
     def _process(self, stamp_ns: int, image: NDArray) -> FrameOutput:
         p = self.params
-        t_ns = stamp_ns + p.time_offset_ns
+        t_ns = stamp_ns + self.time_offset_ns
         t0 = time.perf_counter()
         ground_s = 0.0  # road measurement (with ground on), apart from the estimation
         R_pred = self._predicted_rotation(t_ns)
         tr = self.tracker.track(image, R_pred)
+        self._update_time_offset(stamp_ns, tr.ids, tr.uv_px)
         t1 = time.perf_counter()
         if self.point_tracker is not None:
             dense = self.point_tracker.track(image, R_pred)
@@ -340,8 +364,7 @@ class Frontend:
             and self.imu.max_gap_s(prev_t, t_ns) > p.max_imu_gap_s
         ):
             self.counters["imu_gap_resets"] += 1
-            log.warning("IMU gap before frame %d: re-initialising", idx)
-            self._reset()
+            self._reset("imu_gap", f"IMU gap before frame {idx}")
             status = "reset"
         imu = self.imu.samples()
         if not self.initialized:
@@ -357,6 +380,7 @@ class Frontend:
             make_kf, parallax = is_keyframe(
                 p.keyframes, self._last_kf[1], self._last_kf[2], tr.ids, tr.uv_px, dt_kf
             )
+            make_kf &= dt_kf >= self.profile.keyframe_min_interval_s  # the platform's rate cap
             still = (
                 is_still(p.init, imu, t_ns, flow)
                 and self._compensated_accel_m_s2(imu, t_ns) < p.init.still_accel_dev_m_s2
@@ -374,11 +398,11 @@ class Frontend:
                 )
             except EstimatorDivergedError as err:
                 self.counters["divergence_resets"] += 1
-                log.warning("frame %d: %s; re-initialising", idx, err)
-                self._reset()
+                self._reset(err.reason, f"frame {idx}: {err}")
                 status = "reset"
             else:
-                status = "tracking" if status != "reset" else status
+                status = self._check_platform(idx, status)
+            if status != "reset" and self.initialized:
                 stats.update(st.stats)
                 stats["landmarks"] = float(st.n_landmarks)
                 T_wc, v = st.T_world_imu @ self.T_imu_cam, st.velocity_world_m_s
@@ -413,7 +437,14 @@ class Frontend:
             stats=stats,
         )
 
-    def _reset(self) -> None:
+    def _reset(self, reason: str, message: str) -> None:
+        """Re-initialise, counted by ``reason`` (``resets_<reason>``), logged once per reason."""
+        key = f"resets_{reason}"
+        self.counters[key] = self.counters.get(key, 0) + 1
+        (log.debug if reason in self._reset_logged else log.warning)(
+            "%s; re-initialising (%d resets for %s)", message, self.counters[key], reason
+        )
+        self._reset_logged.add(reason)
         self.estimator.reset()
         self._dyn_init.reset()
         self._last_kf = None
@@ -422,6 +453,56 @@ class Frontend:
         self._last_points = None
         self._recent_points.clear()
         self._ground_ratios.clear()
+
+    def _check_platform(self, idx: int, status: str) -> str:
+        """Reset when the newest window step leaves the platform's bounds; the frame's status."""
+        stamps, T, v = self.estimator.window_states()
+        reason = motion_violation(self.profile, stamps[-2:], T[-2:], v[-2:])
+        if reason is None:
+            return "tracking" if status != "reset" else status
+        self.counters["divergence_resets"] += 1  # an implausible solution is a divergence
+        self._reset(reason.split(":", 1)[0], f"frame {idx}: {reason} ({self.profile.name})")
+        return "reset"
+
+    def _update_time_offset(self, stamp_ns: int, ids: NDArray, uv_px: NDArray) -> None:
+        """Feed the time-offset estimate; a new value is used from the next frame on (an
+        initialisation under way restarts: its frames carry the old IMU times)."""
+        if self._first_stamp_ns is None:
+            self._first_stamp_ns = stamp_ns
+        if not self.params.time_offset.enabled:
+            return
+        first = self.clock.estimate is None
+        est = self.clock.add_frame(stamp_ns, ids, uv_px, self.imu.samples())
+        if est is None or est.offset_ns == self.time_offset_ns:
+            return
+        big = abs(est.offset_ns - self.time_offset_ns) > 2e6 * self.params.time_offset.max_sigma_ms
+        if (first or big) and not self.initialized:
+            self._dyn_init.reset()
+        if (
+            self.initialized
+            and self._init_offset_ns is not None
+            and abs(est.offset_ns - self._init_offset_ns) > 1e6 * self.params.time_offset.reinit_ms
+        ):  # initialised with a wrong offset (it was not known yet): once more with this one
+            self._reset("time_offset", f"time offset {est.offset_ns / 1e6:.1f} ms")
+        if first or big:
+            log.info(
+                "camera-IMU time offset %.1f ms (+-%.1f)", est.offset_ns / 1e6, est.sigma_ns / 1e6
+            )
+        self.time_offset_ns = est.offset_ns
+
+    def figures(self) -> dict[str, float]:
+        """Run figures for the diagnostics: the time offset in use, keyframes per second."""
+        span_s = 0.0
+        if self._first_stamp_ns is not None and self._last_image_ns is not None:
+            span_s = (self._last_image_ns - self._first_stamp_ns) * 1e-9
+        e = self.clock.estimate
+        return {
+            "time_offset_ms": self.time_offset_ns / 1e6,
+            "time_offset_sigma_ms": e.sigma_ns / 1e6 if e is not None else float("nan"),
+            "time_offset_pairs": float(self.clock.pairs),
+            "keyframes_per_s": self.counters["keyframes"] / span_s if span_s > 0 else 0.0,
+            **{f"init_rejected_{k}": float(v) for k, v in self._dyn_init.rejections.items()},
+        }
 
     def _measure_ground(self, image: NDArray) -> None:
         """Road-plane distance between the previous and the newest window frame, added to the
@@ -518,10 +599,22 @@ class Frontend:
                 tl,
             )
             self.counters["static_inits"] += 1
+            self._init_offset_ns = None  # a static start does not depend on the offset
             self._last_kf = (t_ns, ids, uv)
             log.info("static initialisation at %.3f s", t_ns * 1e-9)
             return
         if p.init_mode == "static":
+            return
+        if (  # a dynamic initialisation needs the camera and IMU times to agree
+            p.time_offset.enabled
+            and self.clock.estimate is None
+            and (t_ns - self.time_offset_ns - self._first_stamp_ns) * 1e-9
+            < p.time_offset.init_wait_s
+            and gyro_variation(imu, t_ns) > p.time_offset.init_wait_gyro_std_rad_s
+        ):
+            self.counters["init_waiting_time_offset"] = (
+                self.counters.get("init_waiting_time_offset", 0) + 1
+            )
             return
         gray = None
         if p.ground.enabled:
@@ -532,6 +625,7 @@ class Frontend:
             f = est.frames[-1]
             self._last_kf = (f.t_ns, f.ids, f.uv_px)
             self.counters["dynamic_inits"] += 1
+            self._init_offset_ns = self.time_offset_ns
             log.info(
                 "dynamic initialisation at %.3f s (speed %.2f m/s)",
                 f.t_ns * 1e-9,

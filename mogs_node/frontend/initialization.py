@@ -21,6 +21,7 @@ from scipy.optimize import least_squares
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.estimator import EstimatorDivergedError, EstimatorParams, VioEstimator
 from mogs_node.frontend.ground import GroundParams, road_normal_from_mount, road_scale_of_sfm
+from mogs_node.frontend.platform import PlatformProfile, motion_violation
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params, preintegrate
 from mogs_node.geometry import PinholeCamera, check_array, make_T, se3_inverse, so3_log
 
@@ -496,8 +497,12 @@ class DynamicInitializer:
         T_imu_cam: NDArray,
         noise: ImuNoise,
         ground: GroundParams | None = None,
+        profile: PlatformProfile | None = None,
     ) -> None:
         self.params = params
+        self.profile = profile  # a chosen hypothesis outside its bounds is rejected
+        self.rejections: dict[str, int] = {}  # rejected chosen hypotheses by the bound broken
+        self.last_rejection: str | None = None
         self.estimator_params = estimator_params
         self.camera = camera
         self.T_imu_cam = T_imu_cam
@@ -631,8 +636,30 @@ class DynamicInitializer:
             if refined is not None:
                 best = refined
         self.reset()
+        reason = self._violation(best)
+        if reason is not None:
+            self._reject(reason)
+            return None
         best.params = self.estimator_params
         return best
+
+    def _violation(self, est: VioEstimator) -> str | None:
+        """The profile bound the chosen hypothesis's window breaks (None: plausible)."""
+        if self.profile is None:
+            return None
+        return motion_violation(self.profile, *est.window_states())
+
+    def _reject(self, reason: str) -> None:
+        """Count and log (once per bound) a rejected hypothesis; the next window starts afresh."""
+        key = reason.split(":", 1)[0]
+        n = self.rejections[key] = self.rejections.get(key, 0) + 1
+        self.last_rejection = reason
+        (log.warning if n == 1 else log.debug)(
+            "initialisation rejected (%s, platform %s, %d so far): waiting for a better window",
+            reason,
+            self.profile.name if self.profile else "-",
+            n,
+        )
 
     def _refine(self, three: list[list], imu: ImuSamples) -> VioEstimator | None:
         """Vertex of the parabola through (log speed, error) of the best hypothesis and its two

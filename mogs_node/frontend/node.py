@@ -37,7 +37,9 @@ from mogs_node.frontend.ground import GroundParams
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
 from mogs_node.frontend.monocular import MonocularFrontend, MonocularParams
+from mogs_node.frontend.platform import PlatformBounds
 from mogs_node.frontend.preintegration import ImuNoise
+from mogs_node.frontend.time_offset import TimeOffsetParams
 from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.frontend.tracker import TrackerParams
 from mogs_node.geometry import PinholeCamera, rigid_transform
@@ -96,6 +98,9 @@ class FrontendNodeParams:
     # known, else 'vi' (waiting for IMU)
     camera_only: dict[str, Any] = field(default_factory=dict)  # MonocularParams fields
     init_mode: str = "auto"  # 'auto', 'static' or 'dynamic'
+    platform: str = "car"  # 'car', 'handheld' or 'drone' (motion bounds, keyframe rate cap)
+    bounds: dict[str, Any] = field(default_factory=dict)  # PlatformBounds fields (overrides)
+    time_offset: dict[str, Any] = field(default_factory=dict)  # TimeOffsetParams fields
     tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
     estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
     keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
@@ -147,9 +152,16 @@ class FrontendNodeParams:
             "init": parse_params(InitParams, self.init, where=f"{where}.init"),
             "imu": parse_params(ImuNoise, noise, where=f"{where}.imu"),
             "ground": parse_params(GroundParams, ground, where=f"{where}.ground"),
+            "bounds": parse_params(PlatformBounds, self.bounds, where=f"{where}.bounds"),
+            "time_offset": parse_params(
+                TimeOffsetParams, self.time_offset, where=f"{where}.time_offset"
+            ),
         }
         params = FrontendParams(
-            init_mode=self.init_mode, time_offset_ns=self.time_offset_ns, **groups
+            init_mode=self.init_mode,
+            time_offset_ns=self.time_offset_ns,
+            platform=self.platform,
+            **groups,
         )
         cam = CameraModel(
             PinholeCamera(
@@ -472,6 +484,9 @@ class FrontendNode(Node):
             d.counters.update(
                 {f"frontend_{k}": float(v) for k, v in self.frontend.counters.items()}
             )
+            figures = getattr(self.frontend, "figures", None)  # the VI frontend's estimates
+            if figures is not None:
+                d.counters.update({f"frontend_{k}": v for k, v in figures().items()})
         return d
 
 

@@ -50,6 +50,7 @@ class RunCollector:
     unestimated_frames: int = 0  # odometry acknowledgements without a pose (initialising, ...)
     acknowledged: set[int] = field(default_factory=set)  # stamps with any odometry message
     node_counters: dict[str, dict[str, float]] = field(default_factory=dict)  # last per node
+    frontend_figures: dict[str, float] = field(default_factory=dict)  # its last frontend_* values
     last_stats: dict[str, Any] = field(default_factory=dict)
     final_map: MapReplica = field(default_factory=MapReplica)  # from /mapper/gaussians
     map_updated: set[int] = field(default_factory=set)  # keyframe ids of the map updates
@@ -167,6 +168,16 @@ def summarise(c: RunCollector) -> dict[str, Any]:
             "updates": c.final_map.updates,
             **summarise_views(c.view_scores),
         }
+    if c.frontend_figures:  # time offset, resets by reason, keyframe rate (issue 23)
+        f = c.frontend_figures
+        out["frontend"] = {
+            "time_offset_ms": f.get("time_offset_ms", 0.0),
+            "keyframes_per_s": f.get("keyframes_per_s", 0.0),
+            "resets": {k[7:]: int(v) for k, v in f.items() if k.startswith("resets_") and v},
+            "init_rejected": {
+                k[14:]: int(v) for k, v in f.items() if k.startswith("init_rejected_")
+            },
+        }
     if c.node_counters:  # what each node dropped (best effort) or lost (reliable gaps)
         out["nodes"] = {n: dict(v) for n, v in sorted(c.node_counters.items())}
     return out
@@ -265,6 +276,13 @@ def write_report(path: Path, figures: dict[str, Any], *, title: str = "MOGS run"
     if "trajectory" in figures:
         t = figures["trajectory"]
         lines += ["", "## Trajectory (frontend odometry against ground truth, evo)", ""]
+        if "frontend" in figures:
+            fe = figures["frontend"]
+            lines += [
+                f"Camera-IMU time offset {fe['time_offset_ms']:.1f} ms, "
+                f"{fe['keyframes_per_s']:.2f} keyframes/s, resets {fe['resets'] or 'none'}.",
+                "",
+            ]
         if "error" in t:
             lines.append(f"Not scored: {t['error']}")
         else:

@@ -222,6 +222,9 @@ class RunReportNode(Node):
         self.c.node_counters[m.node] = {
             k: float(m.counters.get(k, 0.0)) for k in NODE_COUNTERS if k in m.counters
         }
+        fe = {k[9:]: float(v) for k, v in m.counters.items() if k.startswith("frontend_")}
+        if len(fe) > 1:  # the frontend's own figures (not another node's one counter)
+            self.c.frontend_figures = fe
         if (
             m.node == self.params.source_node
             and m.status == "stopped"

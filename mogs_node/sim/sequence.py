@@ -1,6 +1,7 @@
 """A simulated drive: trajectory + world + camera + IMU, with ground truth for everything.
 
-Frames ``i`` are at ``t = i / frame_rate_hz`` (s), stamps ``start_ns + round(t * 1e9)``. The camera
+Frames ``i`` are at ``t = i / frame_rate_hz`` (s), stamps ``start_ns + round(t * 1e9) -
+time_offset_ns`` (the camera clock's offset against the IMU's, 0 by default). The camera
 rides on the vehicle: ``T_world_cam = T_world_imu(t) @ T_imu_cam``. IMU samples cover
 ``[t_0 - imu_margin_s, t_last + imu_margin_s]`` on a grid aligned with the frames.
 World frame: z up, gravity ``(0, 0, -9.81)`` m/s^2, road plane z = 0. IMU (body) frame: x forward,
@@ -21,6 +22,7 @@ from mogs_node.sim.imu import ImuNoise, ImuNoiseParams, simulate_imu_noise
 from mogs_node.sim.trajectory import (
     GRAVITY_WORLD_M_S2,
     Trajectory,
+    handheld_trajectory,
     oxts_trajectory,
     synthetic_trajectory,
 )
@@ -48,6 +50,10 @@ T_IMU_CAM_DEFAULT = make_T(
 #: the vehicle drives in the right lane: the road centre is this far to its left
 EGO_LANE_OFFSET_M = 1.75
 
+MOTIONS = ("car", "handheld")
+#: handheld walk: the camera about 1.5 m above the ground (the IMU sits T_imu_cam[2, 3] below it)
+HANDHELD_CAMERA_HEIGHT_M = 1.5
+
 
 @dataclass(frozen=True)
 class SimConfig:
@@ -58,7 +64,8 @@ class SimConfig:
     width: int = 1242  # image width (px); intrinsics are KITTI's scaled to this size
     height: int = 375  # image height (px)
     frame_rate_hz: float = 10.0  # camera rate
-    speed_m_s: float = 10.0  # mean speed of the synthetic trajectory (ignored for "oxts")
+    speed_m_s: float | None = None  # mean speed of the synthetic trajectory (ignored for "oxts");
+    # None: 10 m/s for the car, 1.4 m/s for the handheld walk
     trajectory: str = "synthetic"  # "synthetic" (random smooth curves) or "oxts" (real KITTI drive)
     oxts_dir: str | None = None  # OXTS folder for "oxts" (default ../shared/data/..._0001_oxts)
     imu_rate_hz: float = 200.0  # IMU rate
@@ -70,6 +77,11 @@ class SimConfig:
     world: WorldParams = field(default_factory=WorldParams)  # layout of the world
     start_ns: int = 1_000_000_000  # stamp of frame 0
     static_start_s: float = 0.0  # synthetic only: seconds at rest (from t = 0) before driving off
+    motion: str = "car"  # synthetic only: "car" (a drive) or "handheld" (a walk, see
+    # trajectory.handheld_trajectory; speed_m_s None means 1.4 m/s then)
+    time_offset_ns: int = 0  # camera clock against the IMU's: a frame taken at IMU time t is
+    # stamped t - time_offset_ns, so the frontend's t_imu = t_cam + time_offset_ns holds
+    # (ground truth keeps the true pose of each frame)
 
 
 @dataclass(frozen=True)
@@ -142,17 +154,34 @@ def make_sequence(config: SimConfig | None = None) -> SimSequence:
         raise ConfigError(f"width/height: too small ({cfg.width}x{cfg.height})")
     duration_s = (cfg.n_frames - 1) / cfg.frame_rate_hz
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 1]))
-    if cfg.trajectory == "synthetic":
+    if cfg.motion not in MOTIONS:
+        raise ConfigError(f"motion: expected one of {MOTIONS}, got {cfg.motion!r}")
+    T_imu_cam = (
+        T_IMU_CAM_DEFAULT.copy()
+        if cfg.T_imu_cam is None
+        else np.asarray(cfg.T_imu_cam, dtype=np.float64)
+    )
+    margin_s = cfg.imu_margin_s + 0.5
+    if cfg.trajectory == "synthetic" and cfg.motion == "handheld":
+        traj = handheld_trajectory(
+            duration_s,
+            rng=rng,
+            speed_m_s=1.4 if cfg.speed_m_s is None else cfg.speed_m_s,
+            imu_height_m=HANDHELD_CAMERA_HEIGHT_M - float(T_imu_cam[2, 3]),
+            margin_s=margin_s,
+            static_start_s=cfg.static_start_s,
+        )
+    elif cfg.trajectory == "synthetic":
         traj = synthetic_trajectory(
             duration_s,
             rng=rng,
-            speed_m_s=cfg.speed_m_s,
-            margin_s=cfg.imu_margin_s + 0.5,
+            speed_m_s=10.0 if cfg.speed_m_s is None else cfg.speed_m_s,
+            margin_s=margin_s,
             static_start_s=cfg.static_start_s,
         )
     elif cfg.trajectory == "oxts":
-        if cfg.static_start_s > 0:
-            raise ConfigError("static_start_s: only for the synthetic trajectory")
+        if cfg.static_start_s > 0 or cfg.motion != "car":
+            raise ConfigError("static_start_s / motion: only for the synthetic trajectory")
         traj = oxts_trajectory(cfg.oxts_dir)
         if duration_s + cfg.imu_margin_s > traj.t_end_s - traj.t_start_s:
             raise ConfigError(
@@ -167,11 +196,10 @@ def make_sequence(config: SimConfig | None = None) -> SimSequence:
         raise ConfigError(f"trajectory: expected 'synthetic' or 'oxts', got {cfg.trajectory!r}")
     t_offset = cfg.imu_margin_s if cfg.trajectory == "oxts" else 0.0  # trajectory time of frame 0
     t_frames = t_offset + np.arange(cfg.n_frames) / cfg.frame_rate_hz
-    stamps_ns = cfg.start_ns + np.round((t_frames - t_offset) * 1e9).astype(np.int64)
-    T_imu_cam = (
-        T_IMU_CAM_DEFAULT.copy()
-        if cfg.T_imu_cam is None
-        else np.asarray(cfg.T_imu_cam, dtype=np.float64)
+    stamps_ns = (
+        cfg.start_ns
+        + np.round((t_frames - t_offset) * 1e9).astype(np.int64)
+        - int(cfg.time_offset_ns)
     )
     T_world_imu = traj.T_world_imu(t_frames)
     T_world_cam = T_world_imu @ T_imu_cam

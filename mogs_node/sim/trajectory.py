@@ -20,7 +20,13 @@ from scipy.interpolate import BSpline, make_interp_spline, splrep
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T, rotmat_from_rpy
 
-__all__ = ["GRAVITY_WORLD_M_S2", "Trajectory", "oxts_trajectory", "synthetic_trajectory"]
+__all__ = [
+    "GRAVITY_WORLD_M_S2",
+    "Trajectory",
+    "handheld_trajectory",
+    "oxts_trajectory",
+    "synthetic_trajectory",
+]
 
 #: gravity in the world frame (z up), m/s^2
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -9.81])
@@ -163,6 +169,103 @@ def synthetic_trajectory(
     roll = sway * a_lat  # body leans to the outside of a turn (left side down in a right turn)
     rpy = _quintic(tk, np.stack([roll, pitch, yaw], -1))
     return Trajectory(position, rpy, float(t0), float(t1))
+
+
+def _smootherstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
+
+
+def _planar_path(
+    t: np.ndarray, speed: np.ndarray, rng: np.random.Generator, min_turn_radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``[T, 2]`` and path heading ``[T]`` at times ``t`` for the speed profile ``speed``
+    ``[T]`` (m/s) along raised-cosine turns of radius at least ``min_turn_radius_m``."""
+    s_of_t = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))])
+    ds = 0.05
+    s = np.arange(0.0, float(s_of_t[-1]) + 10.0, ds)
+    kappa = np.zeros_like(s)
+    pos = rng.uniform(5.0, 25.0)
+    while pos < s[-1]:
+        length = rng.uniform(25.0, 60.0)
+        k = rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 1.0) / min_turn_radius_m
+        m = (s >= pos) & (s < pos + length)
+        kappa[m] += k * 0.5 * (1 - np.cos(2 * np.pi * (s[m] - pos) / length))
+        pos += length + rng.uniform(15.0, 50.0)
+    heading = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * ds)])
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (np.cos(heading[1:]) + np.cos(heading[:-1])) * ds)])
+    y = np.concatenate([[0.0], np.cumsum(0.5 * (np.sin(heading[1:]) + np.sin(heading[:-1])) * ds)])
+    xy = np.stack([np.interp(s_of_t, s, x), np.interp(s_of_t, s, y)], -1)
+    return xy, np.interp(s_of_t, s, heading)
+
+
+def handheld_trajectory(
+    duration_s: float,
+    *,
+    rng: np.random.Generator,
+    speed_m_s: float = 1.4,
+    imu_height_m: float = 1.45,
+    step_hz: float = 1.9,
+    bounce_m: float = 0.02,
+    sway_m: float = 0.015,
+    max_head_rate_deg_s: float = 90.0,
+    head_turn_deg: tuple[float, float] = (20.0, 45.0),
+    shake_deg: float = 0.4,
+    min_turn_radius_m: float = 25.0,
+    margin_s: float = 1.0,
+    static_start_s: float = 0.0,
+    accel_time_s: float = 1.5,
+) -> Trajectory:
+    """A person walking with a handheld camera + IMU at about ``speed_m_s`` along a street.
+
+    The path curves like :func:`synthetic_trajectory`'s (gentler speed changes, +-5 %). On top:
+    the step bounce (vertical ``bounce_m`` at the step frequency ``step_hz``, lateral ``sway_m``
+    at half of it, pitch 0.5 deg with the step), head turns (raised-cosine yaw excursions of
+    ``head_turn_deg`` out and back, peak rate uniform in [0.5, 1] x ``max_head_rate_deg_s``, every
+    3-8 s) and hand shake (three sinusoids of 1-5 Hz per axis, ``shake_deg`` each at most). With
+    ``static_start_s`` the walker stands still (heading +x, no shake) until then and reaches the
+    walking speed ``accel_time_s`` later. Body frame as everywhere in the sim: x forward, z up.
+    """
+    if duration_s < 0 or speed_m_s <= 0 or accel_time_s <= 0:
+        raise ConfigError(
+            f"duration_s/speed_m_s/accel_time_s: need >= 0 / > 0 / > 0, got "
+            f"{duration_s}/{speed_m_s}/{accel_time_s}"
+        )
+    t0, t1 = -margin_s - 0.5, duration_s + margin_s + 0.5
+    tk = np.arange(t0, t1 + 1e-9, 0.02)  # knots at 50 Hz: the step and the shake are < 5 Hz
+    walk = _smootherstep((tk - static_start_s) / accel_time_s) if static_start_s > 0 else 1.0
+    w = 2 * np.pi / rng.uniform(8.0, 14.0)
+    speed = speed_m_s * (1.0 + 0.05 * np.sin(w * tk + rng.uniform(0, 2 * np.pi))) * walk
+    xy, heading = _planar_path(tk, np.broadcast_to(speed, tk.shape), rng, min_turn_radius_m)
+    i0 = int(np.argmin(np.abs(tk)))
+    xy -= xy[i0]
+    step = 2 * np.pi * step_hz * tk
+    left = np.stack([-np.sin(heading), np.cos(heading)], -1)
+    xy = xy + (walk * sway_m * np.sin(0.5 * step))[:, None] * left
+    z = imu_height_m + walk * bounce_m * np.cos(step)
+    position = _quintic(tk, np.c_[xy, z])
+    # head turns: out and back, yaw(t) = A (1 - cos(2 pi (t - ts) / T)) / 2, peak rate A pi / T
+    head = np.zeros_like(tk)
+    ts = max(static_start_s + accel_time_s, 0.0) + rng.uniform(1.0, 3.0)
+    while ts < t1:
+        amp = np.deg2rad(rng.uniform(*head_turn_deg)) * rng.choice([-1.0, 1.0])
+        rate = np.deg2rad(max_head_rate_deg_s) * rng.uniform(0.5, 1.0)
+        dur = np.pi * abs(amp) / rate
+        m = (tk >= ts) & (tk < ts + dur)
+        head[m] += amp * 0.5 * (1 - np.cos(2 * np.pi * (tk[m] - ts) / dur))
+        ts += dur + rng.uniform(3.0, 8.0)
+    shake = np.zeros((len(tk), 3))
+    for axis in range(3):
+        for _ in range(3):
+            f = rng.uniform(1.0, 5.0)
+            a = np.deg2rad(shake_deg) * rng.uniform(0.3, 1.0) / 3.0
+            shake[:, axis] += a * np.sin(2 * np.pi * f * tk + rng.uniform(0, 2 * np.pi))
+    shake *= np.asarray(walk).reshape(-1, 1) if static_start_s > 0 else 1.0
+    pitch_step = walk * np.deg2rad(0.5) * np.sin(step)
+    rpy = np.stack(
+        [shake[:, 0], pitch_step + shake[:, 1], heading - heading[i0] + head + shake[:, 2]], -1
+    )
+    return Trajectory(position, _quintic(tk, rpy), float(t0 + 0.5), float(t1 - 0.5))
 
 
 def default_oxts_dir() -> Path:

@@ -1,0 +1,160 @@
+"""Platform profiles: motion bounds, rejected initialisations, resets by reason, keyframe cap."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.platform import (
+    PLATFORMS,
+    PlatformBounds,
+    motion_violation,
+    platform_profile,
+)
+from mogs_node.frontend.runs import run_frontend
+from mogs_node.frontend.time_offset import TimeOffsetParams
+from mogs_node.geometry import make_T, so3_exp
+from mogs_node.sim import SimConfig, make_sequence
+
+
+def _states(v: np.ndarray, rate_rad_s: float = 0.0, dt_s: float = 0.1):
+    """Two window states ``dt_s`` apart with velocities ``v`` [2, 3] and a yaw rate."""
+    stamps = np.array([0, int(dt_s * 1e9)], np.int64)
+    T = np.stack([np.eye(4), make_T(so3_exp(np.array([0, 0, rate_rad_s * dt_s])), np.zeros(3))])
+    return stamps, T, np.asarray(v, float)
+
+
+def test_each_bound_is_named() -> None:
+    hh = PLATFORMS["handheld"]
+    walk = np.array([[1.4, 0, 0.1], [1.4, 0, -0.1]])
+    assert motion_violation(hh, *_states(walk, rate_rad_s=1.5)) is None
+    assert motion_violation(hh, *_states(walk * 4)).startswith("speed: 5.6 m/s > 4 m/s")
+    up = np.array([[0.5, 0, 3.0], [0.5, 0, 3.0]])
+    assert motion_violation(hh, *_states(up)).startswith("vertical_speed")
+    jump = np.array([[0.0, 0, 0], [3.0, 0, 0]])
+    assert motion_violation(hh, *_states(jump)).startswith("acceleration: 30.0 m/s^2")
+    spin = motion_violation(hh, *_states(walk, rate_rad_s=10.0))
+    assert spin.startswith("angular_rate: 573 deg/s")
+    # the same spin is a plausible drone, the same speed a plausible car
+    assert motion_violation(PLATFORMS["drone"], *_states(walk, rate_rad_s=7.0)) is None
+    assert motion_violation(PLATFORMS["car"], *_states(walk * 4)) is None
+    nan = walk.copy()
+    nan[1, 0] = np.nan
+    assert motion_violation(hh, *_states(nan)) == "state: not finite"
+
+
+@settings(max_examples=40, deadline=None)
+@given(speed=st.floats(0.0, 100.0), limit=st.floats(0.1, 80.0))
+def test_speed_bound_property(speed: float, limit: float) -> None:
+    prof = platform_profile("car", PlatformBounds(max_speed_m_s=limit))
+    v = np.array([[speed, 0.0, 0.0], [speed, 0.0, 0.0]])
+    r = motion_violation(prof, *_states(v))
+    assert (r is not None and r.startswith("speed")) == (speed > limit)
+
+
+def test_profiles_and_overrides_are_validated() -> None:
+    assert platform_profile("drone", PlatformBounds(max_speed_m_s=5)).max_speed_m_s == 5.0
+    assert platform_profile("drone").max_speed_m_s == PLATFORMS["drone"].max_speed_m_s
+    with pytest.raises(ConfigError, match="frontend.platform"):
+        platform_profile("boat")
+    with pytest.raises(ConfigError, match="bounds must be positive"):
+        platform_profile("car", PlatformBounds(max_accel_m_s2=-1))
+    with pytest.raises(ConfigError, match="frontend.platform"):
+        Frontend(
+            FrontendParams(platform="boat"),
+            CameraModel(make_sequence(SimConfig(n_frames=1, width=64, height=32)).camera),
+            np.eye(4),
+        )
+
+
+@pytest.fixture(scope="module")
+def car_drive():
+    """A car at ~10 m/s from the first frame: 7 s at 621x188."""
+    seq = make_sequence(SimConfig(seed=0, n_frames=71, width=621, height=188))
+    return seq, [seq.render(i).rgb for i in range(len(seq))]
+
+
+def _run(seq, images, platform: str, **bounds):
+    params = FrontendParams(
+        platform=platform,
+        init_mode="dynamic",
+        time_offset=TimeOffsetParams(enabled=False),
+        bounds=PlatformBounds(**bounds),
+    )
+    fe = Frontend(params, CameraModel(seq.camera), seq.T_imu_cam)
+    outs = run_frontend(
+        fe, seq.stamps_ns, images, seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2
+    )
+    return fe, outs
+
+
+def test_init_breaking_the_speed_bound_is_rejected_and_the_frontend_waits(
+    car_drive, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A car at 10 m/s under a 4 m/s bound: every chosen hypothesis is rejected with the bound
+    named, nothing is published, each next window is tried again; with the car's bounds the same
+    drive initialises at its true speed."""
+    seq, images = car_drive
+    with caplog.at_level(logging.WARNING, logger="mogs_node.frontend"):
+        fe, outs = _run(seq, images, "car", max_speed_m_s=4.0)
+    rej = fe._dyn_init.rejections
+    assert rej.get("speed", 0) >= 2  # rejected, then rejected again on a later window
+    assert fe._dyn_init.last_rejection.startswith("speed: ")
+    assert "> 4 m/s" in fe._dyn_init.last_rejection
+    assert not fe.initialized and fe.counters["dynamic_inits"] == 0
+    assert all(o.T_world_cam is None and o.keyframe is None for o in outs)
+    msgs = [r.getMessage() for r in caplog.records if "initialisation rejected" in r.getMessage()]
+    assert len(msgs) == 1 and "speed" in msgs[0]  # logged once, counted every time
+    fe, outs = _run(seq, images, "car")
+    assert fe.counters["dynamic_inits"] == 1 and fe._dyn_init.rejections == {}
+    speed = np.linalg.norm(fe.estimator.state().velocity_world_m_s)
+    true = np.linalg.norm(seq.velocity_world_m_s[-1])
+    assert abs(speed / true - 1) < 0.15
+
+
+def test_keyframe_rate_cap(car_drive) -> None:
+    seq, images = car_drive
+    fe, outs = _run(seq, images, "car", keyframe_min_interval_s=0.45)
+    t = np.array([o.stamp_ns for o in outs if o.keyframe is not None]) * 1e-9
+    assert len(t) >= 3 and np.diff(t).min() >= 0.45 - 1e-6
+    assert fe.figures()["keyframes_per_s"] <= 1 / 0.45 * 1.01
+
+
+def test_figures_reach_summary_and_report(car_drive, tmp_path) -> None:
+    """The frontend's figures, as the report node receives them from ``/diagnostics``
+    (``frontend_<name>``), become ``summary.json``'s ``frontend`` section and a report line."""
+    from mogs_node.frontend.node import FrontendNodeParams
+    from mogs_node.report.collect import RunCollector, summarise, write_report
+
+    seq, images = car_drive
+    fe, _ = _run(seq, images, "car", max_speed_m_s=4.0)
+    fe.counters["resets_speed"] = 2  # as _reset counts them
+    diag = {f"frontend_{k}": float(v) for k, v in fe.counters.items()}
+    diag.update({f"frontend_{k}": v for k, v in fe.figures().items()})
+    c = RunCollector()
+    c.frontend_figures = {k[9:]: v for k, v in diag.items()}
+    for k in range(5):
+        c.gt_poses[k] = c.odometry[k] = make_T(np.eye(3), np.array([k, 0.1 * k * k, 0.0]))
+    out = summarise(c)["frontend"]
+    assert out["time_offset_ms"] == 0.0 and out["resets"] == {"speed": 2}
+    assert out["init_rejected"]["speed"] >= 1
+    assert out["keyframes_per_s"] == 0.0  # never initialised: no keyframe
+    write_report(tmp_path / "report.md", summarise(c))
+    assert "Camera-IMU time offset 0.0 ms" in (tmp_path / "report.md").read_text()
+    # the launch parameters of the node build the same groups
+    p, _, _ = FrontendNodeParams(
+        platform="handheld",
+        bounds={"max_speed_m_s": 3},
+        time_offset={"enabled": False, "search_ms": 80},
+    ).build()
+    assert p.platform == "handheld" and p.bounds.max_speed_m_s == 3.0
+    assert not p.time_offset.enabled and p.time_offset.search_ms == 80.0
+    with pytest.raises(ConfigError, match="frontend.time_offset"):
+        FrontendNodeParams(time_offset={"search": 1}).build()
