@@ -294,6 +294,22 @@ def current_section(name: str = "frontend") -> str:
     return text.split(begin, 1)[1].split(end, 1)[0]
 
 
+POINTS_HEAD = "\nSparse points per keyframe"
+POINTS_END = "\nCPU time per tracking frame"
+
+
+def with_new_points(section: str, point_lines: list[str]) -> str | None:
+    """``section`` (the current ``frontend`` section's text) with its sparse-points block
+    replaced by ``point_lines`` and the rest (speed, sweep, accuracy tables) kept as it is; None
+    if it has no such block."""
+    if POINTS_HEAD not in section or POINTS_END not in section:
+        return None
+    head, rest = section.split(POINTS_HEAD, 1)
+    tail = rest.split(POINTS_END, 1)[1]
+    tail = tail.split("\n\n", 1)[1] if "\n\n" in tail else ""
+    return head.rstrip() + "\n" + "\n".join(point_lines) + "\n\n" + tail.strip("\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100, help="frames per run (10 Hz)")
@@ -304,7 +320,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--points-only",
         action="store_true",
-        help="only the sparse points and the CPU time with / without them (no docs update)",
+        help="only the sparse points and the CPU time with / without them (docs: with "
+        "--write-points-docs only)",
+    )
+    ap.add_argument(
+        "--write-points-docs",
+        action="store_true",
+        help="with --points-only: replace the sparse-points block of the frontend section of "
+        "docs/benchmarks.md, keep the rest of it (the speed tables come from their own run)",
     )
     ap.add_argument(
         "--traj-json",
@@ -320,6 +343,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.points_only:
         figures = {**points, "load_average_1min": float(os.getloadavg()[0])}
         write_json(args.json, figures)
+        new = with_new_points(current_section(), point_lines)
+        if args.write_points_docs and new is not None:
+            cmd = "python bench/frontend.py " + " ".join(argv if argv is not None else sys.argv[1:])
+            note = (
+                f"Sparse points block: `{cmd.strip()}` ({machine_line()}), 1-min load "
+                f"average {figures['load_average_1min']:.1f} (times inflated; the ratios with / "
+                "without points are from one run); the speed tables above it are from their own "
+                "run."
+            )
+            update_markdown_section(
+                "frontend", new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1)
+            )
         print(json.dumps(figures, indent=1, default=float))
         return 0
     seconds = (args.frames - 1) / 10.0
