@@ -142,6 +142,16 @@ def cpu_run(d: dict, params: FrontendParams) -> tuple[list, list[float]]:
     return outs, cpu_s
 
 
+# A denser dense tracker than the default: it reaches issue 16's 300 points per moving keyframe
+# on the demo drive, at a CPU cost and with a worse metrized depth downstream (docs/frontend.md,
+# round 7); a launch file can select it (frontend.points).
+DENSER = {"max_tracks": 2000, "min_distance_px": 2}
+
+
+def with_points(params: FrontendParams, **fields) -> FrontendParams:
+    return dataclasses.replace(params, points=dataclasses.replace(params.points, **fields))
+
+
 def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
     """Sparse points on the demo drive (launch/demo.yaml: parked 2 s, keyframes every 20 px /
     1 s) against ground truth, with the estimator window's landmarks as before for reference;
@@ -163,16 +173,17 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
     }
     base = FrontendParams(keyframes=KeyframeParams(min_parallax_px=20.0, max_interval_s=1.0))
     out: dict[str, float] = {}
-    for tag, enabled in (("", True), ("landmarks_", False)):
-        params = with_knob(base, "points", "enabled", enabled)
-        outs, _ = cpu_run(d, params)
+    variants = {"": {}, "landmarks_": {"enabled": False}, "denser_": DENSER}
+    for tag, fields in variants.items():
+        outs, _ = cpu_run(d, with_points(base, **fields))
         fig = keyframe_point_figures(
             outs, lambda t: sim_frames[index[t]].depth_m, lambda t: float(speed[index[t]])
         )
         out.update({f"{tag}{k}": v for k, v in fig.items()})
     moving = prerender((frames - 1) / 10.0, (621, 188), seed)
-    for tag, enabled in (("", True), ("_no_points", False)):
-        _, cpu_s = cpu_run(moving, with_knob(FrontendParams(), "points", "enabled", enabled))
+    timed = {"": {}, "_no_points": {"enabled": False}, "_denser": DENSER}
+    for tag, fields in timed.items():
+        _, cpu_s = cpu_run(moving, with_points(FrontendParams(), **fields))
         ms = 1e3 * float(np.mean(cpu_s))
         out[f"cpu_ms_per_frame_621x188{tag}"] = ms
         out[f"cpu_frames_per_s_621x188{tag}"] = 1e3 / ms
@@ -181,7 +192,7 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
         "Sparse points per keyframe (demo drive: sim seed "
         f"{seed}, parked 2 s then ~4 s of driving, 621x188, launch/demo.yaml's keyframe policy; "
         'against ground truth at the points\' pixels; "on a depth edge": a 4-neighbour '
-        "depth jump > 10 % within 2 px, sky included; docs/frontend.md round 6):",
+        "depth jump > 10 % within 2 px, sky included; docs/frontend.md rounds 6 and 7):",
         "",
         "| points | per moving keyframe (median) | rel. depth error (median) | on depth edges "
         "| on depth edges, by omega | keyframes without points |",
@@ -189,7 +200,8 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
     ]
     for tag, name in (
         ("landmarks_", "estimator window's landmarks (before)"),
-        ("", "dense tracks"),
+        ("", "dense tracks (default: 900 tracks >= 5 px apart, last 3 keyframes re-observed)"),
+        ("denser_", "dense tracks, 2000 >= 2 px apart"),
     ):
         lines.append(
             f"| {name} | {out[tag + 'points_per_keyframe_median']:.0f} | "
@@ -205,7 +217,12 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
         f"{out['cpu_ms_per_frame_621x188_no_points']:.1f} ms without the dense points "
         f"({out['cpu_frames_per_s_621x188_no_points']:.1f} frames/s), "
         f"{out['cpu_ms_per_frame_621x188']:.1f} ms with them "
-        f"({out['cpu_frames_per_s_621x188']:.1f} frames/s).",
+        f"({out['cpu_frames_per_s_621x188']:.1f} frames/s, x"
+        f"{out['cpu_ms_per_frame_621x188'] / out['cpu_ms_per_frame_621x188_no_points']:.2f}), "
+        f"{out['cpu_ms_per_frame_621x188_denser']:.1f} ms with the denser ones "
+        f"({out['cpu_frames_per_s_621x188_denser']:.1f} frames/s, x"
+        f"{out['cpu_ms_per_frame_621x188_denser'] / out['cpu_ms_per_frame_621x188_no_points']:.2f}"
+        "); on a loaded machine the ratios hold better than the times.",
     ]
     return out, lines
 
@@ -277,6 +294,22 @@ def current_section(name: str = "frontend") -> str:
     return text.split(begin, 1)[1].split(end, 1)[0]
 
 
+POINTS_HEAD = "\nSparse points per keyframe"
+POINTS_END = "\nCPU time per tracking frame"
+
+
+def with_new_points(section: str, point_lines: list[str]) -> str | None:
+    """``section`` (the current ``frontend`` section's text) with its sparse-points block
+    replaced by ``point_lines`` and the rest (speed, sweep, accuracy tables) kept as it is; None
+    if it has no such block."""
+    if POINTS_HEAD not in section or POINTS_END not in section:
+        return None
+    head, rest = section.split(POINTS_HEAD, 1)
+    tail = rest.split(POINTS_END, 1)[1]
+    tail = tail.split("\n\n", 1)[1] if "\n\n" in tail else ""
+    return head.rstrip() + "\n" + "\n".join(point_lines) + "\n\n" + tail.strip("\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100, help="frames per run (10 Hz)")
@@ -287,7 +320,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--points-only",
         action="store_true",
-        help="only the sparse points and the CPU time with / without them (no docs update)",
+        help="only the sparse points and the CPU time with / without them (docs: with "
+        "--write-points-docs only)",
+    )
+    ap.add_argument(
+        "--write-points-docs",
+        action="store_true",
+        help="with --points-only: replace the sparse-points block of the frontend section of "
+        "docs/benchmarks.md, keep the rest of it (the speed tables come from their own run)",
     )
     ap.add_argument(
         "--traj-json",
@@ -303,6 +343,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.points_only:
         figures = {**points, "load_average_1min": float(os.getloadavg()[0])}
         write_json(args.json, figures)
+        new = with_new_points(current_section(), point_lines)
+        if args.write_points_docs and new is not None:
+            cmd = "python bench/frontend.py " + " ".join(argv if argv is not None else sys.argv[1:])
+            note = (
+                f"Sparse points block: `{cmd.strip()}` ({machine_line()}), 1-min load "
+                f"average {figures['load_average_1min']:.1f} (times inflated; the ratios with / "
+                "without points are from one run); the speed tables above it are from their own "
+                "run."
+            )
+            update_markdown_section(
+                "frontend", new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1)
+            )
         print(json.dumps(figures, indent=1, default=float))
         return 0
     seconds = (args.frames - 1) / 10.0

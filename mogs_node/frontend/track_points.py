@@ -61,8 +61,8 @@ class TrackPointsParams:
     """Dense tracks and the sparse points triangulated from them (docs/frontend.md, round 6)."""
 
     enabled: bool = True  # publish the dense tracks' points (False: the estimator's landmarks)
-    max_tracks: int = 2000  # dense tracks kept per frame (the estimator's tracker is separate)
-    min_distance_px: int = 2  # minimum distance between dense tracks (a square, not a disc)
+    max_tracks: int = 900  # dense tracks kept per frame (the estimator's tracker is separate)
+    min_distance_px: int = 5  # minimum distance between dense tracks (a square, not a disc)
     quality_level: float = 0.001  # Shi-Tomasi quality relative to the best corner
     win_size_px: int = 9  # KLT window of the dense tracker (small: cheap, local motion)
     pyr_levels: int = 3  # KLT pyramid levels
