@@ -151,6 +151,9 @@ class FixedView:
                 self.camera = (np.array(m.K), m.image.shape[1], m.image.shape[0])
         elif topic == "/mapper/stats":
             self.iterations = int(m.iterations)
+            if m.extra.get("final") and self.curve:
+                # the refined map's update came just before its stats: its iterations are these
+                self.curve[-1]["iterations"] = self.iterations
         elif topic == "/mapper/gaussians":
             self.replica.apply_update(m)
             self._decide()
