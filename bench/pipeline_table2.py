@@ -139,7 +139,7 @@ class FixedView:
     def on(self, topic: str, m: Any, now: float) -> None:
         if topic == "/camera/image":
             self.t0 = now if self.t0 is None else self.t0
-            if self.stamp is None and len(self.images) <= self.view_frame + 5:
+            if self.stamp is None:  # best effort: any frame may be missing, keep them all
                 self.images[m.stamp_ns] = image_to_rgb(m.data, m.encoding)
         elif topic == "/frontend/odometry":  # reliable: one per frame, estimated or not
             self.frame_stamps.append(m.stamp_ns)
@@ -151,6 +151,9 @@ class FixedView:
                 self.camera = (np.array(m.K), m.image.shape[1], m.image.shape[0])
         elif topic == "/mapper/stats":
             self.iterations = int(m.iterations)
+            if m.extra.get("final") and self.curve:
+                # the refined map's update came just before its stats: its iterations are these
+                self.curve[-1]["iterations"] = self.iterations
         elif topic == "/mapper/gaussians":
             self.replica.apply_update(m)
             self._decide()
@@ -158,14 +161,16 @@ class FixedView:
                 self._evaluate(now)
 
     def _decide(self) -> None:
-        """The view: the first frame from index ``view_frame`` on that has a pose and is not a
+        """The view: the first frame from index ``view_frame`` on that has a pose, an image (the
+        camera topic is best effort: a frame's image may have been dropped) and is not a
         keyframe, decided once two later frames have a pose (their keyframe status is known)."""
         if self.stamp is not None or len(self.frame_stamps) <= self.view_frame + 2:
             return
-        for s in sorted(self.frame_stamps)[self.view_frame : self.view_frame + 3]:
+        for s in sorted(self.frame_stamps)[self.view_frame :]:
             later = [t for t in self.poses if t > s]
-            ok = s in self.poses and s in self.images and s not in self.kf_stamps
-            if ok and len(later) >= 2:
+            if len(later) < 2:
+                return  # not yet known whether it is a keyframe: decide on a later update
+            if s in self.poses and s in self.images and s not in self.kf_stamps:
                 self.stamp = s
                 self.images = {s: self.images[s]}
                 return
@@ -230,6 +235,12 @@ def run_init(init: str, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     sub.close()
     ctx.term()
     fig = view.figures()
+    if view.stamp is None:
+        print(
+            f"[table2] {init}: no fixed view: {len(view.frame_stamps)} frames, "
+            f"{len(view.poses)} poses, {len(view.images)} images, {len(view.kf_stamps)} keyframes",
+            flush=True,
+        )
     fig["wall_s"] = round(time.monotonic() - t_start, 1)
     summary = out / "summary.json"
     m = json.loads(summary.read_text()).get("map", {}) if summary.exists() else {}

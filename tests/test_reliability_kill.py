@@ -73,9 +73,12 @@ def small_launch(out: Path, name: str) -> Path:
             p["sim"] = {**p["sim"], "n_frames": N_FRAMES}
             p["progress_period_s"] = 0.0
         elif node["name"] == "mapper":
-            p.update(iters_per_keyframe=2, ply_path=str(out / "map.ply"))
+            # no refinement after the drive: a mapper killed after the source stopped would not
+            # see its stop again (docs/mapper.md "Final refinement")
+            p.update(iters_per_keyframe=2, final_refine_iters=0, ply_path=str(out / "map.ply"))
         elif node["name"] == "report":
             p["out_dir"] = str(out)
+            p["wait_final_map"] = False
         elif node["name"] == "journal":
             p["dir"] = str(out / "journal")
     out.mkdir(parents=True, exist_ok=True)

@@ -79,16 +79,37 @@ def test_fixed_view_reaches_the_target_when_the_map_holds_the_view() -> None:
             "/frontend/odometry", SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=T), t
         )
     # update 1: a map that is the view's image darkened; update 2: the view itself
-    fv.on("/mapper/stats", SimpleNamespace(iterations=6), 1.0)
+    fv.on("/mapper/stats", SimpleNamespace(iterations=6, extra={}), 1.0)
     fv.on("/mapper/gaussians", _gaussians(img // 4, 5.0, K, T_view, 1), 1.0)
     assert fv.stamp == 1002
-    fv.on("/mapper/stats", SimpleNamespace(iterations=12), 2.0)
+    fv.on("/mapper/stats", SimpleNamespace(iterations=12, extra={}), 2.0)
     fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 2.0)
     fig = fv.figures()
     assert fig["curve"]["fixed_view_psnr_db"][0] < 20 <= fig["curve"]["fixed_view_psnr_db"][1]
     assert fig["iters_to_target"] == 12 and fig["gaussians_at_target"] == H * W
     assert fig["wall_s_to_target"] == pytest.approx(2.0)
     assert fig["iterations_budget"] == 12
+    # the mapper's final refinement: its update comes first, then its stats marked final
+    fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 3.0)
+    fv.on("/mapper/stats", SimpleNamespace(iterations=15, extra={"final": 1.0}), 3.0)
+    fig = fv.figures()
+    assert fig["curve"]["iterations"] == [6, 12, 15] and fig["iterations_budget"] == 15
+
+
+def test_the_view_skips_frames_whose_best_effort_image_was_dropped() -> None:
+    fv = FixedView(view_frame=1, target_db=20.0)
+    img = np.zeros((2, 2, 3), np.uint8)
+    for i in range(6):
+        s = 10 + i
+        if i not in (1, 2):  # the images of frames 1 and 2 never arrived
+            fv.on("/camera/image", SimpleNamespace(stamp_ns=s, data=img, encoding="rgb8"), 0.0)
+        fv.on(
+            "/frontend/odometry",
+            SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=np.eye(4)),
+            0.0,
+        )
+    fv._decide()
+    assert fv.stamp == 13 and list(fv.images) == [13]  # only the view's image is kept
 
 
 def test_the_view_skips_keyframes_and_frames_without_a_pose() -> None:

@@ -395,14 +395,15 @@ class GaussianMapper:
     def _visible_rows(
         self,
         T_cam_world: torch.Tensor,
-        K: tuple[float, float, float, float],
-        size: tuple[int, int],
+        K: tuple[float, float, float, float] | None = None,
+        size: tuple[int, int] | None = None,
     ) -> torch.Tensor:
         """Rows [R] of the Gaussians the training view may draw: a superset of the projection
         step's cull (in front, opacity above ``alpha_min``, support box on screen;
         :func:`cull_gaussians`). Rendering only these gives the same image as the whole map."""
         r = self.params.raster
-        W, H = size
+        K = self.train_K if K is None else K  # default: the training camera
+        W, H = self.train_size if size is None else size
         prm = self.map.params
         valid = cull_gaussians(
             prm["means"],
