@@ -183,7 +183,9 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
 
     cpu_first, cpu_last = first_last([trace.cpu_ms[k] for k in ids if k in trace.cpu_ms])
     first, last = first_last([float(trace.mapped[k].get("map_ms", nan)) for k in ids])
-    rss_600 = max((r for _, f, r in trace.rss if f <= RSS_FRAME), default=float("nan"))
+    # the reference only once the drive got past it (a drive stopped earlier has no ratio)
+    reached = trace.frames > RSS_FRAME
+    rss_600 = max((r for _, f, r in trace.rss if f <= RSS_FRAME), default=nan) if reached else nan
     rss_end = max((r for _, _, r in trace.rss), default=float("nan"))
     ply = out / "map.ply"
     lf = launcher.figures()
