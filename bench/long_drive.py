@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
 def _write_docs(args: argparse.Namespace, argv: list[str] | None, f: dict, png: Path) -> None:
     import shutil
 
-    docs_png = REPO_ROOT / "docs" / "img" / "long_drive.png"
+    docs_png = REPO_ROOT / "docs" / "long_drive.png"
     docs_png.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(png, docs_png)
     cmd = "python bench/long_drive.py " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -359,7 +359,7 @@ checkpoints, offloaded submaps); the report node is left out.
 | largest heartbeat gap per node [s] | {gaps} |
 | wall time [s] | {f["wall_s"]} |
 
-![mapper RSS and time per keyframe against distance](img/long_drive.png)
+![mapper RSS and time per keyframe against distance](long_drive.png)
 """
     update_markdown_section("long-drive", body)
 
