@@ -78,6 +78,13 @@ def _ply_vertices(path: Path) -> int:
     return 0
 
 
+def _count_lines(path: Path, text: str) -> int:
+    try:
+        return sum(text in line for line in path.read_text(errors="replace").splitlines())
+    except OSError:
+        return 0
+
+
 def _path_lengths(trace: Trace) -> dict[int, float]:
     """Distance driven (m) at each keyframe, along the keyframes' camera centres."""
     out, s, prev = {}, 0.0, None
@@ -183,7 +190,9 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
 
     cpu_first, cpu_last = first_last([trace.cpu_ms[k] for k in ids if k in trace.cpu_ms])
     first, last = first_last([float(trace.mapped[k].get("map_ms", nan)) for k in ids])
-    rss_600 = max((r for _, f, r in trace.rss if f <= RSS_FRAME), default=float("nan"))
+    # the reference only once the drive got past it (a drive stopped earlier has no ratio)
+    reached = trace.frames > RSS_FRAME
+    rss_600 = max((r for _, f, r in trace.rss if f <= RSS_FRAME), default=nan) if reached else nan
     rss_end = max((r for _, _, r in trace.rss), default=float("nan"))
     ply = out / "map.ply"
     lf = launcher.figures()
@@ -209,6 +218,8 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
         "gaussians_on_disk_end": int(trace.mapped[ids[-1]].get("gaussians_on_disk", 0))
         if ids
         else 0,
+        # the player's warning, once per timeout (its counters leave with its last heartbeat)
+        "ack_timeouts": _count_lines(out / "launch.log", "no acknowledgement for"),
         "heartbeat_kills": lf["launch"]["heartbeat_kills"],
         "progress_kills": lf["launch"]["progress_kills"],
         "launch": lf["launch"],
@@ -328,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
 def _write_docs(args: argparse.Namespace, argv: list[str] | None, f: dict, png: Path) -> None:
     import shutil
 
-    docs_png = REPO_ROOT / "docs" / "img" / "long_drive.png"
+    docs_png = REPO_ROOT / "docs" / "long_drive.png"
     docs_png.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(png, docs_png)
     cmd = "python bench/long_drive.py " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -353,11 +364,11 @@ checkpoints, offloaded submaps); the report node is left out.
 | wall time of the core step, first / last 10 % [ms] (ratio; shared machine) | {f["keyframe_wall_ms_first10"]} / {f["keyframe_wall_ms_last10"]} ({f["keyframe_wall_ratio_last_first"]}) |
 | Gaussians in the final PLY / its bytes | {f["gaussians"]} / {f["ply_bytes"]} |
 | Gaussians in RAM / on disk at the end | {f["gaussians_in_ram_end"]} / {f["gaussians_on_disk_end"]} |
-| kills for no heartbeat / for no progress | {f["heartbeat_kills"]} / {f["progress_kills"]} |
+| kills for no heartbeat / for no progress; player ack timeouts | {f["heartbeat_kills"]} / {f["progress_kills"]}; {f["ack_timeouts"]} |
 | largest heartbeat gap per node [s] | {gaps} |
 | wall time [s] | {f["wall_s"]} |
 
-![mapper RSS and time per keyframe against distance](img/long_drive.png)
+![mapper RSS and time per keyframe against distance](long_drive.png)
 """
     update_markdown_section("long-drive", body)
 

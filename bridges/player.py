@@ -21,6 +21,11 @@ Timing (see :mod:`bridges.replay`):
   only the latest image, so a second image published while the first still waits in its queue
   supersedes it (measured: 11 of 60 frames lost with 2 in flight). The keyframe workers' backlog
   stays bounded;
+- a replay at a ``rate`` waits for the pipeline too (issue 23): with ``max_keyframes_in_flight``
+  > 0 its clock holds while that many keyframes wait for ``keyframe_done_topic`` (the schedule
+  shifts by the wait, as with a pause); frames the frontend cannot keep up with are still
+  superseded (latest wins), keyframes are not. In both modes the ``ack_timeout_s`` runs only while
+  no other node's heartbeat says it is busy: a pipeline that works is waited for;
 - ``start_s`` / ``end_s``: seconds after the first frame; IMU samples from ``imu_lead_s`` before
   the first played frame are included;
 - pause / resume: ``SIGUSR1`` pauses, ``SIGUSR2`` resumes (the schedule shifts by the pause), or
@@ -114,7 +119,7 @@ class PlayerParams:
     # > 1 only for a consumer that queues images (the frontend keeps only the latest one)
     keyframe_topic: str = "/frontend/keyframe"  # fast: keyframes produced (watched if below > 0)
     keyframe_done_topic: str = "/metrizer/depth"  # fast: a keyframe is done when this arrives
-    max_keyframes_in_flight: int = 0  # fast: keyframes waiting for keyframe_done (0 = unwatched)
+    max_keyframes_in_flight: int = 0  # keyframes waiting for keyframe_done (0 = unwatched)
     ack_timeout_s: float = 30.0  # fast: give up waiting after this long (counted; 0 = never)
     wait_for_subscriber_s: float = 10.0  # before streaming, wait for a subscriber of image_topic
     wait_for_nodes: tuple[str, ...] = ()  # before streaming, wait for a heartbeat of these nodes
@@ -258,7 +263,8 @@ class PlayerNode(Node):
         self.messages_published = 0
         self.clock = ReplayClock(0.0 if p.fast else p.rate)
         self.frames = FlowWindow(p.max_frames_in_flight if p.fast else 0)
-        self.keyframes = FlowWindow(p.max_keyframes_in_flight if p.fast else 0)
+        self.keyframes = FlowWindow(p.max_keyframes_in_flight)
+        self._held = False  # rate mode: clock held while keyframes wait (issue 23)
         if self._resume_in_flight is not None:  # journaled, not yet acknowledged: wait for it
             self.frames.sent(self._resume_in_flight)
         self.meter = RateMeter()
@@ -285,12 +291,13 @@ class PlayerNode(Node):
         self.counters["frames_total"] = self.total_frames
         if p.fast:
             self.subscribe(p.ack_topic, self._on_ack, reliable=True)
+        if p.fast or p.max_keyframes_in_flight > 0:
             # a replay waits for a pipeline that works (issue 23): the ack timeout runs only
             # while no node reports being busy in its heartbeat (mogs_node/heartbeat.py)
             self.subscribe("/diagnostics", self._on_heartbeat, reliable=False, queue_size=64)
-            if p.max_keyframes_in_flight > 0:
-                self.subscribe(p.keyframe_topic, self._on_keyframe, reliable=True)
-                self.subscribe(p.keyframe_done_topic, self._on_keyframe_done, reliable=True)
+        if p.max_keyframes_in_flight > 0:
+            self.subscribe(p.keyframe_topic, self._on_keyframe, reliable=True)
+            self.subscribe(p.keyframe_done_topic, self._on_keyframe_done, reliable=True)
         self.log.info(
             "playing %s %s: %d frames, %d messages, %s",
             p.source,
@@ -580,6 +587,11 @@ class PlayerNode(Node):
                 self.state = "playing"
                 self.log.info("resumed")
             self._pause_requested = None
+        if self._held and self.state != "paused" and self._may_send_image(now):
+            # rate mode: the keyframes were done (a user's pause stays a pause)
+            self._held = False
+            self.clock.resume(now)
+            self.state = "playing"
         budget_end = now + 0.05
         while self._done_at is None:
             nxt = self._peek()
@@ -604,6 +616,11 @@ class PlayerNode(Node):
                     self.reschedule(self._tick_timer, snooze)
                     break
                 self.state = "playing"
+            elif is_image and self.keyframes.max_in_flight and not self._may_send_image(now):
+                self._held = True  # the clock waits for the pipeline's keyframes
+                self.clock.pause(now)
+                self.state = "waiting for " + p.keyframe_done_topic
+                break
             elif not self.clock.is_due(stamp, now):
                 break
             self._publish_next()

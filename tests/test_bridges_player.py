@@ -282,6 +282,7 @@ def _flow_run(
     play_args: list[str],
     frontend_delay_ms: float = 40.0,
     after_ack_ms: float = 0.0,
+    metrizer_delay_ms: float = 120.0,
 ) -> tuple[dict, dict, str]:
     fe_sum, mz_sum = tmp_path / "fe.json", tmp_path / "mz.json"
     fe = start_node(
@@ -298,7 +299,7 @@ def _flow_run(
     mz = start_node(
         "tests.test_bridges_player:SlowMetrizer",
         "slow_metrizer",
-        {"delay_ms": 120.0, "summary_path": str(mz_sum)},
+        {"delay_ms": metrizer_delay_ms, "summary_path": str(mz_sum)},
         bus,
     )
     try:
@@ -432,3 +433,23 @@ def test_sigusr1_pauses_and_sigusr2_resumes(broker_bus, bus_subscriber) -> None:
     assert n_paused < 12
     assert n_paused + len(rest) == 12
     assert "paused at frame" in out and "resumed" in out
+
+
+def test_a_replay_at_its_rate_waits_for_the_keyframes_of_a_slow_pipeline(
+    broker_bus, tmp_path: Path
+) -> None:
+    """Issue 23: at rate 1 (frames every 0.1 s, a keyframe every 0.3 s) a metrizer taking 1.2 s
+    per keyframe would fall ever further behind; with ``--max-keyframes-in-flight 1`` the replay's
+    clock holds instead, so no keyframe ever waits in its queue, and every one is metrized."""
+    fe, mz, out = _flow_run(
+        broker_bus,
+        tmp_path,
+        ["--rate", "1.0", "--max-keyframes-in-flight", "1"],
+        frontend_delay_ms=5.0,
+        metrizer_delay_ms=1200.0,
+    )
+    # in order, each after the previous one was done (the last one may still be in the works when
+    # the harness stops the metrizer, 0.5 s after the player's end)
+    assert mz["ids"] in (list(range(0, 18, 3)), list(range(0, 15, 3)))
+    assert mz["max_backlog"] == 0  # the replay waited: never a keyframe queued behind another
+    assert "18/18 frames (100.0%)" in out
