@@ -78,6 +78,7 @@ def measure(args: argparse.Namespace) -> dict[str, float]:
         print(f"alone {d.name}: {walls[-1]:.1f} s", flush=True)
     fig["sequential_s"] = sum(walls)
     fig["single_drive_mean_s"] = sum(walls) / len(walls)
+    write_json(args.json, fig)
     for cpd in args.cpus_per_drive:
         opts = BatchOptions(
             num_cpus=args.num_cpus,
@@ -102,6 +103,7 @@ def measure(args: argparse.Namespace) -> dict[str, float]:
         fig[f"drives_complete_{key}"] = sum(r["status"] == "complete" for r in res.rows)
         fig[f"figures_equal_{key}"] = equal
         print(f"batch --cpus-per-drive {cpd:g}: {wall:.1f} s, {equal} drives equal", flush=True)
+        write_json(args.json, fig)  # what is measured so far
     first = f"cpd{args.cpus_per_drive[0]:g}"
     fig["batch_over_sequential"] = fig[f"batch_over_sequential_{first}"]
     fig["load_average_1min_end"] = os.getloadavg()[0]
