@@ -11,6 +11,7 @@ pipeline nodes land (issue 8 replaces the demo graph).
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -130,6 +131,7 @@ class RecorderParams:
     summary_path: str = ""  # JSON summary written on shutdown
     delay_ms: float = 0.0  # artificial work per message (to overwhelm a subscriber in tests)
     hang_after: int = 0  # hang (never return) on this message number (supervision tests; 0 = never)
+    crash_after: int = 0  # exit with code 3 on this message number (supervision tests; 0 = never)
 
 
 class Recorder(Node):
@@ -149,6 +151,9 @@ class Recorder(Node):
             self.ids.append(msg.keyframe_id)
         if self.params.delay_ms:
             time.sleep(self.params.delay_ms / 1000)
+        if self.params.crash_after and self.count[topic] == self.params.crash_after:
+            self.log.warning("crashing on purpose (crash_after=%d)", self.params.crash_after)
+            os._exit(3)
         if self.params.hang_after and self.count[topic] == self.params.hang_after:
             self.log.warning("hanging on purpose (hang_after=%d)", self.params.hang_after)
             threading.Event().wait()

@@ -237,7 +237,7 @@ def test_run_drive_without_ray_and_a_crash_is_worth_a_retry(
         launch_path=str(launch),
         launch_text=launch.read_text(),
         run_dir=str(tmp_path / "run"),
-        overrides={"recorder": {"hang_after": 1}},
+        overrides={"recorder": {"crash_after": 1}},
         timeout_s=300,
         grace_s=3,
         batch_id="b1",
@@ -246,7 +246,7 @@ def test_run_drive_without_ray_and_a_crash_is_worth_a_retry(
         run_drive(job)
     out = info.value.result
     assert out["status"] == "failed" and out["attempt"] == 1
-    assert "recorder was killed by SIGKILL (respawn: never)" in out["error"]
+    assert "recorder exited with code 3 (respawn: never)" in out["error"]
     assert json.loads((tmp_path / "run" / MARKER).read_text())["status"] == "failed"
     # the report's teardown may still write a summary.json: the marker is what resume trusts
     assert not is_complete(tmp_path / "run", job.drive, job.digest)
@@ -285,11 +285,11 @@ def test_batch_on_local_ray_bad_drive_crash_retried_and_resume(
             timeout_s=300,
             grace_s=3,
             max_retries=1,
-            overrides={"recorder": {"hang_after": 1}},
+            overrides={"recorder": {"crash_after": 1}},
         )
         res = run_batch(launch, [str(drive)], tmp_path / "crash", crash, progress=None)
         (row,) = res.rows
         assert row["status"] == "failed" and row["attempts"] == 2, row
-        assert "recorder was killed by SIGKILL" in row["error"]
+        assert "recorder exited with code 3" in row["error"]
     finally:
         ray.shutdown()

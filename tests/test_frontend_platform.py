@@ -130,6 +130,7 @@ def test_keyframe_rate_cap(car_drive) -> None:
 def test_figures_reach_summary_and_report(car_drive, tmp_path) -> None:
     """The frontend's figures, as the report node receives them from ``/diagnostics``
     (``frontend_<name>``), become ``summary.json``'s ``frontend`` section and a report line."""
+    from bridges.sources import camera_info_of, open_sequence
     from mogs_node.frontend.node import FrontendNodeParams
     from mogs_node.report.collect import RunCollector, summarise, write_report
 
@@ -149,12 +150,14 @@ def test_figures_reach_summary_and_report(car_drive, tmp_path) -> None:
     write_report(tmp_path / "report.md", summarise(c))
     assert "Camera-IMU time offset 0.0 ms" in (tmp_path / "report.md").read_text()
     # the launch parameters of the node build the same groups
+    # the sim rig's calibration as the player publishes it
+    info = camera_info_of(open_sequence("sim", sim={"n_frames": 2, "width": 621, "height": 188}))
     p, _, _ = FrontendNodeParams(
         platform="handheld",
         bounds={"max_speed_m_s": 3},
         time_offset={"enabled": False, "search_ms": 80},
-    ).build()
+    ).build(info=info)
     assert p.platform == "handheld" and p.bounds.max_speed_m_s == 3.0
     assert not p.time_offset.enabled and p.time_offset.search_ms == 80.0
     with pytest.raises(ConfigError, match="frontend.time_offset"):
-        FrontendNodeParams(time_offset={"search": 1}).build()
+        FrontendNodeParams(time_offset={"search": 1}).build(info=info)

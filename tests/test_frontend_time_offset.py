@@ -60,7 +60,8 @@ def test_gyro_integral_matches_the_analytic_integral(t0: float, span: float) -> 
     q = np.array([int(t0 * 1e9), int((t0 + span) * 1e9)])
     G = gyro_integral(imu, q)
     exact = _omega_integral(np.array([q[0] * 1e-9]), np.array([q[1] * 1e-9]))[0]
-    np.testing.assert_allclose(G[1] - G[0], exact, atol=2e-5)
+    # trapezoids over 200 Hz samples of a ~1-3 Hz signal: error up to ~2e-5 per half second
+    np.testing.assert_allclose(G[1] - G[0], exact, atol=4e-5 * max(1.0, 2.0 * span))
 
 
 def test_gyro_integral_is_nan_outside_the_samples() -> None:
@@ -139,7 +140,9 @@ def test_rotation_from_tracks_recovers_the_rotation(rx: float, ry: float, rz: fl
     uv1 = (P1 / P1[:, 2:]) @ K.T
     R_est = rotation_from_tracks(uv0[:, :2], uv1[:, :2], K)
     assert R_est is not None
-    np.testing.assert_allclose(R_est, R, atol=2e-3)
+    # the 0.15 m step at 4-40 m biases a rotation-only fit by up to ~4e-3 (a grid over this
+    # range); a rotation rate off by that much moves the rate correlation's peak by far less
+    np.testing.assert_allclose(R_est, R, atol=8e-3)
 
 
 def test_params_are_validated() -> None:

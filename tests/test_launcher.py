@@ -175,7 +175,9 @@ def test_hung_node_is_killed_and_respawned(tmp_path: Path, ipc_endpoints) -> Non
     text = out.decode()
     assert "sink made no progress for" in text and "respawning sink" in text
     stuck_s = float(text.split("sink made no progress for ")[1].split(" s")[0])
-    assert 3.0 < stuck_s < 5.0  # killed within its timeout (the launcher looks every 0.1 s)
+    # killed once its progress timeout passed, not before; the launcher looks every 0.1 s (the
+    # upper bound leaves room for a loaded CI machine: the kill's time is not what is tested)
+    assert 3.0 < stuck_s < 10.0
     assert "sent no heartbeat" not in text
     assert proc.returncode == 0
 

@@ -79,6 +79,21 @@ def _drive(
     return events, images, seq.imu_gyro_rad_s, seq.imu_accel_m_s2
 
 
+def _sim_calibration(n_frames: int) -> dict:
+    """The sim rig's calibration as frontend launch values (what the player's /camera/info says)."""
+    seq = make_sequence(SimConfig(seed=0, n_frames=n_frames, width=621, height=188))
+    K = seq.camera.K
+    return {
+        "fx_px": float(K[0, 0]),
+        "fy_px": float(K[1, 1]),
+        "cx_px": float(K[0, 2]),
+        "cy_px": float(K[1, 2]),
+        "width": 621,
+        "height": 188,
+        "T_imu_cam": [float(v) for v in np.asarray(seq.T_imu_cam).ravel()],
+    }
+
+
 def run_burst(
     tmp_path: Path,
     duration_s: float,
@@ -96,6 +111,8 @@ def run_burst(
         cls, params = NODES[name]
         if name == "mapper":
             params = {**params, "ply_path": str(tmp_path / "map.ply")}
+        if name == "frontend":  # no player here: the calibration typed, as a launch file can
+            params = {**params, **_sim_calibration(n_frames)}
         procs.start_node(name, cls, params, tmp_path)
     mon = Monitor(bus, WATCHED)
     ctx = zmq.Context()

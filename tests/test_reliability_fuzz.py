@@ -52,11 +52,16 @@ TOPIC_TYPES: dict[str, type[msgs.Message]] = {
     "/groundtruth/pose": msgs.PoseStamped,
     "/groundtruth/depth": msgs.DepthMap,
     "/diagnostics": msgs.Diagnostics,
+    "/camera/info": msgs.CameraInfo,
 }
 
 # node name -> (class, params, topics it subscribes to)
 NODES: dict[str, tuple[str, dict, tuple[str, ...]]] = {
-    "frontend": ("mogs_node.frontend.node:FrontendNode", {}, ("/imu", "/camera/image")),
+    "frontend": (
+        "mogs_node.frontend.node:FrontendNode",
+        {},
+        ("/imu", "/camera/image", "/camera/info"),
+    ),
     "segmentation": (
         "mogs_node.segmentation.node:SegmentationNode",
         {"backend": "graph"},
@@ -162,6 +167,19 @@ def _sample(cls: type[msgs.Message], rng: np.random.Generator) -> msgs.Message:
             opacity_logit=np.zeros(2, np.float32),
             colors_rgb=z,
             removed_ids=np.zeros(0, np.int64),
+        )
+    if cls is msgs.CameraInfo:
+        return msgs.CameraInfo(
+            **base,
+            width=64,
+            height=48,
+            K=np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]),
+            distortion_model="radtan",
+            distortion_coeffs=np.array([0.1, -0.01, 0.0, 0.0]),
+            T_imu_cam=np.eye(4),
+            camera_height_m=1.65,
+            imu_noise={"gyro_noise_rad_s_rthz": 1e-3},
+            source="test",
         )
     raise AssertionError(cls)  # pragma: no cover
 
