@@ -169,17 +169,7 @@ def test_camera_info_round_trip(distro: Distro, model: str, coeffs: tuple) -> No
     )
     r = wire(rc.camera_info_to_ros(cal, distro=distro), "sensor_msgs/CameraInfo", distro)
     assert rc.camera_info_from_ros(r) == cal
-    # and onto the bus, with T_imu_cam from /tf_static: what the frontend takes
-    T = np.eye(4)
-    T[:3, 3] = (0.1, -0.02, 0.03)
-    m = rc.camera_info_from_ros(r).message(T_imu_cam=T, source="ros1:/cam0/camera_info")
-    back = msgs.decode(msgs.encode("/camera/info", m)).msg
-    c = rc.camera_info_from_ros(r)
-    assert (back.width, back.height) == (cal.camera.width, cal.camera.height)
-    assert back.distortion_model == c.distortion_model
-    np.testing.assert_array_equal(back.K, cal.camera.K)
-    np.testing.assert_array_equal(back.distortion_coeffs, np.asarray(c.distortion_coeffs, float))
-    np.testing.assert_array_equal(back.T_imu_cam, T)
+    _assert_camera_info_reaches_the_bus(r, cal)
 
 
 @pytest.mark.parametrize("distro", DISTROS)
@@ -476,17 +466,7 @@ def test_camera_info_round_trip_property(fx, aspect, w, h, coeffs, distro) -> No
     cal = CameraCalibration(0, "c", cam, model, tuple(coeffs) if any(coeffs) else ())
     r = wire(rc.camera_info_to_ros(cal, distro=distro), "sensor_msgs/CameraInfo", distro)
     assert rc.camera_info_from_ros(r) == cal
-    # and onto the bus, with T_imu_cam from /tf_static: what the frontend takes
-    T = np.eye(4)
-    T[:3, 3] = (0.1, -0.02, 0.03)
-    m = rc.camera_info_from_ros(r).message(T_imu_cam=T, source="ros1:/cam0/camera_info")
-    back = msgs.decode(msgs.encode("/camera/info", m)).msg
-    c = rc.camera_info_from_ros(r)
-    assert (back.width, back.height) == (cal.camera.width, cal.camera.height)
-    assert back.distortion_model == c.distortion_model
-    np.testing.assert_array_equal(back.K, cal.camera.K)
-    np.testing.assert_array_equal(back.distortion_coeffs, np.asarray(c.distortion_coeffs, float))
-    np.testing.assert_array_equal(back.T_imu_cam, T)
+    _assert_camera_info_reaches_the_bus(r, cal)
     key = "K" if distro is Distro.ROS1 else "k"
     bad_k = np.array(getattr(r, key), dtype=np.float64)
     bad_k[4] = np.nan
@@ -507,3 +487,17 @@ def test_path_round_trip_property(n: int, log_scale: float, distro: Distro) -> N
     )
     assert got_stamps.tolist() == stamps.tolist()
     np.testing.assert_allclose(got_T, Ts, rtol=1e-12, atol=1e-12 * max(1.0, np.exp(log_scale)))
+
+
+def _assert_camera_info_reaches_the_bus(r, cal: CameraCalibration) -> None:
+    """A ROS CameraInfo onto the bus, with T_imu_cam from /tf_static: what the frontend takes."""
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.02, 0.03)
+    c = rc.camera_info_from_ros(r)
+    m = c.message(T_imu_cam=T, source="ros1:/cam0/camera_info")
+    back = msgs.decode(msgs.encode("/camera/info", m)).msg
+    assert (back.width, back.height) == (cal.camera.width, cal.camera.height)
+    assert back.distortion_model == c.distortion_model
+    np.testing.assert_array_equal(back.K, cal.camera.K)
+    np.testing.assert_array_equal(back.distortion_coeffs, np.asarray(c.distortion_coeffs, float))
+    np.testing.assert_array_equal(back.T_imu_cam, T)

@@ -316,7 +316,7 @@ class MapperNode(Node):
                 stamp_ns=self.last_stamp_ns,
                 frame_id="world",
                 keyframe_id=last.keyframe_id,
-                n_gaussians=int(st["n_gaussians"]),
+                n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
                 n_keyframes=int(st["n_keyframes"]),
                 iterations=int(st["iterations"]),
                 loss=float(st["loss"]),
