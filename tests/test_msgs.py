@@ -16,6 +16,7 @@ from hypothesis.extra import numpy as hnp
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Subscriber
 from mogs_node.errors import MessageError
+from mogs_node.msgs import codec as msgs_codec
 
 INT64 = st.integers(min_value=-(1 << 63), max_value=(1 << 63) - 1)
 FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
@@ -367,7 +368,7 @@ EDGE_VALUES = st.one_of(
 
 def _reference(cls: type[msgs.Message], values: dict) -> tuple[str, object]:
     try:
-        return "ok", msgs._check_scalars(msgs._SCALAR_TABLES[cls], values)
+        return "ok", msgs_codec._check_scalars(msgs_codec._SCALAR_TABLES[cls], values)
     except MessageError as err:
         return "error", err.field
 
@@ -389,7 +390,7 @@ def test_generated_fast_scalar_checker_agrees_with_the_reference(
         values.pop(data.draw(st.sampled_from(sorted(values))))
     ref = _reference(cls, values)
     try:
-        fast = msgs._FAST_SCALARS[cls](values)
+        fast = msgs_codec._FAST_SCALARS[cls](values)
     except MessageError as err:  # only the dict kinds raise inside the fast path
         assert ref == ("error", err.field)
         return
@@ -400,13 +401,19 @@ def test_generated_fast_scalar_checker_agrees_with_the_reference(
     assert [type(v) for v in fast.values()] == [type(v) for v in ref[1].values()]
 
 
-TYPED = [cls for cls in msgs.MESSAGE_TYPES.values() if cls in msgs._TYPED]
+TYPED = [cls for cls in msgs.MESSAGE_TYPES.values() if cls in msgs_codec._TYPED]
 
 
 def _reference_header(raw: bytes) -> tuple[str, object]:
     try:
-        cls, _, _, seq, src, descs, scalars = msgs._reference_header(raw)
-        return "ok", (cls, seq, src, descs, msgs._check_scalars(msgs._SCALAR_TABLES[cls], scalars))
+        cls, _, _, seq, src, descs, scalars = msgs_codec._reference_header(raw)
+        return "ok", (
+            cls,
+            seq,
+            src,
+            descs,
+            msgs_codec._check_scalars(msgs_codec._SCALAR_TABLES[cls], scalars),
+        )
     except MessageError as err:
         return "error", err.field
 
@@ -420,7 +427,7 @@ def _typed_encode_agrees(cls: type[msgs.Message], values: dict) -> None:
     """The encoder's side: fields msgspec.convert accepts from a message's values, the reference
     accepts too, and both give the same bytes on the wire."""
     try:
-        typed = msgspec.convert(values, msgs._TYPED[cls][1])
+        typed = msgspec.convert(values, msgs_codec._TYPED[cls][1])
     except Exception:
         return
     ref = _reference(cls, values)
@@ -462,7 +469,7 @@ def test_typed_header_agrees_with_the_reference(
     except (TypeError, ValueError, OverflowError):
         return  # not representable in msgpack (numpy scalars, ints beyond 64 bits)
     try:
-        typed = msgs._typed_decode(raw)
+        typed = msgs_codec._typed_decode(raw)
     except Exception:
         event("typed decoder refused")
         return  # refused: the reference decides
@@ -474,7 +481,7 @@ def test_typed_header_agrees_with_the_reference(
     assert ref[0] == "ok", ref
     ref_cls, seq, src, descs, out = ref[1]
     assert ref_cls is cls and (typed.seq, typed.src, typed.a) == (seq, src, descs)
-    fast = msgs._struct_fields(typed.f)
+    fast = msgs_codec._struct_fields(typed.f)
     assert fast == out
     assert [type(v) for v in fast.values()] == [type(v) for v in out.values()]
 
@@ -487,7 +494,7 @@ def test_typed_encode_writes_the_packers_bytes(
 ) -> None:
     msg = data.draw(messages(cls))
     frames = msgs.encode("/t", msg, seq=7, src=(1 << 62) + 3)
-    scalars = msgs._scalars_of(cls, msg.__dict__)
+    scalars = msgs_codec._scalars_of(cls, msg.__dict__)
     descs = msgpack.unpackb(frames[1])["a"]
     packed = msgpack.packb(
         {"t": cls.TYPE, "v": cls.VERSION, "seq": 7, "src": (1 << 62) + 3, "f": scalars, "a": descs},
@@ -497,7 +504,7 @@ def test_typed_encode_writes_the_packers_bytes(
 
 
 def test_fast_path_defers_non_canonical_values_to_the_reference() -> None:
-    fast = msgs._FAST_SCALARS[msgs.Imu]
+    fast = msgs_codec._FAST_SCALARS[msgs.Imu]
     good = {
         "stamp_ns": 1,
         "frame_id": "i",

@@ -20,7 +20,8 @@ import zmq
 from zmq.auth.thread import ThreadAuthenticator
 
 from mogs_node import msgs
-from mogs_node.bus import Subscriber, _check_bind_address, _load_secret
+from mogs_node.bus import Subscriber
+from mogs_node.bus.config import _check_bind_address, _load_secret
 from mogs_node.errors import BusError, ConfigError
 from mogs_node.journal.protocol import handle_request, journal_endpoint
 from mogs_node.journal.store import JournalStore

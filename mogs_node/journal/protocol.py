@@ -23,7 +23,7 @@ from typing import Any
 import msgpack
 import zmq
 
-from mogs_node.bus import BusConfig, _apply_client_curve
+from mogs_node.bus.config import BusConfig, _apply_client_curve
 from mogs_node.errors import BusError
 from mogs_node.journal.store import JournalStore
 

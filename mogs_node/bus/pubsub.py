@@ -1,387 +1,22 @@
-"""ZeroMQ transport: broker, publisher, subscriber, security.
-
-Process graph: every publisher connects a socket to the broker's XSUB endpoint, every subscriber
-connects a SUB socket to the broker's XPUB endpoint; the broker forwards with ``zmq.proxy`` (C code,
-no per-message Python). Publishers use XPUB sockets so that they can see subscriptions arrive
-(``Publisher.wait_for_subscriber``) and avoid the PUB/SUB slow-joiner loss at start-up.
-
-Topic policies (DESIGN.md section 5):
-
-- ``reliable`` (keyframes, masks, depth, IMU): large high-water marks; per-topic sequence numbers
-  from every publisher session; the subscriber detects gaps and counts every lost message, so
-  nothing is lost silently.
-- ``best_effort`` (camera images, renders, diagnostics): small high-water marks; the node keeps the
-  latest message per topic and counts what it drops.
-
-Security: on tcp endpoints the broker can run as a CURVE server that accepts only client public keys
-found in an authorised-keys folder (ZAP via ``zmq.auth``); unauthenticated peers get nothing in or
-out. ``generate_keys`` writes key pairs in the ``zmq.auth`` certificate format.
-"""
+"""Publisher and subscriber: per-topic sequence numbers, gap counting, shared-memory payloads."""
 
 from __future__ import annotations
 
 import logging
-import os
 import random
-import threading
 import time
-from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any
 
-import msgpack
 import zmq
-import zmq.auth
-from zmq.auth.thread import ThreadAuthenticator
 
 from mogs_node import msgs, shm
+from mogs_node.bus.config import BusConfig, _apply_client_curve
 from mogs_node.errors import BusError, ConfigError, MessageError
-
-__all__ = [
-    "BusConfig",
-    "CurveConfig",
-    "Publisher",
-    "Subscriber",
-    "TopicStats",
-    "default_bus_config",
-    "generate_keys",
-    "run_broker",
-    "tune_malloc_for_large_messages",
-]
+from mogs_node.msgs import codec as msgs_codec
 
 log = logging.getLogger(__name__)
 _SNDMORE = zmq.SNDMORE
-# Shared-memory references (mogs_node/shm.py) ride in the header as a seventh, last entry "m":
-# the header's first byte (a msgpack map of 6 or of 7 entries) tells the two forms apart.
-_HEADER_MAP6, _HEADER_MAP7 = b"\x86", b"\x87"
-_SHM_KEY = msgpack.packb("m")
-_packb = msgpack.packb
-
-
-@dataclass(frozen=True)
-class CurveConfig:
-    """CURVE key files (``zmq.auth`` certificate format) for tcp endpoints."""
-
-    server_public_key: str  # broker's public certificate (clients need it)
-    client_secret_key: str = ""  # this client's secret certificate (nodes, tools)
-    server_secret_key: str = ""  # broker only
-    authorized_keys_dir: str = ""  # broker only: folder of accepted client public certificates
-
-    @staticmethod
-    def from_dict(d: dict[str, Any], base_dir: Path | None = None) -> CurveConfig:
-        def p(key: str) -> str:
-            v = d.get(key, "")
-            if not v:
-                return ""
-            path = Path(v).expanduser()
-            if base_dir is not None and not path.is_absolute():
-                path = base_dir / path
-            return str(path)
-
-        unknown = set(d) - {
-            "server_public_key",
-            "client_secret_key",
-            "server_secret_key",
-            "authorized_keys_dir",
-        }
-        if unknown:
-            raise ConfigError(f"bus.curve: unknown key(s) {sorted(unknown)}")
-        if not d.get("server_public_key"):
-            raise ConfigError("bus.curve.server_public_key is required")
-        return CurveConfig(
-            server_public_key=p("server_public_key"),
-            client_secret_key=p("client_secret_key"),
-            server_secret_key=p("server_secret_key"),
-            authorized_keys_dir=p("authorized_keys_dir"),
-        )
-
-
-@dataclass(frozen=True)
-class BusConfig:
-    """Where the broker is and how sockets behave."""
-
-    pub_endpoint: str  # broker binds XSUB here; publishers connect
-    sub_endpoint: str  # broker binds XPUB here; subscribers connect
-    reliable_hwm: int = 100_000  # high-water mark (messages) of reliable topics
-    best_effort_hwm: int = 10  # high-water mark of best-effort sockets
-    max_message_bytes: int = msgs.DEFAULT_MAX_MESSAGE_BYTES
-    linger_ms: int = 2000  # how long closing sockets keep flushing queued messages
-    # kernel socket buffers (SO_SNDBUF of senders, SO_RCVBUF of receivers, broker included);
-    # 0 = the OS default. Capped by net.core.wmem_max / rmem_max. See docs/architecture.md.
-    socket_buffer_bytes: int = 0
-    # messages with at least this many bytes of arrays go through shared memory, not the broker,
-    # when every peer is on this host (ipc:// endpoints, no CURVE); 0 = never (mogs_node/shm.py)
-    shm_min_bytes: int = 256 * 1024
-    shm_ring_bytes: int = 32 << 20  # shared memory per publisher and topic (a bounded history)
-    curve: CurveConfig | None = None
-
-    @property
-    def uses_shm(self) -> bool:
-        """Whether large payloads bypass the broker through ``/dev/shm`` on this bus."""
-        return (
-            self.shm_min_bytes > 0
-            and self.curve is None
-            and self.pub_endpoint.startswith("ipc://")
-            and self.sub_endpoint.startswith("ipc://")
-            and shm.shm_available()
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        d = {
-            k: getattr(self, k)
-            for k in (
-                "pub_endpoint",
-                "sub_endpoint",
-                "reliable_hwm",
-                "best_effort_hwm",
-                "max_message_bytes",
-                "linger_ms",
-                "socket_buffer_bytes",
-                "shm_min_bytes",
-                "shm_ring_bytes",
-            )
-        }
-        if self.curve is not None:
-            d["curve"] = {
-                k: getattr(self.curve, k)
-                for k in (
-                    "server_public_key",
-                    "client_secret_key",
-                    "server_secret_key",
-                    "authorized_keys_dir",
-                )
-            }
-        return d
-
-    @staticmethod
-    def from_dict(d: dict[str, Any], base_dir: Path | None = None) -> BusConfig:
-        allowed = {
-            "pub_endpoint",
-            "sub_endpoint",
-            "reliable_hwm",
-            "best_effort_hwm",
-            "max_message_bytes",
-            "linger_ms",
-            "socket_buffer_bytes",
-            "shm_min_bytes",
-            "shm_ring_bytes",
-            "curve",
-        }
-        unknown = set(d) - allowed
-        if unknown:
-            raise ConfigError(f"bus: unknown key(s) {sorted(unknown)}; allowed {sorted(allowed)}")
-        for key in ("pub_endpoint", "sub_endpoint"):
-            v = d.get(key)
-            if not isinstance(v, str) or not v.startswith(("tcp://", "ipc://", "inproc://")):
-                raise ConfigError(
-                    f"bus.{key}: expected a tcp://, ipc:// or inproc:// endpoint, got {v!r}"
-                )
-        kwargs: dict[str, Any] = {
-            "pub_endpoint": d["pub_endpoint"],
-            "sub_endpoint": d["sub_endpoint"],
-        }
-        for key in (
-            "reliable_hwm",
-            "best_effort_hwm",
-            "max_message_bytes",
-            "linger_ms",
-            "socket_buffer_bytes",
-            "shm_min_bytes",
-            "shm_ring_bytes",
-        ):
-            if key in d:
-                v = d[key]
-                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                    raise ConfigError(f"bus.{key}: expected a non-negative int, got {v!r}")
-                kwargs[key] = v
-        if d.get("curve"):
-            kwargs["curve"] = CurveConfig.from_dict(d["curve"], base_dir)
-        return BusConfig(**kwargs)
-
-
-def tune_malloc_for_large_messages(threshold_bytes: int = 64 << 20) -> bool:
-    """Serve large message buffers from the heap instead of fresh ``mmap`` pages (glibc only).
-
-    ZeroMQ allocates one buffer per received message; above glibc's mmap threshold each one is a
-    new mapping, zero-filled page by page and unmapped after use. For megabyte keyframes that page
-    faulting, not copying, bounds throughput: the broker forwarded ~0.8k 1.5 MB messages/s with
-    the default and ~1.2k/s with this (bench/bus_throughput.py). Called once at process start by
-    ``mogs broker`` and ``mogs node``. Returns False where mallopt is unavailable.
-    """
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3
-    ok = libc.mallopt(m_mmap_threshold, min(threshold_bytes, 32 << 20)) == 1
-    ok &= libc.mallopt(m_trim_threshold, 2 * threshold_bytes) == 1
-    return bool(ok)
-
-
-def default_bus_config(name: str = "default") -> BusConfig:
-    """ipc endpoints in a per-user runtime folder; ``MOGS_BUS_DIR`` overrides the folder."""
-    base = Path(os.environ.get("MOGS_BUS_DIR") or f"/tmp/mogs-{os.getuid()}")
-    base.mkdir(mode=0o700, parents=True, exist_ok=True)
-    return BusConfig(
-        pub_endpoint=f"ipc://{base}/{name}-pub.ipc", sub_endpoint=f"ipc://{base}/{name}-sub.ipc"
-    )
-
-
-def generate_keys(
-    keys_dir: str | Path, names: Iterable[str] = ("broker", "client")
-) -> dict[str, Path]:
-    """Write a CURVE key pair per name into ``keys_dir`` (``NAME.key``, ``NAME.key_secret``).
-
-    Client public keys are also copied into ``keys_dir/authorized`` (the broker's accept list).
-    """
-    d = Path(keys_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    auth = d / "authorized"
-    auth.mkdir(exist_ok=True)
-    out = {}
-    for name in names:
-        public, secret = zmq.auth.create_certificates(str(d), name)
-        os.chmod(secret, 0o600)
-        out[name] = Path(secret)
-        if name != "broker":
-            (auth / Path(public).name).write_bytes(Path(public).read_bytes())
-    return out
-
-
-def _load_secret(path: str) -> tuple[bytes, bytes]:
-    try:
-        public, secret = zmq.auth.load_certificate(path)
-    except (OSError, ValueError) as err:
-        raise BusError(f"cannot read CURVE key {path}: {err}") from err
-    if secret is None:
-        raise BusError(f"{path} holds no secret key")
-    return public, secret
-
-
-def _load_public(path: str) -> bytes:
-    try:
-        public, _ = zmq.auth.load_certificate(path)
-    except (OSError, ValueError) as err:
-        raise BusError(f"cannot read CURVE key {path}: {err}") from err
-    return public
-
-
-def _apply_client_curve(sock: zmq.Socket, curve: CurveConfig | None, endpoint: str) -> None:
-    if curve is None:
-        return
-    if not curve.client_secret_key:
-        raise BusError("bus.curve.client_secret_key is required for a client on a CURVE bus")
-    public, secret = _load_secret(curve.client_secret_key)
-    sock.curve_publickey = public
-    sock.curve_secretkey = secret
-    sock.curve_serverkey = _load_public(curve.server_public_key)
-
-
-def _check_bind_address(endpoint: str, allow_remote: bool) -> None:
-    """Refuse to listen on a non-loopback tcp address unless configured to (DESIGN.md section 5)."""
-    if not endpoint.startswith("tcp://"):
-        return
-    host = endpoint[len("tcp://") :].rsplit(":", 1)[0].strip("[]")
-    if host in ("127.0.0.1", "localhost", "::1") or host.startswith("127."):
-        return
-    if not allow_remote:
-        raise BusError(
-            f"refusing to listen on non-loopback address {endpoint}; pass allow_remote (launch file "
-            "`bus.allow_remote: true`, with CURVE keys) to expose the bus"
-        )
-
-
-# ---------------------------------------------------------------------------------------- broker
-
-
-def run_broker(
-    config: BusConfig,
-    stop: threading.Event,
-    *,
-    allow_remote: bool = False,
-    ready: threading.Event | None = None,
-    context: zmq.Context | None = None,
-) -> None:
-    """Forward messages between publishers and subscribers until ``stop`` is set.
-
-    The forwarding itself is ``zmq.proxy_steerable`` in a thread; this function waits for ``stop``
-    and then terminates the proxy through its control socket.
-    """
-    # Two I/O threads: reading from publishers and writing to subscribers overlap; measured
-    # 0.85k -> 1.2k forwarded 1.5 MB messages/s on 2 cores (bench/bus_throughput.py).
-    ctx = context or zmq.Context(io_threads=2)
-    auth: ThreadAuthenticator | None = None
-    xsub = ctx.socket(zmq.XSUB)
-    xpub = ctx.socket(zmq.XPUB)
-    ctl_addr = f"inproc://mogs-broker-ctl-{os.getpid()}-{random.getrandbits(32)}"
-    ctl_back = ctx.socket(zmq.PAIR)
-    ctl_back.bind(ctl_addr)
-    ctl_front = ctx.socket(zmq.PAIR)
-    ctl_front.connect(ctl_addr)
-    try:
-        if config.curve is not None:
-            if not (config.curve.server_secret_key and config.curve.authorized_keys_dir):
-                raise BusError(
-                    "broker on a CURVE bus needs server_secret_key and authorized_keys_dir"
-                )
-            auth = ThreadAuthenticator(ctx)
-            auth.start()
-            auth.configure_curve(domain="*", location=config.curve.authorized_keys_dir)
-            public, secret = _load_secret(config.curve.server_secret_key)
-            for s in (xsub, xpub):
-                s.curve_server = True
-                s.curve_publickey = public
-                s.curve_secretkey = secret
-        # The broker's queues are per peer: give reliable traffic room; subscribers set their own.
-        xpub.sndhwm = config.reliable_hwm
-        xsub.rcvhwm = config.reliable_hwm
-        if config.socket_buffer_bytes:
-            xsub.rcvbuf = xpub.sndbuf = config.socket_buffer_bytes
-        for s, ep in ((xsub, config.pub_endpoint), (xpub, config.sub_endpoint)):
-            _check_bind_address(ep, allow_remote)
-            try:
-                s.bind(ep)
-            except zmq.ZMQError as err:
-                raise BusError(f"broker cannot bind {ep}: {err}") from err
-        log.info(
-            "broker up: publishers -> %s, subscribers <- %s%s",
-            config.pub_endpoint,
-            config.sub_endpoint,
-            " (CURVE)" if config.curve else "",
-        )
-        proxy = threading.Thread(
-            target=_proxy_thread, args=(xsub, xpub, ctl_back), name="mogs-proxy", daemon=True
-        )
-        proxy.start()
-        if ready is not None:
-            ready.set()
-        while not stop.wait(0.1):
-            if not proxy.is_alive():
-                raise BusError("broker proxy thread stopped unexpectedly")
-        ctl_front.send(b"TERMINATE")
-        proxy.join(timeout=2.0)
-    finally:
-        for s in (xsub, xpub, ctl_back, ctl_front):
-            s.close(linger=0)
-        if auth is not None:
-            auth.stop()
-        if context is None:
-            ctx.term()
-
-
-def _proxy_thread(xsub: zmq.Socket, xpub: zmq.Socket, control: zmq.Socket) -> None:
-    try:
-        zmq.proxy_steerable(xsub, xpub, None, control)
-    except zmq.ContextTerminated:
-        pass
-    except zmq.ZMQError as err:  # pragma: no cover - logged, the broker loop notices
-        log.error("proxy stopped: %s", err)
-
-
-# ---------------------------------------------------------------------------------------- pub
 
 
 class Publisher:
@@ -453,14 +88,13 @@ class Publisher:
         if len(frames) > 2 and self._shm_min:
             try:
                 topic = _frame_to_bytes(frames[0]).decode("utf-8")
-                header = msgpack.unpackb(_frame_to_bytes(frames[1]), max_bin_len=0)
-                src, seq = header["src"], header["seq"]
+                src_seq = msgs_codec.header_src_seq(_frame_to_bytes(frames[1]))
             except Exception:  # not of our codec's form: it goes as it is
-                src = seq = None
+                topic, src_seq = None, None
             if (
-                type(src) is int
-                and type(seq) is int
-                and self._send_via_shm(topic, frames, src, seq)
+                topic is not None
+                and src_seq is not None
+                and self._send_via_shm(topic, frames, *src_seq)
             ):
                 return
         self._sock.send_multipart(frames, copy=False)
@@ -470,7 +104,7 @@ class Publisher:
         ring (mogs_node/shm.py); returns the message's bytes, or 0 where it must go inline
         (small arrays, a header not of our codec's form, no shared memory to be had)."""
         header = frames[1] if type(frames[1]) is bytes else _frame_to_bytes(frames[1])
-        if header[:1] != _HEADER_MAP6:
+        if not msgs_codec.is_inline_header(header):
             return 0
         buffers = [f.buffer if isinstance(f, zmq.Frame) else f for f in frames[2:]]
         sizes = [memoryview(b).nbytes for b in buffers]
@@ -492,7 +126,7 @@ class Publisher:
                     ring.last_error,
                 )
             return 0
-        header = _HEADER_MAP7 + header[1:] + _SHM_KEY + _packb([ref[0], ref[1], sizes])
+        header = msgs_codec.add_shm_ref(header, ref[0], ref[1], sizes)
         self._sock.send(frames[0], _SNDMORE)
         self._sock.send(header)
         self.shm_published += 1
@@ -542,9 +176,6 @@ class Publisher:
         for ring in self._rings.values():
             ring.close()
         self._rings.clear()
-
-
-# ---------------------------------------------------------------------------------------- sub
 
 
 @dataclass
@@ -669,7 +300,7 @@ class Subscriber:
                     frame = sock.recv(copy=False)
                     frames.append(frame)
                     more = frame.more
-                if len(frames) == 2 and frames[1][:1] == _HEADER_MAP7:
+                if len(frames) == 2 and msgs_codec.has_shm_ref(frames[1]):
                     resolved = self._resolve_shm(frames[0], frames[1])
                     if resolved is None:
                         continue  # counted; take the next queued message
@@ -691,29 +322,8 @@ class Subscriber:
             return None  # a prefix match of another topic: not ours, as in decode_frames
         st = self.stats.get(topic) or self._stats(topic)
         try:
-            fields = msgpack.unpackb(
-                header, max_bin_len=0, max_ext_len=0, max_array_len=4096, max_map_len=64
-            )
-            name, ticket, sizes = fields["m"]
-            seq, src = fields["seq"], fields["src"]
-            if not (
-                type(name) is str
-                and type(ticket) is int
-                and type(sizes) is list
-                and all(type(n) is int and n >= 0 for n in sizes)
-                and type(seq) is int
-                and type(src) is int
-            ):
-                raise MessageError("malformed shared-memory reference", field="m")
-            tail = _SHM_KEY + _packb([name, ticket, sizes])
-            if not header.endswith(tail):
-                raise MessageError("the shared-memory reference is not the header's last entry")
-            if sum(sizes) > self._max_bytes:
-                raise MessageError(
-                    f"message of {sum(sizes)} bytes exceeds the limit of {self._max_bytes}",
-                    field="size",
-                )
-        except Exception as err:  # msgpack raises several unrelated types on garbage
+            inline, name, ticket, sizes, src, seq = msgs_codec.take_shm_ref(header, self._max_bytes)
+        except MessageError as err:  # a malformed reference
             st.malformed += 1
             self.last_error = f"{topic}: {err}"
             return None
@@ -732,7 +342,7 @@ class Subscriber:
                 log.warning("%s: %d shared-memory payload(s) missed: %s", topic, st.shm_missed, err)
             return None
         st.shm_received += 1
-        return [topic_bytes, _HEADER_MAP6 + header[1 : -len(tail)], *buffers]
+        return [topic_bytes, inline, *buffers]
 
     def receive(self, timeout_ms: int | None = 0) -> msgs.Envelope | None:
         """The next valid message of a subscribed topic, or None if none arrives in time.
@@ -822,8 +432,3 @@ def _frame_to_bytes(frame: Any) -> bytes:
         return bytes(memoryview(getattr(frame, "buffer", frame)))
     except TypeError:
         return b""
-
-
-def with_endpoints(config: BusConfig, pub_endpoint: str, sub_endpoint: str) -> BusConfig:
-    """A copy of ``config`` with other endpoints."""
-    return replace(config, pub_endpoint=pub_endpoint, sub_endpoint=sub_endpoint)
