@@ -19,7 +19,7 @@ from mogs_node.sim import (
     PlaneRect,
     World,
 )
-from mogs_node.sim.world import _unit_quadric_t
+from mogs_node.sim.primitives import _unit_quadric_t
 
 CAM = PinholeCamera(300.0, 300.0, 159.5, 99.5, 320, 200)
 # camera looking along world +x, z up (x_cam = -y_world, y_cam = -z_world, z_cam = x_world)
