@@ -4,14 +4,15 @@ an in-process broker and worker nodes wired to it."""
 from __future__ import annotations
 
 import contextlib
-import os
 import uuid
 from pathlib import Path
 
 import pytest
 
+from mogs_node.shared_data import shared_data_dir
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("MOGS_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+SHARED_DATA = shared_data_dir()
 
 
 def shared_data(sub: str) -> Path:

@@ -51,10 +51,11 @@ from mogs_node.depth_prior.flow_prior import (
 )
 from mogs_node.errors import ConfigError, DatasetError
 from mogs_node.eval.metrics import depth_metrics, depth_metrics_by_range
-from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section
+from mogs_node.eval.report import machine_line, update_markdown_section
 from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
+from mogs_node.shared_data import shared_data_dir
 
 __all__ = [
     "POINT_SOURCES",
@@ -68,7 +69,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_DIR = REPO_ROOT.parent / "shared" / "data" / "kitti_raw_2011_09_26_78"
+DEFAULT_DIR = shared_data_dir("kitti_raw_2011_09_26_78")
 METHODS = ("no_msc_cdr", "interp_nearest", "interp_edge_aware", "no_msc", "full")
 RANGES = (0.0, 20.0, 40.0, 80.0)
 SAMPLE_RADIUS_PX = 2

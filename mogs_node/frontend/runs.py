@@ -17,6 +17,7 @@ from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams
 from mogs_node.frontend.trajectory_io import write_kitti, write_tum
 from mogs_node.geometry import se3_inverse
+from mogs_node.shared_data import shared_data_dir
 
 __all__ = [
     "RunResult",
@@ -29,7 +30,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DEFAULT_DATA = shared_data_dir()
 
 
 @dataclass

@@ -19,6 +19,7 @@ from scipy.interpolate import BSpline, make_interp_spline, splrep
 
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T, rotmat_from_rpy
+from mogs_node.shared_data import shared_data_dir
 
 __all__ = [
     "GRAVITY_WORLD_M_S2",
@@ -269,13 +270,8 @@ def handheld_trajectory(
 
 
 def default_oxts_dir() -> Path:
-    """``../shared/data/kitti_raw_2011_09_26_drive_0001_oxts`` relative to the project root."""
-    return (
-        Path(__file__).resolve().parents[3]
-        / "shared"
-        / "data"
-        / "kitti_raw_2011_09_26_drive_0001_oxts"
-    )
+    """The KITTI OXTS excerpt in the shared-data folder (``mogs_node.shared_data``)."""
+    return shared_data_dir("kitti_raw_2011_09_26_drive_0001_oxts")
 
 
 def oxts_trajectory(
