@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,22 +35,12 @@ class CurveConfig:
                 path = base_dir / path
             return str(path)
 
-        unknown = set(d) - {
-            "server_public_key",
-            "client_secret_key",
-            "server_secret_key",
-            "authorized_keys_dir",
-        }
+        unknown = set(d) - set(_CURVE_KEYS)
         if unknown:
             raise ConfigError(f"bus.curve: unknown key(s) {sorted(unknown)}")
         if not d.get("server_public_key"):
             raise ConfigError("bus.curve.server_public_key is required")
-        return CurveConfig(
-            server_public_key=p("server_public_key"),
-            client_secret_key=p("client_secret_key"),
-            server_secret_key=p("server_secret_key"),
-            authorized_keys_dir=p("authorized_keys_dir"),
-        )
+        return CurveConfig(**{k: p(k) for k in _CURVE_KEYS})
 
 
 @dataclass(frozen=True)
@@ -84,46 +74,14 @@ class BusConfig:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        d = {
-            k: getattr(self, k)
-            for k in (
-                "pub_endpoint",
-                "sub_endpoint",
-                "reliable_hwm",
-                "best_effort_hwm",
-                "max_message_bytes",
-                "linger_ms",
-                "socket_buffer_bytes",
-                "shm_min_bytes",
-                "shm_ring_bytes",
-            )
-        }
+        d = {k: getattr(self, k) for k in _ENDPOINT_KEYS + _COUNT_KEYS}
         if self.curve is not None:
-            d["curve"] = {
-                k: getattr(self.curve, k)
-                for k in (
-                    "server_public_key",
-                    "client_secret_key",
-                    "server_secret_key",
-                    "authorized_keys_dir",
-                )
-            }
+            d["curve"] = {k: getattr(self.curve, k) for k in _CURVE_KEYS}
         return d
 
     @staticmethod
     def from_dict(d: dict[str, Any], base_dir: Path | None = None) -> BusConfig:
-        allowed = {
-            "pub_endpoint",
-            "sub_endpoint",
-            "reliable_hwm",
-            "best_effort_hwm",
-            "max_message_bytes",
-            "linger_ms",
-            "socket_buffer_bytes",
-            "shm_min_bytes",
-            "shm_ring_bytes",
-            "curve",
-        }
+        allowed = {*_ENDPOINT_KEYS, *_COUNT_KEYS, "curve"}
         unknown = set(d) - allowed
         if unknown:
             raise ConfigError(f"bus: unknown key(s) {sorted(unknown)}; allowed {sorted(allowed)}")
@@ -137,15 +95,7 @@ class BusConfig:
             "pub_endpoint": d["pub_endpoint"],
             "sub_endpoint": d["sub_endpoint"],
         }
-        for key in (
-            "reliable_hwm",
-            "best_effort_hwm",
-            "max_message_bytes",
-            "linger_ms",
-            "socket_buffer_bytes",
-            "shm_min_bytes",
-            "shm_ring_bytes",
-        ):
+        for key in _COUNT_KEYS:
             if key in d:
                 v = d[key]
                 if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -154,6 +104,14 @@ class BusConfig:
         if d.get("curve"):
             kwargs["curve"] = CurveConfig.from_dict(d["curve"], base_dir)
         return BusConfig(**kwargs)
+
+
+# the keys of a bus block in a launch file, as the dataclasses name them
+_CURVE_KEYS = tuple(f.name for f in fields(CurveConfig))
+_ENDPOINT_KEYS = ("pub_endpoint", "sub_endpoint")
+_COUNT_KEYS = tuple(  # non-negative ints
+    f.name for f in fields(BusConfig) if f.name not in (*_ENDPOINT_KEYS, "curve")
+)
 
 
 def tune_malloc_for_large_messages(threshold_bytes: int = 64 << 20) -> bool:
