@@ -83,6 +83,7 @@ class MetrizerParams:
     sky_depth_frac: float = 0.9  # a prior pixel is "far" beyond this fraction of d_max (globally)
     sky_far_fraction: float = 0.6  # a featureless object is sky when this share of it is far
     global_huber: float = 0.05  # Huber width (relative) of the global affine alignment
+    global_shift_prior: float = 0.05  # departure: weak pull of its shift to 0 (pure scale)
     fill_scale: float = 0.5  # resolution factor of the edge-aware fill
     fill_lambda: float = 50.0  # edge-aware fill: smoothing strength (FGS lambda)
     fill_sigma_color: float = 8.0  # edge-aware fill: colour edge scale (FGS sigma)
