@@ -192,15 +192,16 @@ def complete_planar_masks(
     H, W = depth_m.shape
     d = depth_m.ravel()
     cf = confidence.ravel()
+    hidx = np.flatnonzero(d <= 0)
+    if len(hidx) == 0:  # a fully covered frame (a learned prior) costs nothing
+        return 0
     obj = np.asarray(objects).ravel().astype(np.intp, copy=False)
     G = int(n_objects)
-    fit = (d >= min_depth_m * 0.5) & (d <= max_depth_m)
-    hole = d <= 0
+    has_hole = np.bincount(obj[hidx], minlength=G)[:G] > 0
     n_obj = np.bincount(obj, minlength=G)[:G]
-    idx = np.flatnonzero(fit)
+    idx = np.flatnonzero((d >= min_depth_m * 0.5) & (d <= max_depth_m))
     n_fit = np.bincount(obj[idx], minlength=G)[:G]
-    cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj)
-    cand &= np.bincount(obj[np.flatnonzero(hole)], minlength=G)[:G] > 0
+    cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj) & has_hole
     idx = idx[cand[obj[idx]]]
     if len(idx) == 0:
         return 0
@@ -235,7 +236,6 @@ def complete_planar_masks(
     share_in = n_inl / np.maximum(n_fit, 1)
     good = cand & ok & (share_in >= min_inlier_share) & (np.exp(zmed_proxy) >= min_depth_m)
     conf_g = 0.5 * share_in * np.bincount(g, cf[idx], minlength=G)[:G] / np.maximum(n_fit, 1)
-    hidx = np.flatnonzero(hole)
     hidx = hidx[good[obj[hidx]]]
     if len(hidx) == 0:
         return 0
