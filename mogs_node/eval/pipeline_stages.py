@@ -96,8 +96,11 @@ def prepare_keyframes(
     if seed is not None:
         sim["seed"] = seed
     seq = make_sequence(parse_params(SimConfig, sim, where="player.sim"))
+    from bridges.sources import camera_info_of, sequence_from_sim
+
     fnp = parse_params(FrontendNodeParams, params.get("frontend", {}), where="frontend")
-    fp, cam, T_imu_cam = fnp.build()
+    # the calibration the player publishes on /camera/info (the launch file may leave it out)
+    fp, cam, T_imu_cam = fnp.build(info=camera_info_of(sequence_from_sim(seq)))
     if (cam.pinhole.width, cam.pinhole.height) != (seq.camera.width, seq.camera.height):
         raise ConfigError(
             f"frontend: intrinsics for {cam.pinhole.width}x{cam.pinhole.height}, sequence is "

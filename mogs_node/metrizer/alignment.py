@@ -38,12 +38,23 @@ def depth_from_space(y: F64, kind: str, d_min_m: float, d_max_m: float) -> F64:
 
 
 def fit_global_affine(
-    x: F64, t: F64, w: F64, kind: str, huber: float = 0.05, iters: int = 10
+    x: F64,
+    t: F64,
+    w: F64,
+    kind: str,
+    huber: float = 0.05,
+    iters: int = 10,
+    shift_prior: float = 0.0,
 ) -> tuple[F64, int]:
     """Robust affine ``(a, b)`` with ``a x + b ~ t``, relative residuals.
 
     ``iters`` Huber IRLS iterations, then ``iters`` more in which residuals beyond four Huber
     widths get no weight (Huber alone keeps a bias from gross outliers).
+
+    ``shift_prior`` > 0 adds a pseudo-observation ``b / median(t) = 0`` with that share of the
+    total weight: a weak pull to the pure scale that decides only where the features' spread
+    leaves the shift undetermined (a few points at one depth: the shift then sets where the
+    far field ends; docs/metrizer.md, "Global affine shift prior").
 
     ``x`` ``[N]`` prior values at the features, ``t`` ``[N]`` targets (> 0), ``w`` ``[N]`` weights.
     With fewer than two usable rows, or a degenerate / sign-flipping solution, falls back to a pure
@@ -60,6 +71,7 @@ def fit_global_affine(
         return scale_only, n
     theta = scale_only.copy()
     j1, j2 = x / t, 1.0 / t
+    t_med = float(np.median(t))
     for it in range(2 * iters):
         e = j1 * theta[0] + j2 * theta[1] - 1.0
         ae = np.abs(e)
@@ -71,6 +83,9 @@ def fit_global_affine(
         H = np.array([[ww @ (j1 * j1), ww @ (j1 * j2)], [ww @ (j1 * j2), ww @ (j2 * j2)]])
         g = np.array([ww @ j1, ww @ j2])
         H[1, 1] += 1e-9 * (H[0, 0] + H[1, 1])
+        # a weak pull of the shift to 0 (the pure scale), relative to the median target: it
+        # decides only where the features' spread leaves the shift undetermined
+        H[1, 1] += shift_prior * ww.sum() / t_med**2
         try:
             new = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:

@@ -11,7 +11,12 @@ from numpy.typing import NDArray
 
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.alignment import depth_from_space
-from mogs_node.metrizer.fill import consistent_seeds, edge_aware_fill, smooth_field
+from mogs_node.metrizer.fill import (
+    complete_planar_masks,
+    consistent_seeds,
+    edge_aware_fill,
+    smooth_field,
+)
 from mogs_node.metrizer.frame import (
     Frame,
     ShapeModels,
@@ -353,8 +358,25 @@ def compose(
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
             n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
+    n_plane_fill = 0
+    if p.mask_plane_fill and not global_only and special is not None:
+        # departure (docs/metrizer.md, "Whole masks"): a supported object's plane over its holes
+        n_plane_fill = complete_planar_masks(
+            depth.reshape(H, W),
+            out_conf.reshape(H, W),
+            gobj.reshape(H, W),
+            G,
+            min_share=p.mask_plane_min_share,
+            inlier_rel=p.mask_plane_inlier_rel,
+            min_depth_m=p.mask_plane_min_depth_m,
+            max_depth_m=p.sky_depth_frac * p.d_max_m,
+            min_out_m=p.d_min_m,
+        )
     stats.update(
-        n_model_output_px=n_model_px, n_hole_px_model=n_model_fill, n_hole_px_fill=n_edge_fill
+        n_model_output_px=n_model_px,
+        n_hole_px_model=n_model_fill,
+        n_hole_px_fill=n_edge_fill,
+        n_hole_px_plane=n_plane_fill,
     )
     tm.lap("sky_holes")
     # final guarantees: finite, 0 or within (0, d_max], confidence in [0, 1] and 0 without depth

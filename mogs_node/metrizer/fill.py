@@ -11,7 +11,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["consistent_seeds", "edge_aware_fill", "nearest_fill", "smooth_field"]
+__all__ = [
+    "complete_planar_masks",
+    "consistent_seeds",
+    "edge_aware_fill",
+    "nearest_fill",
+    "smooth_field",
+]
 
 F32 = NDArray[np.float32]
 
@@ -149,3 +155,100 @@ def smooth_field(
     if at is not None:  # the cell of each pixel: the field varies little within a cell
         return f[np.minimum((at // W) * h2 // H, h2 - 1), np.minimum((at % W) * w2 // W, w2 - 1)]
     return cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)
+
+
+def complete_planar_masks(
+    depth_m: NDArray[np.float32],
+    confidence: NDArray[np.float32],
+    objects: NDArray[np.integer],
+    n_objects: int,
+    *,
+    min_share: float = 0.3,
+    inlier_rel: float = 0.02,
+    min_inlier_share: float = 0.5,
+    min_depth_m: float = 5.0,
+    max_depth_m: float = 72.0,
+    min_pixels: int = 30,
+    extrapolation: float = 1.25,
+    iterations: int = 4,
+    min_out_m: float = 0.0,
+) -> int:
+    """Give the uncovered pixels of a well-supported object the depth of its plane (in place).
+
+    A plane seen by a pinhole camera has an inverse depth affine in the pixel coordinates,
+    ``1/z = a + b u + c v``. Per object (``objects`` ``[H, W]`` ids ``0..n_objects-1``) that
+    plane is fitted by IRLS (Huber weights times ``confidence``) to the object's pixels with a
+    depth in ``[min_depth_m, max_depth_m]`` (far / sky pixels excluded). Its pixels without
+    depth get the plane's depth when the object is supported (docs/metrizer.md, "Whole masks"):
+    at least ``min_pixels`` fitted pixels making ``min_share`` of the object, at least
+    ``min_inlier_share`` of them within ``inlier_rel`` of the plane (a mask spanning two
+    surfaces fails it), its geometric mean depth at least ``min_depth_m`` (nearer objects are where a
+    partial prior lets the background show through) and the filled depth within
+    ``[z_min / extrapolation, z_max * extrapolation]`` of the inliers and in
+    ``[min_out_m, max_depth_m]``. The filled pixels'
+    confidence: half the mean confidence of the object's fitted pixels times its inlier share.
+    Returns the number of pixels filled. Vectorised over objects (``bincount`` moments).
+    """
+    H, W = depth_m.shape
+    d = depth_m.ravel()
+    cf = confidence.ravel()
+    hidx = np.flatnonzero(d <= 0)
+    if len(hidx) == 0:  # a fully covered frame (a learned prior) costs nothing
+        return 0
+    obj = np.asarray(objects).ravel().astype(np.intp, copy=False)
+    G = int(n_objects)
+    has_hole = np.bincount(obj[hidx], minlength=G)[:G] > 0
+    n_obj = np.bincount(obj, minlength=G)[:G]
+    idx = np.flatnonzero((d >= min_depth_m * 0.5) & (d <= max_depth_m))
+    n_fit = np.bincount(obj[idx], minlength=G)[:G]
+    cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj) & has_hole
+    idx = idx[cand[obj[idx]]]
+    if len(idx) == 0:
+        return 0
+    g = obj[idx]
+    u = (idx % W - 0.5 * W) / W
+    v = (idx // W - 0.5 * H) / W
+    y = 1.0 / d[idx].astype(np.float64)
+    w0 = np.maximum(cf[idx].astype(np.float64), 1e-3)
+    w = w0.copy()
+    coef = np.zeros((G, 3))
+    feats = (np.ones_like(u), u, v)
+    for _ in range(max(1, iterations)):
+        A = np.zeros((G, 3, 3))
+        b = np.zeros((G, 3))
+        for r in range(3):
+            b[:, r] = np.bincount(g, w * feats[r] * y, minlength=G)[:G]
+            for c in range(r, 3):
+                A[:, r, c] = A[:, c, r] = np.bincount(g, w * feats[r] * feats[c], minlength=G)[:G]
+        A[:, range(3), range(3)] += 1e-12
+        ok = np.linalg.det(A) > 1e-18
+        coef[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+        rel = np.abs(coef[g, 0] + coef[g, 1] * u + coef[g, 2] * v - y) / y
+        w = w0 / np.maximum(1.0, rel / inlier_rel)
+    inl = rel <= inlier_rel
+    n_inl = np.bincount(g, inl, minlength=G)[:G]
+    zin = d[idx].astype(np.float64)
+    zlo = np.full(G, np.inf)
+    zhi = np.zeros(G)
+    np.minimum.at(zlo, g[inl], zin[inl])
+    np.maximum.at(zhi, g[inl], zin[inl])
+    zmed_proxy = np.bincount(g, np.log(zin), minlength=G)[:G] / np.maximum(n_fit, 1)
+    share_in = n_inl / np.maximum(n_fit, 1)
+    good = cand & ok & (share_in >= min_inlier_share) & (np.exp(zmed_proxy) >= min_depth_m)
+    conf_g = 0.5 * share_in * np.bincount(g, cf[idx], minlength=G)[:G] / np.maximum(n_fit, 1)
+    hidx = hidx[good[obj[hidx]]]
+    if len(hidx) == 0:
+        return 0
+    hg = obj[hidx]
+    inv = (
+        coef[hg, 0]
+        + coef[hg, 1] * (hidx % W - 0.5 * W) / W
+        + coef[hg, 2] * (hidx // W - 0.5 * H) / W
+    )
+    with np.errstate(divide="ignore"):
+        z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0)
+    keep = (z >= zlo[hg] / extrapolation) & (z <= zhi[hg] * extrapolation)
+    keep &= (z >= min_out_m) & (z <= max_depth_m) & (z > 0)
+    depth_m.ravel()[hidx[keep]] = z[keep].astype(np.float32)
+    confidence.ravel()[hidx[keep]] = conf_g[hg[keep]].astype(np.float32)
+    return int(keep.sum())

@@ -44,6 +44,11 @@ class MetrizerParams:
     hole_model_radius: float = 0.03  # a pixel without prior takes its object's model depth only
     # within this fraction of the image width of one of the object's own features
     hole_fill_radius: float = 0.02  # ... the edge-aware fill of the features only within this
+    mask_plane_fill: bool = True  # departure: an object's pixels still without depth get its
+    # plane (inverse depth affine in u, v) when the plane explains its depth pixels (fill.py)
+    mask_plane_min_share: float = 0.3  # ... at least this share of the object has a depth
+    mask_plane_inlier_rel: float = 0.02  # ... half of those within this relative depth of it
+    mask_plane_min_depth_m: float = 5.0  # ... and their (geometric) mean depth at least this
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
     fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
     # of the same object, or "edge_aware" (FGS normalised convolution of the features)
@@ -78,6 +83,7 @@ class MetrizerParams:
     sky_depth_frac: float = 0.9  # a prior pixel is "far" beyond this fraction of d_max (globally)
     sky_far_fraction: float = 0.6  # a featureless object is sky when this share of it is far
     global_huber: float = 0.05  # Huber width (relative) of the global affine alignment
+    global_shift_prior: float = 0.05  # departure: weak pull of its shift to 0 (pure scale)
     fill_scale: float = 0.5  # resolution factor of the edge-aware fill
     fill_lambda: float = 50.0  # edge-aware fill: smoothing strength (FGS lambda)
     fill_sigma_color: float = 8.0  # edge-aware fill: colour edge scale (FGS sigma)

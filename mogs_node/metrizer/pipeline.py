@@ -240,7 +240,9 @@ def _align_global(
     scale (the identity, or an affine through 1-4 points: AbsRel 0.3-0.9 on the demo)."""
     fx, fc = prior[fpix].astype(np.float64), conf[fpix].astype(np.float64)
     ft = space_from_depth(z, prior_kind)
-    theta0, n_global = fit_global_affine(fx, ft, w * fc, prior_kind, p.global_huber)
+    theta0, n_global = fit_global_affine(
+        fx, ft, w * fc, prior_kind, p.global_huber, shift_prior=p.global_shift_prior
+    )
     unanchored = prior_kind != "metric" and 0 < n_global < p.min_anchor_features
     if prior_kind != "metric" and n_global < p.min_anchor_features:
         conf = np.zeros_like(conf)
