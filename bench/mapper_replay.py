@@ -42,6 +42,7 @@ from mogs_node.launch import load_launch_file
 from mogs_node.mapper.image_metrics import psnr_db, ssim
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
 from mogs_node.mapper.node import MapperNodeParams, depth_for_keyframe
+from mogs_node.report.views import choose_heldout
 
 
 def read_journal(path: Path) -> dict[str, list[Any]]:
@@ -120,18 +121,31 @@ def replay(
     return mapper, per_kf
 
 
+def _camera_rgb(m: Any) -> np.ndarray:
+    img = m.data if m.data.ndim == 3 else np.repeat(m.data[..., None], 3, 2)
+    return img[..., ::-1] if m.encoding.lower().startswith("bgr") else img
+
+
 def score(mapper: GaussianMapper, data: dict[str, list[Any]]) -> dict[str, float]:
-    """PSNR/SSIM of the final map at the keyframes and at held-out (non-keyframe) frames."""
+    """PSNR/SSIM of the final map at the keyframes and at held-out (non-keyframe) frames:
+
+    - ``keyframe_*`` / ``heldout_*``: with the keyframes' exposure (the nearest keyframe's for a
+      held-out frame), every non-keyframe frame inside the mapped part of the drive;
+    - ``report_*``: as the run report scores it (``docs/report.md``): no exposure, the
+      ``heldout_views`` (12) held-out frames :func:`choose_heldout` picks."""
     kf_stamps = {kf.stamp_ns for kf in data["/frontend/keyframe"]}
     last = max(kf.keyframe_id for kf in mapper.keyframes)
     t_end = next(kf.stamp_ns for kf in data["/frontend/keyframe"] if kf.keyframe_id == last)
     odo = {o.stamp_ns: o.T_world_cam for o in data["/frontend/odometry"]}
-    kf_psnr, kf_ssim = [], []
+    kf_psnr, kf_ssim, kr_psnr, kr_ssim = [], [], [], []
     for kf in mapper.keyframes:
         gt = kf.image_f32.numpy()
         r = mapper.render_view(kf.T_world_cam, kf.exposure_ab).color.numpy()
         kf_psnr.append(psnr_db(r, gt))
         kf_ssim.append(ssim(r, gt))
+        r = mapper.render_view(kf.T_world_cam).color.numpy()
+        kr_psnr.append(psnr_db(r, gt))
+        kr_ssim.append(ssim(r, gt))
     # frames after the first keyframe (the map exists) with an odometry pose, not keyframes
     t0 = min(kf_stamps)
     held = [m for m in data["/camera/image"] if m.stamp_ns in odo and m.stamp_ns not in kf_stamps]
@@ -142,15 +156,22 @@ def score(mapper: GaussianMapper, data: dict[str, list[Any]]) -> dict[str, float
     by_stamp = {kf.stamp_ns: kf.keyframe_id for kf in kfs}
     ho_psnr, ho_ssim = [], []
     for m in held:
-        img = m.data if m.data.ndim == 3 else np.repeat(m.data[..., None], 3, 2)
-        if m.encoding.lower().startswith("bgr"):
-            img = img[..., ::-1]
         nearest = by_stamp[int(stamps[np.argmin(np.abs(stamps - m.stamp_ns))])]
         ab = next(k.exposure_ab for k in mapper.keyframes if k.keyframe_id == nearest)
         r = mapper.render_view(odo[m.stamp_ns], ab).color.numpy()
-        gt = img.astype(np.float32) / 255.0
+        gt = _camera_rgb(m).astype(np.float32) / 255.0
         ho_psnr.append(psnr_db(r, gt))
         ho_ssim.append(ssim(r, gt))
+    images = {m.stamp_ns: m for m in data["/camera/image"] if m.stamp_ns in odo}
+    posed = sorted(images)
+    xyz = np.array([odo[s][:3, 3] for s in posed]).reshape(-1, 3)
+    chosen = choose_heldout(posed, sorted(stamps), 12, positions_m=xyz)
+    rep_psnr, rep_ssim = [], []
+    for s in chosen:
+        r = mapper.render_view(odo[int(s)]).color.numpy()
+        gt = _camera_rgb(images[int(s)]).astype(np.float32) / 255.0
+        rep_psnr.append(psnr_db(r, gt))
+        rep_ssim.append(ssim(r, gt))
     nan = float("nan")
     return {
         "keyframe_psnr_db": float(np.mean(kf_psnr)),
@@ -158,6 +179,11 @@ def score(mapper: GaussianMapper, data: dict[str, list[Any]]) -> dict[str, float
         "heldout_psnr_db": float(np.mean(ho_psnr)) if ho_psnr else nan,
         "heldout_ssim": float(np.mean(ho_ssim)) if ho_ssim else nan,
         "heldout_frames": len(ho_psnr),
+        "report_keyframe_psnr_db": float(np.mean(kr_psnr)),
+        "report_keyframe_ssim": float(np.mean(kr_ssim)),
+        "report_heldout_psnr_db": float(np.mean(rep_psnr)) if rep_psnr else nan,
+        "report_heldout_ssim": float(np.mean(rep_ssim)) if rep_ssim else nan,
+        "report_heldout_frames": len(rep_psnr),
     }
 
 
@@ -179,6 +205,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile", action="store_true", help="print the cProfile table")
     ap.add_argument("--json", default=None)
     ap.add_argument("--ply", default=None, help="also write the final map here (3DGS PLY)")
+    ap.add_argument(
+        "--refine-step",
+        type=int,
+        default=0,
+        help="score the map every n refinement iterations (0: only at the end)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     overrides = {}
@@ -199,10 +231,27 @@ def main(argv: list[str] | None = None) -> int:
     refine: dict[str, float] = {}
     if p.final_refine_iters > 0:  # the end of the drive: the node's final refinement
         q0 = score(mapper, data)
-        c1 = time.process_time()
-        mapper.refine(p.final_refine_iters, p.final_refine_downsample)
+        curve = []  # (iterations, report held-out PSNR, SSIM, refinement CPU s so far)
+        cpu_refine, done = 0.0, 0
+        step = args.refine_step or p.final_refine_iters
+        while done < p.final_refine_iters:
+            n = min(step, p.final_refine_iters - done)
+            c1 = time.process_time()
+            mapper.refine(n, p.final_refine_downsample)
+            cpu_refine += time.process_time() - c1
+            done += n
+            if done < p.final_refine_iters:
+                qi = score(mapper, data)
+                curve.append([done, qi["report_heldout_psnr_db"], qi["report_heldout_ssim"]])
+                curve[-1].append(cpu_refine)
+                print(
+                    f"refined {done}: report held-out {qi['report_heldout_psnr_db']:.2f} dB, "
+                    f"{qi['report_heldout_ssim']:.3f}, {cpu_refine:.1f} s CPU",
+                    flush=True,
+                )
         refine = {
-            "refine_cpu_s": time.process_time() - c1,
+            "refine_cpu_s": cpu_refine,
+            "refine_curve": curve,
             **{f"before_refine_{k}": v for k, v in q0.items()},
         }
         print(f"final refinement: {refine['refine_cpu_s']:.2f} s CPU", flush=True)
@@ -223,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         "params": {k: getattr(p, k) for k in MapperNodeParams.__dataclass_fields__},
     }
     for k, v in figures.items():
-        if k != "params":
+        if k not in ("params", "refine_curve"):
             print(f"{k}: {v:.4g}" if isinstance(v, float) else f"{k}: {v}")
     if prof:
         s = io.StringIO()

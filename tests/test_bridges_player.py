@@ -453,3 +453,34 @@ def test_a_replay_at_its_rate_waits_for_the_keyframes_of_a_slow_pipeline(
     assert mz["ids"] in (list(range(0, 18, 3)), list(range(0, 15, 3)))
     assert mz["max_backlog"] == 0  # the replay waited: never a keyframe queued behind another
     assert "18/18 frames (100.0%)" in out
+
+
+def test_a_fast_player_blocked_on_acknowledgements_sleeps_instead_of_ticking(inproc_bus) -> None:
+    """While no acknowledgement comes, the player's loop sleeps in its poll (the tick timer is
+    snoozed until an acknowledgement or the ack timeout) instead of ticking every ``tick_s``:
+    on 2 cores a 2 ms tick took CPU from the mapper it waits for."""
+    from bridges.player import PlayerNode
+
+    bus, ctx = inproc_bus
+    params = {
+        "source": "sim",
+        "sim": {"n_frames": 6, "width": 32, "height": 16},
+        "fast": True,
+        "wait_for_subscriber_s": 0.0,
+        "ack_timeout_s": 0.0,  # never give up: blocked for good after the first image
+        "tick_s": 0.002,
+        "progress_period_s": 0.0,
+    }
+    node = PlayerNode("player", params, bus, context=ctx, diagnostics_period_s=0)  # set up
+    ticks: list[int] = []
+    timer = node._timers[node._tick_timer]
+    tick = timer[2]
+    timer[2] = lambda: (ticks.append(node.frames_published), tick())[1]
+    t_end = time.monotonic() + 1.0
+    while time.monotonic() < t_end:
+        node.spin_once(100)
+    assert node.frames_published == 1  # the first image went out, then no acknowledgement
+    # a 2 ms tick would run ~500 times in that second; snoozed 0.25 s at a time: ~5
+    assert 1 <= len(ticks) <= 20, len(ticks)
+    node.teardown()
+    node.close()

@@ -43,6 +43,7 @@ import torch
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap, MapChanges
+from mogs_node.mapper.image_metrics import ssim_torch
 from mogs_node.mapper.insertion import (
     InsertionParams,
     background_mask,
@@ -77,6 +78,10 @@ class MapperParams:
     device: str = "cpu"  # cpu | cuda | cuda:N (cuda: gsplat rasterizer, needs CUDA + gsplat)
     lambda_depth: float = 0.1  # weight of the confidence-weighted relative depth L1
     lambda_iso: float = 0.05  # weight of the isotropic regulariser on log-scales
+    lambda_ssim: float = 0.0  # weight of the D-SSIM term in the photometric loss (3DGS eq. 7:
+    # (1 - l) L1 + l (1 - SSIM); 3DGS and MonoGS's colour refinement use 0.2)
+    refine_lambda_ssim: float = 0.0  # ... in the final refinement (:meth:`refine`; MonoGS's
+    # colour refinement uses 0.2 there and none while mapping)
     lr_means_m: float = 0.002  # Adam step size of positions (metres)
     lr_colors: float = 0.01  # of colours
     lr_opacity: float = 0.05  # of opacity logits
@@ -84,6 +89,9 @@ class MapperParams:
     lr_quats: float = 0.002  # of quaternions
     exposure: bool = True  # per-keyframe affine exposure compensation exp(a) c + b
     lr_exposure: float = 0.005  # Adam step size of (a, b)
+    exposure_gauge: bool = False  # the first keyframe's exposure stays the identity: the map's
+    # colours are in its brightness (without it the map colours and every exposure drift together
+    # and a render without exposure, such as the report's, is off by that drift)
     refine_poses: bool = False  # optimise window keyframe poses (SE(3) tangents)
     lr_pose: float = 1e-4  # Adam step size of pose tangents
     prune_opacity: float = 0.005  # Gaussians below this opacity are removed
@@ -100,8 +108,12 @@ class MapperParams:
     def __post_init__(self) -> None:
         if self.window_size < 1 or self.n_random_past < 0:
             raise ConfigError("MapperParams: window_size >= 1, n_random_past >= 0")
-        if not 0 <= self.lambda_depth <= 1:
-            raise ConfigError("MapperParams.lambda_depth: must be in [0, 1]")
+        if not all(
+            0 <= v <= 1 for v in (self.lambda_depth, self.lambda_ssim, self.refine_lambda_ssim)
+        ):
+            raise ConfigError(
+                "MapperParams: lambda_depth, lambda_ssim, refine_lambda_ssim must be in [0, 1]"
+            )
         if self.train_downsample < 1 or self.converge_rel < 0 or self.min_iters < 1:
             raise ConfigError(
                 "MapperParams: train_downsample >= 1, converge_rel >= 0, min_iters >= 1"
@@ -355,13 +367,16 @@ class GaussianMapper:
             raise ConfigError(f"refine: downsample must be >= 1, got {downsample}")
         if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
             return self.stats()
+        p = self.params
         lrs = self._lrs()
         fixed = -1  # no window pose refinement here: -1 is no keyframe index
         for it in range(n_iters):
             if should_stop is not None and should_stop():
                 break
             i = (self._refine_next + it) % len(self.keyframes)
-            self._train_step(i, fixed, lrs, factor=downsample, refine_pose=False)
+            self._train_step(
+                i, fixed, lrs, factor=downsample, refine_pose=False, ssim_w=p.refine_lambda_ssim
+            )
         self._refine_next = (self._refine_next + n_iters) % len(self.keyframes)
         self._prune()
         return self.stats()
@@ -427,10 +442,13 @@ class GaussianMapper:
         lrs: dict[str, float],
         factor: int | None = None,
         refine_pose: bool = True,
+        ssim_w: float | None = None,
     ) -> float:
         """One iteration on keyframe ``i`` at 1/``factor`` resolution (default
-        ``train_downsample``); returns its L1 photometric error (after exposure)."""
+        ``train_downsample``) with D-SSIM weight ``ssim_w`` (default ``lambda_ssim``); returns
+        its L1 photometric error (after exposure)."""
         p = self.params
+        ssim_w = p.lambda_ssim if ssim_w is None else ssim_w
         f = p.train_downsample if factor is None else factor
         K_f, (W, H) = (
             (self.train_K, self.train_size) if f == p.train_downsample else (self._train_camera(f))
@@ -459,11 +477,15 @@ class GaussianMapper:
         image, depth_m, conf = kf.targets(f)
         color = out.color
         ab = None
-        if p.exposure:
+        if p.exposure and not (p.exposure_gauge and i == 0):
             ab = kf.exposure_ab.clone().requires_grad_()
             color = self._expose(color, ab)
         l_rgb = (color - image).abs().mean()
-        total = (1 - p.lambda_depth) * l_rgb
+        l_photo = l_rgb
+        if ssim_w > 0:  # 3DGS eq. 7
+            d_ssim = 1 - ssim_torch(color, image.to(color.dtype))
+            l_photo = (1 - ssim_w) * l_rgb + ssim_w * d_ssim
+        total = (1 - p.lambda_depth) * l_photo
         dmask = depth_m > 0
         if p.lambda_depth > 0 and bool(dmask.any()):
             rel = (out.depth - depth_m).abs() / depth_m.clamp_min(1e-3)

@@ -68,12 +68,17 @@ class MapperNodeParams:
     device: str = "cpu"  # cpu | cuda[:N]: where the map lives and is optimised (cuda: gsplat)
     lambda_depth: float = 0.1  # weight of the confidence-weighted depth loss
     exposure: bool = True  # per-keyframe affine exposure compensation
+    exposure_gauge: bool = False  # ... except the first keyframe's (MapperParams.exposure_gauge)
+    lambda_ssim: float = 0.0  # weight of the D-SSIM term of the photometric loss
+    refine_lambda_ssim: float = 0.0  # ... in the final refinement
     refine_poses: bool = False  # optimise window keyframe poses
     densify: bool = False  # gradient-based cloning
     background_depth_m: float = 0.0  # far-sphere Gaussians where the depth has none (0: off)
     final_refine_iters: int = 0  # at the end of the drive: iterations over every keyframe
     final_refine_downsample: int = 1  # ... at 1/n of the resolution (GaussianMapper.refine)
     final_refine_chunk: int = 5  # refinement iterations per timer tick (heartbeats go on)
+    final_refine_threads: int = 0  # torch threads for it (0: keep `threads`); after the drive
+    # the other nodes are idle. The map is bitwise repeatable for a given thread count
     source_node: str = "player"  # its "stopped" diagnostics mark the end of the drive
     backend: str = "auto"  # rasterizer backend: auto | cpp | torch | gsplat
     threads: int = 0  # torch threads (0: torch's default)
@@ -97,6 +102,8 @@ class MapperNodeParams:
     def __post_init__(self) -> None:
         if self.iters_per_keyframe < 0 or self.max_pending < 1 or self.threads < 0:
             raise ConfigError("mapper: iters_per_keyframe >= 0, max_pending >= 1, threads >= 0")
+        if self.final_refine_threads < 0:
+            raise ConfigError("mapper.final_refine_threads: must be >= 0")
         if self.iters_when_behind < -1 or self.idle_iters_per_tick < 0:
             raise ConfigError("mapper: iters_when_behind >= -1, idle_iters_per_tick >= 0")
         if self.checkpoint_every_keyframes < 1:
@@ -128,6 +135,9 @@ class MapperNodeParams:
             device=self.device,
             lambda_depth=self.lambda_depth,
             exposure=self.exposure,
+            exposure_gauge=self.exposure_gauge,
+            lambda_ssim=self.lambda_ssim,
+            refine_lambda_ssim=self.refine_lambda_ssim,
             refine_poses=self.refine_poses,
             densify=self.densify,
             insertion=InsertionParams(background_depth_m=self.background_depth_m),
@@ -297,10 +307,13 @@ class MapperNode(Node):
             if self.refine_left == -2:  # done
                 return
             self.refine_left = p.final_refine_iters
+            if p.final_refine_threads > 0:
+                torch.set_num_threads(p.final_refine_threads)
             self.log.info(
-                "final refinement: %d iterations over %d keyframes",
+                "final refinement: %d iterations over %d keyframes, %d threads",
                 self.refine_left,
                 len(m.keyframes),
+                torch.get_num_threads(),
             )
         n = min(p.final_refine_chunk, self.refine_left)
         st = m.refine(n, p.final_refine_downsample, should_stop=lambda: self.stopping)
