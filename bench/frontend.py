@@ -313,6 +313,7 @@ def current_section(name: str = "frontend") -> str:
 
 POINTS_HEAD = "\nSparse points per keyframe"
 POINTS_END = "\nCPU time per tracking frame"
+POINTS_NOTE = "\nSparse points block:"
 
 
 def with_new_points(section: str, point_lines: list[str]) -> str | None:
@@ -322,6 +323,9 @@ def with_new_points(section: str, point_lines: list[str]) -> str | None:
     if POINTS_HEAD not in section or POINTS_END not in section:
         return None
     head, rest = section.split(POINTS_HEAD, 1)
+    head = head.rstrip()
+    if POINTS_NOTE in head:  # the previous run's note goes with its block
+        head = head.rsplit(POINTS_NOTE, 1)[0]
     tail = rest.split(POINTS_END, 1)[1]
     tail = tail.split("\n\n", 1)[1] if "\n\n" in tail else ""
     return head.rstrip() + "\n" + "\n".join(point_lines) + "\n\n" + tail.strip("\n")

@@ -123,3 +123,19 @@ def test_edge_figures_tell_a_silhouette_corner_from_a_straddling_point():
     assert fig["points_on_edges_share"] == pytest.approx(3 / 5)
     assert fig["points_on_edges_wrong_share"] == pytest.approx(1 / 5)
     assert fig["points_per_keyframe_median"] == 5 and fig["keyframes_without_points"] == 0
+
+
+def test_the_bench_replaces_the_points_block_and_its_note_once():
+    """``bench/frontend.py --write-points-docs`` keeps the speed tables and replaces the points
+    block with the previous run's note (it used to keep every old note)."""
+    from bench.frontend import with_new_points
+
+    section = (
+        "\n## Frontend\n\nSpeed table.\n\nSparse points block: old run.\n"
+        "\nSparse points per keyframe (old)\n\n| old |\n"
+        "\nCPU time per tracking frame: old.\n\nRun time against ATE: kept.\n"
+    )
+    new = with_new_points(section, ["", "Sparse points per keyframe (new)", "", "CPU time: new."])
+    assert "old" not in new.replace("Run time against ATE: kept.", "")
+    assert new.count("Sparse points per keyframe") == 1 and "Speed table." in new
+    assert new.endswith("Run time against ATE: kept.")
