@@ -139,3 +139,21 @@ def test_the_bench_replaces_the_points_block_and_its_note_once():
     assert "old" not in new.replace("Run time against ATE: kept.", "")
     assert new.count("Sparse points per keyframe") == 1 and "Speed table." in new
     assert new.endswith("Run time against ATE: kept.")
+
+
+def test_a_run_parked_throughout_is_scored_on_every_frame():
+    """No keyframe while parked (the EuRoC excerpt hovers): the trajectory is scored on every
+    frame instead of failing for want of keyframes."""
+    from mogs_node.frontend.frontend import FrameOutput
+    from mogs_node.frontend.runs import RunResult, score_run
+
+    stamps = (np.arange(6) * S // 10).astype(np.int64)
+    gt = np.stack([np.eye(4)] * 6)
+    gt[:, 0, 3] = 0.01 * np.arange(6) ** 2
+    gt[:, 1, 3] = 0.002 * np.arange(6)
+    outs = [
+        FrameOutput(int(t), k, "tracking", gt[k].copy(), np.zeros(3)) for k, t in enumerate(stamps)
+    ]
+    fig = score_run(RunResult(outs, gt, stamps, {}, 1.0, {}))
+    assert fig["scored_on"] == "frames" and fig["poses_scored"] == 6
+    assert fig["ate_se3_rmse_m"] == pytest.approx(0.0, abs=1e-9)

@@ -176,15 +176,17 @@ def run_dataset_frames(
 
 
 def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
-    """Figures of DESIGN.md section 7 (on keyframes by default) plus run facts."""
+    """Figures of DESIGN.md section 7 (on keyframes by default) plus run facts. A run with fewer
+    than 3 keyframes (parked throughout: no keyframe while still, docs/frontend.md round 8) is
+    scored on every frame (``scored_on``)."""
     from mogs_node.eval.traj import trajectory_metrics
 
     stamp_index = {int(t): i for i, t in enumerate(run.stamps_ns)}
-    sel = [
-        o
-        for o in run.outputs
-        if o.T_world_cam is not None and (o.keyframe is not None or not keyframes_only)
-    ]
+    posed = [o for o in run.outputs if o.T_world_cam is not None]
+    sel = [o for o in posed if o.keyframe is not None or not keyframes_only]
+    scored_on = "keyframes" if keyframes_only else "frames"
+    if len(sel) < 3 and keyframes_only:
+        sel, scored_on = posed, "frames"
     if len(sel) < 3:
         raise DatasetError(f"run: only {len(sel)} estimated poses, cannot score")
     idx = np.array([stamp_index[o.stamp_ns] for o in sel])
@@ -201,6 +203,7 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
             * out["ate_se3_rmse_m"]
             / max(out["path_length_m"], 1e-9),
             "poses_scored": len(sel),
+            "scored_on": scored_on,
             "frames": len(run.stamps_ns),
             "first_pose_s": float((sel[0].stamp_ns - run.stamps_ns[0]) * 1e-9),
             "frame_rate_hz": float(rate),
