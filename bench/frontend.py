@@ -122,8 +122,11 @@ def timing_figures(run) -> dict:
     }
 
 
-def cpu_run(d: dict, params: FrontendParams) -> tuple[list, list[float]]:
-    """Stream a prerendered dataset; CPU time (``time.process_time``) of each image's call."""
+def cpu_run(
+    d: dict, params: FrontendParams, stamps: list[int] | None = None
+) -> tuple[list, list[float]]:
+    """Stream a prerendered dataset; CPU time (``time.process_time``) of each image's call that
+    gives tracking frames (their stamps appended to ``stamps`` when given)."""
     from mogs_node.frontend.frontend import Frontend
 
     fe = Frontend(params, d["camera"], d["T_imu_cam"])
@@ -139,6 +142,8 @@ def cpu_run(d: dict, params: FrontendParams) -> tuple[list, list[float]]:
         outs += res
         if res and all(o.status == "tracking" for o in res):
             cpu_s.append(dt)
+            if stamps is not None:
+                stamps.append(int(t))
     return outs, cpu_s
 
 
@@ -175,11 +180,17 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
     out: dict[str, float] = {}
     variants = {"": {}, "landmarks_": {"enabled": False}, "denser_": DENSER}
     for tag, fields in variants.items():
-        outs, _ = cpu_run(d, with_points(base, **fields))
+        stamps: list[int] = []
+        outs, cpu_s = cpu_run(d, with_points(base, **fields), stamps)
         fig = keyframe_point_figures(
             outs, lambda t: sim_frames[index[t]].depth_m, lambda t: float(speed[index[t]])
         )
         out.update({f"{tag}{k}": v for k, v in fig.items()})
+        # the frontend's CPU per frame while parked against while driving (issue 27)
+        v = speed[[index[t] for t in stamps]]
+        cpu = np.asarray(cpu_s)
+        out[f"{tag}cpu_ms_per_frame_standstill"] = 1e3 * float(np.mean(cpu[v < 0.01]))
+        out[f"{tag}cpu_ms_per_frame_moving"] = 1e3 * float(np.mean(cpu[v > 0.5]))
     moving = prerender((frames - 1) / 10.0, (621, 188), seed)
     timed = {"": {}, "_no_points": {"enabled": False}, "_denser": DENSER}
     for tag, fields in timed.items():
@@ -192,11 +203,14 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
         "Sparse points per keyframe (demo drive: sim seed "
         f"{seed}, parked 2 s then ~4 s of driving, 621x188, launch/demo.yaml's keyframe policy; "
         'against ground truth at the points\' pixels; "on a depth edge": a 4-neighbour '
-        "depth jump > 10 % within 2 px, sky included; docs/frontend.md rounds 6 and 7):",
+        'depth jump > 10 % within 2 px, sky included; "neither side\'s depth": on a depth edge '
+        "and more than 10 % off the truth of every pixel within 1 px; docs/frontend.md rounds 6 "
+        "to 8):",
         "",
         "| points | per moving keyframe (median) | rel. depth error (median) | on depth edges "
-        "| on depth edges, by omega | keyframes without points |",
-        "| --- | ---: | ---: | ---: | ---: | ---: |",
+        "| on depth edges, by omega | on depth edges with neither side's depth "
+        "| keyframes (without points) | CPU per frame parked / driving |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for tag, name in (
         ("landmarks_", "estimator window's landmarks (before)"),
@@ -208,7 +222,10 @@ def points_figures(seed: int, frames: int) -> tuple[dict, list[str]]:
             f"{100 * out[tag + 'points_rel_err_median']:.2f} % | "
             f"{100 * out[tag + 'points_on_edges_share']:.1f} % | "
             f"{100 * out[tag + 'points_on_edges_weight_share']:.1f} % | "
-            f"{out[tag + 'keyframes_without_points']:.0f} of {out[tag + 'keyframes']:.0f} |"
+            f"{100 * out[tag + 'points_on_edges_wrong_share']:.1f} % | "
+            f"{out[tag + 'keyframes']:.0f} ({out[tag + 'keyframes_without_points']:.0f}) | "
+            f"{out[tag + 'cpu_ms_per_frame_standstill']:.1f} / "
+            f"{out[tag + 'cpu_ms_per_frame_moving']:.1f} ms |"
         )
     lines += [
         "",
@@ -296,6 +313,7 @@ def current_section(name: str = "frontend") -> str:
 
 POINTS_HEAD = "\nSparse points per keyframe"
 POINTS_END = "\nCPU time per tracking frame"
+POINTS_NOTE = "\nSparse points block:"
 
 
 def with_new_points(section: str, point_lines: list[str]) -> str | None:
@@ -305,6 +323,9 @@ def with_new_points(section: str, point_lines: list[str]) -> str | None:
     if POINTS_HEAD not in section or POINTS_END not in section:
         return None
     head, rest = section.split(POINTS_HEAD, 1)
+    head = head.rstrip()
+    if POINTS_NOTE in head:  # the previous run's note goes with its block
+        head = head.rsplit(POINTS_NOTE, 1)[0]
     tail = rest.split(POINTS_END, 1)[1]
     tail = tail.split("\n\n", 1)[1] if "\n\n" in tail else ""
     return head.rstrip() + "\n" + "\n".join(point_lines) + "\n\n" + tail.strip("\n")

@@ -12,6 +12,7 @@ from mogs_node.errors import ConfigError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
 from mogs_node.frontend.initialization import InitParams
+from mogs_node.frontend.keyframes import KeyframeParams
 from mogs_node.frontend.runs import DEFAULT_DATA
 from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
 from mogs_node.geometry import se3_inverse
@@ -96,8 +97,14 @@ def test_parked_static_init_and_no_drift():
     up_est = poses[-1, :3, :3].T @ np.array([0, 0, 1.0])
     up_true = seq.T_world_cam[0, :3, :3].T @ np.array([0, 0, 1.0])
     assert np.degrees(np.arccos(np.clip(up_est @ up_true, -1, 1))) < 1.0
-    kfs = [o.keyframe for o in outs if o.keyframe is not None]
-    assert kfs and all(k.image.shape == img.shape for k in kfs)
+    # parked: nothing new to map and no parallax for points, so no keyframe (round 8) ...
+    assert not any(o.keyframe is not None for o in outs)
+    assert fe.counters["keyframes_skipped_standstill"] >= 3  # 3 s at max_interval_s 0.5
+    # ... unless asked for (the policy before round 8): then every keyframe is well formed
+    params = FrontendParams(keyframes=KeyframeParams(hold_at_standstill=False))
+    fe = Frontend(params, CameraModel(seq.camera), seq.T_imu_cam)
+    kfs = [o.keyframe for o in feed(fe, t_img, img, t_imu, gyro, acc) if o.keyframe is not None]
+    assert len(kfs) >= 4 and all(k.image.shape == img.shape for k in kfs)
     assert [k.keyframe_id for k in kfs] == list(range(len(kfs)))
 
 

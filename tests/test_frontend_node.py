@@ -119,6 +119,8 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
         "height": c.height,
         "T_imu_cam": [float(x) for x in seq.T_imu_cam.ravel()],
         "mode": "vi",
+        # parked: keyframes only when asked for at standstill (round 8), to check their messages
+        "keyframes": {"hold_at_standstill": False},
     }
     node = FrontendNode("frontend", params, bus, context=ctx, diagnostics_period_s=0)
     watcher = Subscriber(bus, context=ctx)

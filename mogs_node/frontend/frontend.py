@@ -31,7 +31,12 @@ from mogs_node.frontend.initialization import (
     is_still,
     static_init,
 )
-from mogs_node.frontend.keyframes import KeyframeParams, is_keyframe, omega_weight
+from mogs_node.frontend.keyframes import (
+    KeyframeParams,
+    StandstillKeyframes,
+    is_keyframe,
+    omega_weight,
+)
 from mogs_node.frontend.platform import PlatformBounds, motion_violation, platform_profile
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
 from mogs_node.frontend.time_offset import (
@@ -215,6 +220,7 @@ class Frontend:
             self.profile,
         )
         self._last_kf: tuple[int, NDArray, NDArray] | None = None
+        self._standstill = StandstillKeyframes(params.keyframes)  # no keyframes while parked
         self._undistort_maps = None
         if camera.model != "none":
             K = camera.K
@@ -374,7 +380,8 @@ class Frontend:
                 status = "tracking"
                 st = self.estimator.state()
                 T_wc, v = st.T_world_imu @ self.T_imu_cam, st.velocity_world_m_s
-                kf = self._make_keyframe(stamp_ns, image, T_wc)
+                if not self._standstill.holding:  # a static start waits for the first motion
+                    kf = self._make_keyframe(stamp_ns, image, T_wc)
         else:
             dt_kf = (t_ns - self._last_kf[0]) * 1e-9
             make_kf, parallax = is_keyframe(
@@ -407,6 +414,12 @@ class Frontend:
                 stats["landmarks"] = float(st.n_landmarks)
                 T_wc, v = st.T_world_imu @ self.T_imu_cam, st.velocity_world_m_s
                 self._history.set_pose(t_ns, T_wc)
+                make_kf, skipped = self._standstill.decide(
+                    make_kf, still, t_ns, T_wc[:3, 3], lambda: len(self._fresh_points())
+                )
+                if skipped:
+                    key = f"keyframes_skipped_{skipped}"
+                    self.counters[key] = self.counters.get(key, 0) + 1
                 if make_kf:
                     self._last_kf = (t_ns, tr.ids, tr.uv_px)
                     tk = time.perf_counter()
@@ -453,6 +466,7 @@ class Frontend:
         self._last_points = None
         self._recent_points.clear()
         self._ground_ratios.clear()
+        self._standstill.reset()
 
     def _check_platform(self, idx: int, status: str) -> str:
         """Reset when the newest window step leaves the platform's bounds; the frame's status."""
@@ -599,6 +613,7 @@ class Frontend:
                 tl,
             )
             self.counters["static_inits"] += 1
+            self._standstill.parked(t_ns, (res.T_world_imu[-1] @ self.T_imu_cam)[:3, 3])
             self._init_offset_ns = None  # a static start does not depend on the offset
             self._last_kf = (t_ns, ids, uv)
             log.info("static initialisation at %.3f s", t_ns * 1e-9)
@@ -639,18 +654,24 @@ class Frontend:
             gray = cv2.remap(gray, *self._undistort_maps, cv2.INTER_LINEAR)
         return gray
 
-    def _keyframe_points(self, T_world_cam: NDArray) -> KeyframePoints:
-        """The keyframe's sparse points: every well-triangulated dense track (with the window's
-        latest poses), or at standstill, when too few are fresh, the previous keyframe's points
-        moved over."""
+    def _fresh_points(self) -> KeyframePoints:
+        """The newest frame's well-triangulated dense tracks (with the window's latest poses)."""
         if self.point_tracker is None:  # the estimator window's landmarks, as before round 6
             lm = self.estimator.newest_landmarks()
             w = omega_weight(lm.track_len, lm.reproj_err_px, self.params.keyframes)
             return KeyframePoints(lm.track_ids, lm.uv_px, lm.xyz_cam_m, lm.cov_cam_m2, w)
         for f in self.estimator.frames:
             self._history.set_pose(f.t_ns, self.estimator.pose(f.seq) @ self.T_imu_cam)
+        return keyframe_points(self._history, self.camera.pinhole, self.params.points)
+
+    def _keyframe_points(self, T_world_cam: NDArray) -> KeyframePoints:
+        """The keyframe's sparse points: every well-triangulated dense track (with the window's
+        latest poses), or at standstill, when too few are fresh, the previous keyframe's points
+        moved over."""
+        pts = self._fresh_points()
+        if self.point_tracker is None:
+            return pts
         pp = self.params.points
-        pts = keyframe_points(self._history, self.camera.pinhole, pp)
         image = self._history.newest_image()
         for T_world_prev, prev, image_prev in reversed(self._recent_points):  # newest first
             if image is None or len(prev) == 0:

@@ -8,6 +8,7 @@ and falls with the reprojection error.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +19,7 @@ from mogs_node.geometry import PinholeCamera, check_array
 
 __all__ = [
     "KeyframeParams",
+    "StandstillKeyframes",
     "is_keyframe",
     "landmark_covariance",
     "omega_weight",
@@ -35,10 +37,21 @@ class KeyframeParams:
     max_interval_s: float = 0.5  # at most this long between keyframes (bounds IMU-only spans)
     omega_track_len: float = 4.0  # track length at which omega's length factor reaches 1 - 1/e
     omega_reproj_px: float = 1.0  # reprojection error at which omega's error factor halves
+    # standstill (docs/frontend.md, round 8): no keyframe while the vehicle stands still (nothing
+    # new to map, no parallax for points); the first keyframe after a standstill (or a static
+    # initialisation) waits until it carries this many triangulated points ...
+    hold_at_standstill: bool = True  # False: keyframes at standstill too (before round 8)
+    first_min_points: int = 100
+    first_max_motion_m: float = 2.0  # ... or the camera moved this far since the standstill ...
+    first_max_wait_s: float = 2.0  # ... or this long has passed since the standstill ended
 
     def __post_init__(self) -> None:
         if self.min_parallax_px < 0 or self.max_interval_s <= 0 or self.omega_reproj_px <= 0:
             raise ConfigError("keyframes: parallax >= 0, max_interval_s > 0, omega_reproj_px > 0")
+        if self.first_min_points < 0 or self.first_max_motion_m < 0 or self.first_max_wait_s < 0:
+            raise ConfigError(
+                "keyframes: first_min_points, first_max_motion_m, first_max_wait_s >= 0"
+            )
 
 
 def is_keyframe(
@@ -62,6 +75,64 @@ def is_keyframe(
     return bool(
         parallax >= params.min_parallax_px or few or dt_s >= params.max_interval_s
     ), parallax
+
+
+class StandstillKeyframes:
+    """Keyframe policy around standstill (docs/frontend.md, round 8).
+
+    While the vehicle stands still a keyframe brings nothing new to map and, from one position,
+    no parallax for its points: none is taken. The first keyframe after a standstill is held back
+    until its tracks triangulate (``first_min_points`` points) from the motion since, or the
+    camera moved ``first_max_motion_m``, or ``first_max_wait_s`` passed since the last still
+    frame (a slow crawl or a turn on the spot still gets keyframes). The other keyframes are left
+    as the parallax policy takes them.
+    """
+
+    def __init__(self, params: KeyframeParams) -> None:
+        self.params = params
+        self.holding = False  # the next keyframe waits for points
+        self._still_t_ns = 0
+        self._still_position_m = np.zeros(3)
+
+    def reset(self) -> None:
+        self.holding = False
+
+    def parked(self, t_ns: int, position_m: NDArray) -> None:
+        """A still frame (or a static initialisation) at ``t_ns``, camera at ``position_m``."""
+        if self.params.hold_at_standstill:
+            self.holding = True
+            self._still_t_ns = int(t_ns)
+            self._still_position_m = np.asarray(position_m, np.float64).copy()
+
+    def decide(
+        self,
+        wanted: bool,
+        still: bool,
+        t_ns: int,
+        position_m: NDArray,
+        count_points: Callable[[], int],
+    ) -> tuple[bool, str]:
+        """Whether the frame the parallax policy ``wanted`` as a keyframe becomes one, and why
+        not (``"standstill"``, ``"no_parallax"``; ``""`` when taken or not wanted).
+        ``count_points()``: the points the keyframe would carry (called only when it decides)."""
+        if not self.params.hold_at_standstill:
+            return wanted, ""
+        if still:
+            self.parked(t_ns, position_m)
+            return False, "standstill" if wanted else ""
+        if not (wanted and self.holding):
+            return wanted, ""
+        p = self.params
+        moved_m = float(np.linalg.norm(np.asarray(position_m) - self._still_position_m))
+        waited_s = (t_ns - self._still_t_ns) * 1e-9
+        if (
+            moved_m >= p.first_max_motion_m
+            or waited_s >= p.first_max_wait_s
+            or count_points() >= p.first_min_points
+        ):
+            self.holding = False
+            return True, ""
+        return False, "no_parallax"
 
 
 def triangulate_midpoint(

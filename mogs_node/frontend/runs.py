@@ -177,15 +177,17 @@ def run_dataset_frames(
 
 
 def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
-    """Figures of DESIGN.md section 7 (on keyframes by default) plus run facts."""
+    """Figures of DESIGN.md section 7 (on keyframes by default) plus run facts. A run with fewer
+    than 3 keyframes (parked throughout: no keyframe while still, docs/frontend.md round 8) is
+    scored on every frame (``scored_on``)."""
     from mogs_node.eval.traj import trajectory_metrics
 
     stamp_index = {int(t): i for i, t in enumerate(run.stamps_ns)}
-    sel = [
-        o
-        for o in run.outputs
-        if o.T_world_cam is not None and (o.keyframe is not None or not keyframes_only)
-    ]
+    posed = [o for o in run.outputs if o.T_world_cam is not None]
+    sel = [o for o in posed if o.keyframe is not None or not keyframes_only]
+    scored_on = "keyframes" if keyframes_only else "frames"
+    if len(sel) < 3 and keyframes_only:
+        sel, scored_on = posed, "frames"
     if len(sel) < 3:
         raise DatasetError(f"run: only {len(sel)} estimated poses, cannot score")
     idx = np.array([stamp_index[o.stamp_ns] for o in sel])
@@ -202,6 +204,7 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
             * out["ate_se3_rmse_m"]
             / max(out["path_length_m"], 1e-9),
             "poses_scored": len(sel),
+            "scored_on": scored_on,
             "frames": len(run.stamps_ns),
             "first_pose_s": float((sel[0].stamp_ns - run.stamps_ns[0]) * 1e-9),
             "frame_rate_hz": float(rate),
@@ -223,6 +226,24 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
 
 EDGE_JUMP = 0.10  # "on a depth edge": a 4-neighbour ground-truth depth jump above 10 % ...
 EDGE_RADIUS_PX = 2  # ... within 2 px of the point's pixel (sky counts as a jump)
+# an edge point is a wrong one when its depth is more than EDGE_JUMP off the true depth of every
+# pixel within this radius of its own (neither side's depth: straddling, or slid along the edge)
+EDGE_MATCH_RADIUS_PX = 1
+
+
+def _matches_a_surface(depth_m: NDArray, uv: NDArray, z_m: NDArray, radius_px: int) -> NDArray:
+    """Whether each depth ``z_m`` [N] is within :data:`EDGE_JUMP` (relative) of the true depth of
+    some pixel within ``radius_px`` of its pixel ``uv`` [N, 2] (int, in the image)."""
+    r = int(radius_px)
+    pad = np.pad(np.where(np.isfinite(depth_m), depth_m, np.inf), r, constant_values=np.inf)
+    best = np.full(len(z_m), np.inf)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            t = pad[uv[:, 1] + r + dy, uv[:, 0] + r + dx]
+            with np.errstate(invalid="ignore"):
+                rel = np.where(np.isfinite(t) & (t > 0), np.abs(z_m - t) / t, np.inf)
+            best = np.minimum(best, rel)
+    return best <= EDGE_JUMP
 
 
 def keyframe_point_figures(
@@ -238,10 +259,14 @@ def keyframe_point_figures(
     ``speed_m_s_of(stamp_ns)``: the vehicle's speed, a keyframe faster than ``min_speed_m_s`` is
     a moving one. Figures: the median point count per moving keyframe, the median relative depth
     error at the points' pixels (pixels with a finite truth), and the share of points on a depth
-    edge (:data:`EDGE_JUMP` within :data:`EDGE_RADIUS_PX`), also weighted by omega."""
+    edge (:data:`EDGE_JUMP` within :data:`EDGE_RADIUS_PX`), also weighted by omega, and the share
+    of points on a depth edge that carry neither side's depth (round 8: more than
+    :data:`EDGE_JUMP` off the truth of every pixel within :data:`EDGE_MATCH_RADIUS_PX`; a corner
+    on a silhouette with the foreground's depth is a right point)."""
     from mogs_node.eval.depth_sim import _depth_edge_free
 
     counts, errors, on_edge, weights, n_kf, n_empty = [], [], [], [], 0, 0
+    wrong_side = []
     for o in outputs:
         kf = o.keyframe
         if kf is None:
@@ -259,6 +284,7 @@ def keyframe_point_figures(
         errors.append(np.abs(z[finite] - truth[finite]) / truth[finite])
         edge_free = _depth_edge_free(depth, EDGE_JUMP, EDGE_RADIUS_PX)
         on_edge.append(~edge_free[uv[:, 1], uv[:, 0]])
+        wrong_side.append(on_edge[-1] & ~_matches_a_surface(depth, uv, z, EDGE_MATCH_RADIUS_PX))
         weights.append(kf.feature_weight.astype(np.float64))
     err = np.concatenate(errors) if errors else np.zeros(0)
     edge = np.concatenate(on_edge) if on_edge else np.zeros(0, bool)
@@ -269,6 +295,9 @@ def keyframe_point_figures(
         "points_on_edges_share": float(np.mean(edge)) if len(edge) else 0.0,
         # the same share counted by omega: what a weighted consumer (the metrizer) sees
         "points_on_edges_weight_share": float(w[edge].sum() / w.sum()) if w.sum() > 0 else 0.0,
+        "points_on_edges_wrong_share": float(np.mean(np.concatenate(wrong_side)))
+        if len(edge)
+        else 0.0,
         "points_total": float(len(edge)),
         "keyframes": float(n_kf),
         "keyframes_moving": float(len(counts)),
