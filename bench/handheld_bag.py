@@ -7,7 +7,7 @@ written as a rosbag2 and replayed through ``launch/bag.yaml`` with no calibratio
 Per offset: ``mogs sim --motion handheld --time-offset-ms X --frames F --size 621x188 --format
 rosbag2 --out DIR/walkF_X`` (skipped when that bag exists), then ``mogs launch launch/bag.yaml
 --set player.path=DIR/walkF_X --run-dir DIR/runF_X_on``; for each ``--contrast-ms`` offset the same
-with ``--set frontend.time_offset.enabled=false`` (the launch value 0 used as it is). The figures
+with ``--set "frontend.time_offset={enabled: false}"`` (the launch value 0 used as it is). The figures
 are read from each run's ``summary.json``: the offset in use at the end, whether ``platform: auto``
 saw a walk, ATE (SE(3)-aligned, every frame with odometry) against the path, resets by reason,
 keyframes per second, keyframes made / mapped, depth (AbsRel, coverage against the ground truth)
@@ -60,7 +60,7 @@ def run_one(frames: int, offset_ms: float, estimation: bool, out: Path) -> dict:
         if rc != 0:
             raise SystemExit(f"mogs sim failed ({rc}): {out}/sim{frames}_{offset_ms:g}.log")
     run = out / f"run{frames}_{offset_ms:g}_{'on' if estimation else 'off'}"
-    extra = [] if estimation else ["--set", "frontend.time_offset.enabled=false"]
+    extra = [] if estimation else ["--set", "frontend.time_offset={enabled: false}"]
     rc, wall, cpu = _mogs(
         "launch", "launch/bag.yaml", "--set", f"player.path={bag}", "--run-dir", str(run),
         *extra, log=out / f"{run.name}.log",
@@ -121,7 +121,7 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1200)
-    ap.add_argument("--offsets-ms", type=float, nargs="+", default=[50.0, -30.0, 0.0])
+    ap.add_argument("--offsets-ms", type=float, nargs="*", default=[50.0, -30.0, 0.0])
     ap.add_argument("--contrast-ms", type=float, nargs="*", default=[50.0])
     ap.add_argument("--contrast-frames", type=int, default=None, help="default: --frames")
     ap.add_argument("--out", default="/tmp/mogs-handheld-bag")
