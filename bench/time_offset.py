@@ -2,18 +2,21 @@
 estimated and with estimation off (the launch value 0 used as it is), for several true offsets.
 
     .venv/bin/python bench/time_offset.py [--frames 1200] [--offsets-ms 50 -30 0] [--json PATH]
-        [--platform handheld] [--write-docs]
+        [--platform handheld] [--set GROUP.FIELD=VALUE ...] [--write-docs]
 
 The walk is ``mogs sim --motion handheld --size 621x188`` (the same images for every offset: only
 the camera stamps move). Per run: the offset in use at the end, ATE (SE(3)-aligned, keyframes)
 against the path length, resets by reason, keyframes per second, and the wall time (the machine
-is shared: an upper bound). ``--write-docs`` replaces the ``time-offset`` section of
+is shared: an upper bound). ``--set estimator.window_size=16`` (repeatable) overrides a field of
+a ``FrontendParams`` group (estimator, imu, keyframes, init, tracker) for every run: the
+experiments of docs/frontend.md round 8. ``--write-docs`` replaces the ``time-offset`` section of
 ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import sys
@@ -76,7 +79,8 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
         f"Frontend alone, in-process, handheld walk of {args.frames} frames at 621x188, 10 Hz "
         f"(`mogs sim --motion handheld`), platform `{args.platform}`, bag.yaml's keyframe "
         "policy. Command: `python bench/time_offset.py --frames "
-        f"{args.frames} --offsets-ms {' '.join(str(o) for o in args.offsets_ms)} --write-docs`. "
+        f"{args.frames} --offsets-ms {' '.join(str(o) for o in args.offsets_ms)}"
+        f"{''.join(' --set ' + x for x in args.set)} --write-docs`. "
         f"{machine_line()}; shared with other jobs (load {os.getloadavg()[0]:.1f}): wall times "
         "are upper bounds.",
         "",
@@ -101,6 +105,24 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
     return "\n".join(lines)
 
 
+def with_overrides(params: FrontendParams, sets: list[str]) -> FrontendParams:
+    """``GROUP.FIELD=VALUE`` (VALUE as YAML) applied to ``params``'s dataclass groups."""
+    import yaml
+
+    for item in sets:
+        key, _, value = item.partition("=")
+        group, _, name = key.partition(".")
+        sub = getattr(params, group, None)
+        if not _ or not name or sub is None or name not in sub.__dataclass_fields__:
+            raise SystemExit(f"--set {item!r}: expected GROUP.FIELD=VALUE of FrontendParams")
+        val = yaml.safe_load(value)
+        if isinstance(val, str):  # YAML 1.1 reads 2e-3 as a string
+            with contextlib.suppress(ValueError):
+                val = float(val)
+        params = replace(params, **{group: replace(sub, **{name: val})})
+    return params
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1200)
@@ -108,6 +130,7 @@ def main() -> int:
     ap.add_argument("--platform", default="handheld")
     ap.add_argument("--no-contrast", action="store_true", help="skip the runs with estimation off")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--set", action="append", default=[], help="GROUP.FIELD=VALUE")
     ap.add_argument("--write-docs", action="store_true")
     ap.add_argument("--cache", default=None, help=".npy of the rendered images (made if absent)")
     args = ap.parse_args()
@@ -123,6 +146,7 @@ def main() -> int:
         platform=args.platform,
         keyframes=KeyframeParams(min_parallax_px=20.0, max_interval_s=1.0),  # launch/bag.yaml's
     )
+    params = with_overrides(params, args.set)
     rows = []
     for off in args.offsets_ms:
         seq = make_sequence(replace(base.config, time_offset_ns=int(round(off * 1e6))))

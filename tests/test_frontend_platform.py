@@ -15,6 +15,8 @@ from mogs_node.frontend.frontend import Frontend, FrontendParams
 from mogs_node.frontend.platform import (
     PLATFORMS,
     PlatformBounds,
+    PlatformChooser,
+    detect_walk,
     motion_violation,
     platform_profile,
 )
@@ -161,3 +163,82 @@ def test_figures_reach_summary_and_report(car_drive, tmp_path) -> None:
     assert not p.time_offset.enabled and p.time_offset.search_ms == 80.0
     with pytest.raises(ConfigError, match="frontend.time_offset"):
         FrontendNodeParams(time_offset={"search": 1}).build(info=info)
+
+
+def _imu(kind: str, seconds: float = 6.0, rate_hz: float = 200.0, seed: int = 0):
+    """Specific force [N, 3] (IMU frame, z up at rest) of a walk, a car on a bumpy road or a
+    hovering multicopter, with white noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, 1.0 / rate_hz)
+    a = np.tile([0.0, 0.0, 9.81], (len(t), 1)) + rng.normal(0, 0.05, (len(t), 3))
+    if kind == "walk":  # 2 cm step bounce at 1.8 Hz: a vertical (2 pi f)^2 0.02 = 2.6 m/s^2
+        a[:, 2] += (2 * np.pi * 1.8) ** 2 * 0.02 * np.cos(2 * np.pi * 1.8 * t)
+    elif kind == "car":  # body bounce at 1.2 Hz, road noise, braking and accelerating
+        a[:, 2] += 0.4 * np.sin(2 * np.pi * 1.2 * t) + rng.normal(0, 0.3, len(t))
+        a[:, 0] += 2.0 * np.sin(2 * np.pi * 0.1 * t)
+    elif kind == "drone":  # rotor vibration (aliased to 40 Hz at 200 Hz) and slow manoeuvres
+        a += 1.5 * np.sin(2 * np.pi * 40.0 * t)[:, None] + rng.normal(0, 0.3, (len(t), 3))
+        a[:, 1] += 1.0 * np.sin(2 * np.pi * 0.3 * t)
+    return (t * 1e9).astype(np.int64), a
+
+
+@pytest.mark.parametrize("kind", ["walk", "car", "drone", "still"])
+def test_walk_detected_only_in_a_walk(kind: str) -> None:
+    t, a = _imu(kind)
+    det = detect_walk(t, a)
+    assert det is not None and det.walking == (kind == "walk")
+    if kind == "walk":
+        assert abs(det.cadence_hz - 1.8) <= 0.25 and abs(det.amplitude_m_s2 - 2.56) < 0.5
+    assert detect_walk(t[t < 3e9], a[t < 3e9]) is None  # less than the 4 s window
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    cadence=st.floats(1.5, 2.5),
+    bounce_m=st.floats(0.0, 0.04),
+    yaw=st.floats(-np.pi, np.pi),
+)
+def test_walk_detection_property(cadence: float, bounce_m: float, yaw: float) -> None:
+    """Any attitude (the norm of the specific force), any cadence in the band: a walk exactly
+    when the bounce's acceleration amplitude clears the threshold (away from it)."""
+    t = np.arange(0.0, 5.0, 1 / 200.0)
+    amp = (2 * np.pi * cadence) ** 2 * bounce_m
+    up = np.array([np.sin(yaw) * 0.3, np.cos(yaw) * 0.3, 1.0])
+    up /= np.linalg.norm(up)
+    a = np.outer(9.81 + amp * np.cos(2 * np.pi * cadence * t), up)
+    det = detect_walk((t * 1e9).astype(np.int64), a)
+    if amp > 1.2:
+        assert det.walking
+    elif amp < 0.5:
+        assert not det.walking
+
+
+def test_auto_platform_switches_to_handheld_on_a_walk() -> None:
+    car = PlatformChooser("car")
+    assert not car.auto and car.profile.name == "car"
+    t, a = _imu("walk", seconds=8.0)
+    assert not car.add_imu(t, a) and car.profile.name == "car"  # a named platform stays
+    for kind, expect in (("walk", "handheld"), ("car", "car"), ("drone", "car")):
+        ch = PlatformChooser("auto", PlatformBounds(max_speed_m_s=3.0), default="car")
+        t, a = _imu(kind, seconds=8.0)
+        changed = [ch.add_imu(t[i : i + 20], a[i : i + 20]) for i in range(0, len(t), 20)]
+        assert ch.profile.name == expect and sum(changed) == (expect == "handheld")
+        if expect == "handheld":
+            assert ch.profile.max_speed_m_s == 3.0  # the launch's overrides are kept
+            assert 4.0 <= (t[changed.index(True) * 20 + 19]) * 1e-9 <= 4.6  # after one window
+    with pytest.raises(ConfigError, match="frontend.platform"):
+        PlatformChooser("auto", default="boat")
+
+
+def test_auto_platform_in_the_frontend_on_the_sim_walk() -> None:
+    """``platform: auto`` on the sim's handheld walk: the frontend takes the handheld bounds and
+    keyframe cap once 4 s of IMU show the step cadence; on the car drive it keeps the car's."""
+    for motion, expect in (("handheld", "handheld"), ("car", "car")):
+        seq = make_sequence(SimConfig(motion=motion, n_frames=45, width=64, height=32))
+        fe = Frontend(FrontendParams(platform="auto"), CameraModel(seq.camera), seq.T_imu_cam)
+        imgs = [np.zeros((32, 64, 3), np.uint8)] * len(seq)
+        run_frontend(
+            fe, seq.stamps_ns, imgs, seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2
+        )
+        assert fe.profile.name == expect and fe._dyn_init.profile.name == expect
+        assert fe.figures()["platform_walk_detected"] == float(expect == "handheld")

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -54,6 +54,8 @@ class DepthPriorParams:
     in_topic: str = "/frontend/keyframe"  # keyframes
     out_topic: str = "/prior/depth"  # priors, keyed by keyframe id
     metrized_topic: str = "/metrizer/depth"  # metrized depth of earlier keyframes ("" = off)
+    camera_info_topic: str = "/camera/info"  # the source's camera height above the road, used
+    # for flow.camera_height_m unless the launch file sets it ("" = off)
     metrized_wait_s: float = 5.0  # a keyframe waits at most this long for the previous one's
     # metrized depth (0: never): the prior then does not depend on which arrived first, so the
     # same drive gives the same prior on every run whenever the pipeline keeps up
@@ -95,6 +97,11 @@ class DepthPriorNode(Node):
             p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe, idempotent=True
         )
         inputs: tuple[str, ...] = (p.in_topic,)
+        if p.camera_info_topic:
+            self.subscribe(
+                p.camera_info_topic, self.on_camera_info, reliable=True, msg_type=msgs.CameraInfo
+            )
+            inputs = (p.camera_info_topic, *inputs)
         if p.metrized_topic and self.net is None:
             self.subscribe(
                 p.metrized_topic, self.on_metrized, reliable=True, msg_type=msgs.DepthMap
@@ -133,6 +140,15 @@ class DepthPriorNode(Node):
             self._gt.pop(min(self._gt))
         while self._lfm_waiting and int(self._lfm_waiting[0].stamp_ns) in self._gt:
             self._process(self._lfm_waiting.popleft())
+
+    def on_camera_info(self, msg: msgs.CameraInfo) -> None:
+        """The camera height of the source's calibration (finite: known), unless typed."""
+        h = float(msg.camera_height_m)
+        if "camera_height_m" in self.params.flow or not np.isfinite(h):
+            return
+        if h != self.flow_params.camera_height_m:
+            self.log.info("camera %.3f m above the road (from %s)", h, msg.source or "camera info")
+            self.flow_params = self.sequence.flow = replace(self.flow_params, camera_height_m=h)
 
     def on_metrized(self, msg: msgs.DepthMap) -> None:
         """Keep an earlier keyframe's metric depth to warp into later keyframes."""

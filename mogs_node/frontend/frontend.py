@@ -37,7 +37,11 @@ from mogs_node.frontend.keyframes import (
     is_keyframe,
     omega_weight,
 )
-from mogs_node.frontend.platform import PlatformBounds, motion_violation, platform_profile
+from mogs_node.frontend.platform import (
+    PlatformBounds,
+    PlatformChooser,
+    motion_violation,
+)
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
 from mogs_node.frontend.time_offset import (
     TimeOffsetEstimator,
@@ -83,7 +87,9 @@ class FrontendParams:
     # prior of the estimate (time_offset.enabled), the value used as it is otherwise
     time_offset: TimeOffsetParams = field(default_factory=TimeOffsetParams)  # its estimation
     platform: str = "car"  # 'car', 'handheld' or 'drone': bounds on plausible motion and the
-    # keyframe rate cap (frontend/platform.py, docs/frontend.md "Platform profiles")
+    # keyframe rate cap (frontend/platform.py, docs/frontend.md "Platform profiles"); 'auto':
+    # platform_default until the IMU shows a walk's step cadence, then 'handheld'
+    platform_default: str = "car"
     bounds: PlatformBounds = field(default_factory=PlatformBounds)  # overrides of its bounds
     max_imu_gap_s: float = 0.05  # a larger hole in the IMU stream between frames resets the window
     max_pending_frames: int = 5  # frames waiting for their IMU; older ones are dropped (counted)
@@ -195,7 +201,8 @@ class Frontend:
             maxlen=max(params.points.reproject_keyframes, 1)
         )
         self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
-        self.profile = platform_profile(params.platform, params.bounds)
+        self.platform = PlatformChooser(params.platform, params.bounds, params.platform_default)
+        self.profile = self.platform.profile
         self.time_offset_ns = int(params.time_offset_ns)  # the one in use (estimated or prior)
         self.clock = TimeOffsetEstimator(
             params.time_offset, params.time_offset_ns, camera.K, self.T_imu_cam[:3, :3]
@@ -350,6 +357,7 @@ class Frontend:
         R_pred = self._predicted_rotation(t_ns)
         tr = self.tracker.track(image, R_pred)
         self._update_time_offset(stamp_ns, tr.ids, tr.uv_px)
+        self._update_platform(prev_t=self._last_frame_ns, t_ns=t_ns)
         t1 = time.perf_counter()
         if self.point_tracker is not None:
             dense = self.point_tracker.track(image, R_pred)
@@ -478,6 +486,16 @@ class Frontend:
         self._reset(reason.split(":", 1)[0], f"frame {idx}: {reason} ({self.profile.name})")
         return "reset"
 
+    def _update_platform(self, prev_t: int | None, t_ns: int) -> None:
+        """``platform: auto``: the IMU up to this frame goes to the chooser; a walk switches the
+        bounds and the keyframe cap from the next check on."""
+        if not self.platform.auto or self.platform.detection is not None:
+            return
+        imu = self.imu.samples()
+        new = (imu.stamps_ns <= t_ns) & (imu.stamps_ns > (prev_t if prev_t is not None else -1))
+        if self.platform.add_imu(imu.stamps_ns[new], imu.accel_m_s2[new]):
+            self.profile = self._dyn_init.profile = self.platform.profile
+
     def _update_time_offset(self, stamp_ns: int, ids: NDArray, uv_px: NDArray) -> None:
         """Feed the time-offset estimate; a new value is used from the next frame on (an
         initialisation under way restarts: its frames carry the old IMU times)."""
@@ -515,6 +533,7 @@ class Frontend:
             "time_offset_sigma_ms": e.sigma_ns / 1e6 if e is not None else float("nan"),
             "time_offset_pairs": float(self.clock.pairs),
             "keyframes_per_s": self.counters["keyframes"] / span_s if span_s > 0 else 0.0,
+            "platform_walk_detected": float(self.platform.detection is not None),
             **{f"init_rejected_{k}": float(v) for k, v in self._dyn_init.rejections.items()},
         }
 

@@ -98,7 +98,9 @@ class FrontendNodeParams:
     # known, else 'vi' (waiting for IMU)
     camera_only: dict[str, Any] = field(default_factory=dict)  # MonocularParams fields
     init_mode: str = "auto"  # 'auto', 'static' or 'dynamic'
-    platform: str = "car"  # 'car', 'handheld' or 'drone' (motion bounds, keyframe rate cap)
+    platform: str = "car"  # 'car', 'handheld' or 'drone' (motion bounds, keyframe rate cap);
+    # 'auto': platform_default until the IMU shows a walk (step cadence), then 'handheld'
+    platform_default: str = "car"
     bounds: dict[str, Any] = field(default_factory=dict)  # PlatformBounds fields (overrides)
     time_offset: dict[str, Any] = field(default_factory=dict)  # TimeOffsetParams fields
     tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
@@ -161,6 +163,7 @@ class FrontendNodeParams:
             init_mode=self.init_mode,
             time_offset_ns=self.time_offset_ns,
             platform=self.platform,
+            platform_default=self.platform_default,
             **groups,
         )
         cam = CameraModel(

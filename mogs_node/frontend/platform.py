@@ -8,6 +8,7 @@ bound that was broken named (``docs/frontend.md``, "Platform profiles").
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,10 +20,15 @@ from mogs_node.geometry import check_array, so3_log
 __all__ = [
     "PLATFORMS",
     "PlatformBounds",
+    "PlatformChooser",
     "PlatformProfile",
+    "WalkDetection",
+    "detect_walk",
     "motion_violation",
     "platform_profile",
 ]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -120,3 +126,98 @@ def motion_violation(
             f"{np.degrees(p.max_angular_rate_rad_s):.0f} deg/s"
         )
     return None
+
+
+#: a person's step cadence (steps per second); a car body's bounce on its suspension is 1-1.5 Hz
+#: and weaker, a multicopter's vibration is far above
+WALK_CADENCE_HZ = (1.4, 2.6)
+
+
+@dataclass(frozen=True)
+class WalkDetection:
+    """Step cadence found in the accelerometer (``platform: auto``)."""
+
+    walking: bool
+    cadence_hz: float  # frequency of the strongest component in the cadence band
+    amplitude_m_s2: float  # its amplitude (of the specific force's norm)
+    band_fraction: float  # the cadence band's share of the 0.5-15 Hz power
+
+
+def detect_walk(
+    stamps_ns: NDArray,
+    accel_m_s2: NDArray,
+    *,
+    min_amplitude_m_s2: float = 0.8,
+    min_band_fraction: float = 0.4,
+    window_s: float = 4.0,
+) -> WalkDetection | None:
+    """Whether the last ``window_s`` of IMU is a walk: the norm of the specific force oscillates
+    at a step cadence (1.4-2.6 Hz) with at least ``min_amplitude_m_s2`` and that band holds at
+    least ``min_band_fraction`` of the 0.5-15 Hz power (a pedometer's test). None: less than
+    ``window_s`` of IMU. The norm does not depend on the attitude, so no gravity is needed."""
+    t = check_array("stamps_ns", stamps_ns, shape=(None,), dtype=np.integer)
+    a = check_array("accel_m_s2", accel_m_s2, shape=(len(t), 3))
+    if len(t) < 16 or (t[-1] - t[0]) * 1e-9 < window_s:
+        return None
+    keep = t >= t[-1] - int(window_s * 1e9)
+    ts, norm = (t[keep] - t[keep][0]) * 1e-9, np.linalg.norm(a[keep], axis=1)
+    rate_hz = 50.0  # resampled uniformly (IMU stamps jitter, some drivers drop samples)
+    grid = np.arange(0.0, ts[-1], 1.0 / rate_hz)
+    x = np.interp(grid, ts, norm)
+    x = (x - x.mean()) * np.hanning(len(x))
+    spec = np.abs(np.fft.rfft(x)) ** 2
+    freq = np.fft.rfftfreq(len(x), 1.0 / rate_hz)
+    band = (freq >= WALK_CADENCE_HZ[0]) & (freq <= WALK_CADENCE_HZ[1])
+    total = float(spec[(freq >= 0.5) & (freq <= 15.0)].sum())
+    if total <= 0 or not band.any():
+        return WalkDetection(False, 0.0, 0.0, 0.0)
+    k = int(np.flatnonzero(band)[np.argmax(spec[band])])
+    # a sinusoid of amplitude A under a Hann window: |X| = A N / 4 at its bin
+    amp = 4.0 * float(np.sqrt(spec[k])) / len(x)
+    frac = float(spec[band].sum()) / total
+    ok = amp >= min_amplitude_m_s2 and frac >= min_band_fraction
+    return WalkDetection(bool(ok), float(freq[k]), amp, frac)
+
+
+class PlatformChooser:
+    """The profile in use: the named one, or with ``platform: auto`` the ``default`` one until
+    the accelerometer shows a walk (:func:`detect_walk`), then ``handheld`` for the rest of the
+    run. A bag or a folder says nothing about what carried the camera; a walk's step cadence is
+    the one platform signature that is both strong and unambiguous in the IMU."""
+
+    def __init__(
+        self, name: str, bounds: PlatformBounds | None = None, default: str = "car"
+    ) -> None:
+        self.auto = name == "auto"
+        self.bounds = bounds
+        self.profile = platform_profile(default if self.auto else name, bounds)
+        self.detection: WalkDetection | None = None  # the walk that chose 'handheld'
+        self._t = np.zeros(0, np.int64)
+        self._a = np.zeros((0, 3))
+        self._next_check_ns: int | None = None
+
+    def add_imu(self, stamps_ns: NDArray, accel_m_s2: NDArray, *, window_s: float = 4.0) -> bool:
+        """New IMU samples (increasing stamps, after the previous ones); True when the profile
+        changed. Checks at most twice a second of IMU time."""
+        if not self.auto or self.detection is not None or len(stamps_ns) == 0:
+            return False
+        t = np.asarray(stamps_ns, np.int64).reshape(-1)
+        keep = t > (self._t[-1] if self._t.size else np.iinfo(np.int64).min)
+        self._t = np.concatenate([self._t, t[keep]])
+        self._a = np.concatenate([self._a, np.asarray(accel_m_s2, float).reshape(-1, 3)[keep]])
+        old = self._t < self._t[-1] - int(window_s * 1e9)
+        self._t, self._a = self._t[~old], self._a[~old]
+        if self._next_check_ns is not None and self._t[-1] < self._next_check_ns:
+            return False
+        self._next_check_ns = int(self._t[-1]) + 500_000_000
+        det = detect_walk(self._t, self._a, window_s=window_s - 0.05)
+        if det is None or not det.walking:
+            return False
+        self.detection = det
+        self.profile = platform_profile("handheld", self.bounds)
+        log.info(
+            "platform auto: a walk in the IMU (step cadence %.1f Hz, %.1f m/s^2): handheld",
+            det.cadence_hz,
+            det.amplitude_m_s2,
+        )
+        return True

@@ -173,6 +173,7 @@ def summarise(c: RunCollector) -> dict[str, Any]:
         out["frontend"] = {
             "time_offset_ms": f.get("time_offset_ms", 0.0),
             "keyframes_per_s": f.get("keyframes_per_s", 0.0),
+            "walk_detected": bool(f.get("platform_walk_detected", 0.0)),  # platform: auto
             "resets": {k[7:]: int(v) for k, v in f.items() if k.startswith("resets_") and v},
             "init_rejected": {
                 k[14:]: int(v) for k, v in f.items() if k.startswith("init_rejected_")
