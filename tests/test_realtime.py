@@ -285,3 +285,26 @@ def test_a_prior_backend_that_raises_on_one_keyframe_costs_only_that_keyframe_it
     c = met.matcher.counters
     assert (c["complete"], c["partial"], c["failed_inputs"], c["stalled_inputs"]) == (3, 1, 1, 0)
     assert prior.counters["handler_errors"] == 1 and seg.counters["handler_errors"] == 0
+
+
+def test_summary_and_report_carry_shed_keyframes_and_missing_inputs(tmp_path):
+    from mogs_node.report.collect import RunCollector, summarise, write_report
+
+    c = RunCollector()
+    c.node_counters = {
+        "frontend": {"keyframes_shed": 3.0, "keyframes_shed_backlog": 3.0, "dropped": 4.0},
+        "metrizer": {"metrized_without_inputs": 1.0, "match_failed_inputs": 1.0},
+    }
+    figures = summarise(c)
+    assert figures["realtime"] == {
+        "keyframes_shed": 3,
+        "shed_reasons": {"backlog": 3},
+        "metrized_without_inputs": 1,
+        "inputs_failed": 1,
+        "inputs_stalled": 0,
+    }
+    write_report(tmp_path / "report.md", figures)
+    assert (
+        "Keyframes shed whole: 3 (backlog 3); metrized without masks or prior: 1 "
+        "(1 failed, 0 silent worker)." in (tmp_path / "report.md").read_text()
+    )
