@@ -89,6 +89,26 @@ def test_a_silent_worker_is_given_up_after_its_backlog_and_named():
     assert m.add("prior", 3, "P", 9.5) == [] and m.counters["dropped"] == 1  # too late now
 
 
+def test_a_worker_whose_heartbeat_goes_on_is_waited_for():
+    """A prior that takes 40 s on a loaded machine: its worker's heartbeats keep the keyframe
+    waiting; once they stop (a dead worker), the keyframe goes without it."""
+    m = KeyframeMatcher(max_wait_s=2.0)
+    m.add("prior", 0, "P", 0.0)  # the worker's first output
+    m.add("keyframe", 1, "K", 1.0)
+    m.add("masks", 1, "M", 1.0)
+    for t in np.arange(1.0, 41.0, 1.0):
+        m.worker_alive("prior", float(t))
+        assert m.expire(float(t) + 0.5) == []
+    assert [e.keyframe_id for e in m.add("prior", 1, "P", 41.0)] == [1]
+    m.add("keyframe", 2, "K", 42.0)
+    m.add("masks", 2, "M", 42.0)
+    m.worker_alive("prior", 43.0)  # its last heartbeat
+    assert m.expire(44.9) == []
+    assert m.expire(45.0 + 2.0 * m.pace["prior"].interval_s)[0].missing == {
+        "prior": f"prior worker silent for {2.0 + 2.0 * m.pace['prior'].interval_s:.1f} s"
+    }
+
+
 def test_before_the_first_output_a_worker_gets_the_start_up_wait_once():
     m = KeyframeMatcher(max_wait_s=2.0, first_wait_s=30.0)
     m.add("keyframe", 0, "K", 0.0)

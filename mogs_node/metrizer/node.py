@@ -9,9 +9,9 @@ without its masks or prior only when that input has none, never for being late (
 - a worker that fails on a keyframe says so (a failure notice, :mod:`mogs_node.keyframe_chain`):
   that keyframe is processed at once without the input, with a warning naming the reason;
 - otherwise the wait follows the worker's backlog: a missing input is given up only when its
-  worker has published nothing for ``max_wait_s`` plus ``stall_factor`` times its measured output
-  interval for every keyframe queued up to this one (a dead worker; ``first_wait_s`` before its
-  first output). Without masks every pixel belongs to one unmasked region (MSC then has nothing
+  worker has published nothing, not even a heartbeat on ``/diagnostics``, for ``max_wait_s`` plus
+  ``stall_factor`` times its measured output interval for every keyframe queued up to this one
+  (a dead or absent worker; ``first_wait_s`` before its first output). Without masks every pixel belongs to one unmasked region (MSC then has nothing
   to merge), without a prior the confidence is 0 everywhere (depth then comes from accepted shape
   models and the edge-aware fill only);
 - masks or a prior whose keyframe never arrives are dropped after ``max_wait_s + first_wait_s``;
@@ -34,6 +34,7 @@ import numpy as np
 
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
+from mogs_node.heartbeat import DIAGNOSTICS_TOPIC
 from mogs_node.keyframe_chain import failure_reason
 from mogs_node.metrizer.consensus import ConsensusParams
 from mogs_node.metrizer.pipeline import MODES, MetrizerInputs, MetrizerParams, metrize
@@ -108,6 +109,7 @@ class WorkerPace:
 
     last_arrival_s: float | None = None
     interval_s: float = 0.0
+    alive_s: float = -np.inf  # the worker's last heartbeat (it computes: not silent)
     given_up: int = 0  # keyframes released without this worker's output (it was silent)
 
     def arrived(self, now_s: float) -> None:
@@ -121,10 +123,10 @@ class KeyframeMatcher:
     """Matches keyframe / masks / prior by keyframe id; the wait follows the workers' backlog.
 
     Pure: time is passed in. ``add`` returns the sets that became ready, ``expire(now_s)`` those
-    whose wait is over. A missing input is waited for as long as its worker advances: a keyframe
-    gives up on the worker of a slot only when that worker has published nothing for
-    ``max_wait_s + stall_factor * interval * (ahead + 1)`` since its last output (or since the
-    keyframe came, if later), where ``interval`` is the running mean of the worker's output interval
+    whose wait is over. A missing input is waited for as long as its worker lives: a keyframe
+    gives up on the worker of a slot only when that worker has published nothing, heartbeats
+    (:meth:`worker_alive`) included, for ``max_wait_s + stall_factor * interval * (ahead + 1)``
+    since its last output (or since the keyframe came, if later), where ``interval`` is the running mean of the worker's output interval
     and ``ahead`` counts the keyframes queued before this one at that worker. Before a worker's
     first output the wait is at least ``first_wait_s`` (start-up, first-use compiles), once.
     A failure notice (:mod:`mogs_node.keyframe_chain`) answers a slot at once, with its reason.
@@ -204,6 +206,10 @@ class KeyframeMatcher:
             out.extend(self._release(self._pending.pop(kid)))
         return out
 
+    def worker_alive(self, slot: str, now_s: float) -> None:
+        """A heartbeat of ``slot``'s worker: it lives, so the keyframes waiting for it wait on."""
+        self.pace[slot].alive_s = now_s
+
     def patience_s(self, slot: str, ahead: int) -> float:
         """How long a keyframe waits for ``slot`` after its worker's last output [s]."""
         pace = self.pace[slot]
@@ -221,8 +227,9 @@ class KeyframeMatcher:
             for slot in INPUT_SLOTS:
                 if entry.answered(slot):
                     continue
-                last = self.pace[slot].last_arrival_s
-                since = max(entry.first_seen_s, last if last is not None else -np.inf)
+                pace = self.pace[slot]
+                last = pace.last_arrival_s if pace.last_arrival_s is not None else -np.inf
+                since = max(entry.first_seen_s, last, pace.alive_s)
                 if now_s - since >= self.patience_s(slot, ahead[slot]):
                     waits.append((slot, now_s - since))
                 ahead[slot] += 1
@@ -309,6 +316,8 @@ class MetrizerNode(Node):
             (p.prior_topic, self.on_prior, msgs.DepthMap),
         ):
             self.subscribe(topic, handler, reliable=True, msg_type=typ, idempotent=True)
+        # a worker's heartbeats say it lives (and computes): its keyframes wait on
+        self.subscribe(DIAGNOSTICS_TOPIC, self.on_heartbeat, reliable=False, queue_size=64)
         self.every(p.poll_period_s, self.on_timer)
         # after a restart: the inputs of every keyframe without a metrized depth in the journal
         self.catch_up((p.keyframe_topic, p.masks_topic, p.prior_topic), (p.out_topic,))
@@ -327,6 +336,16 @@ class MetrizerNode(Node):
 
     def on_prior(self, msg: msgs.DepthMap) -> None:
         self._add("prior", msg)
+
+    def on_heartbeat(self, msg: msgs.Message) -> None:
+        """The worker of a slot is the node whose heartbeat says it published on its topic."""
+        topics = getattr(msg, "topics", None) or {}
+        if getattr(msg, "status", "") == "stopped":
+            return
+        p: MetrizerNodeParams = self.params
+        for slot, topic in (("masks", p.masks_topic), ("prior", p.prior_topic)):
+            if topics.get(topic, {}).get("published", 0) > 0:
+                self.matcher.worker_alive(slot, self.clock())
 
     def on_timer(self) -> None:
         if self.queue_depth == 0:  # inputs read but not handled yet may answer the wait
