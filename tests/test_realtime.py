@@ -328,3 +328,37 @@ def test_summary_and_report_carry_shed_keyframes_and_missing_inputs(tmp_path):
         "Keyframes shed whole: 3 (backlog 3); metrized without masks or prior: 1 "
         "(1 failed, 0 silent worker)." in (tmp_path / "report.md").read_text()
     )
+
+
+def test_the_metrizer_takes_a_worker_s_heartbeat_for_life(inproc_bus):
+    from mogs_node.metrizer.node import MetrizerNode
+
+    bus, ctx = inproc_bus
+    met = MetrizerNode("metrizer", {}, bus, context=ctx, diagnostics_period_s=0)
+    met.clock = lambda: 12.5
+    try:
+
+        def beat(topics, status="ok"):
+            met.on_heartbeat(
+                msgs.Diagnostics(
+                    stamp_ns=1,
+                    frame_id="",
+                    node="w",
+                    pid=1,
+                    uptime_s=1.0,
+                    status=status,
+                    counters={},
+                    topics=topics,
+                )
+            )
+
+        beat({"/prior/depth": {"received": 4}})  # a consumer of priors (journal, viz): not it
+        beat({"/prior/depth": {"published": 0}, "/seg/masks": "junk"})
+        beat({"/prior/depth": {"published": 3}}, status="stopped")
+        assert met.matcher.pace["prior"].alive_s == -np.inf
+        assert met.matcher.pace["masks"].alive_s == -np.inf
+        beat({"/prior/depth": {"published": 3}})
+        assert met.matcher.pace["prior"].alive_s == 12.5
+        assert met.matcher.pace["masks"].alive_s == -np.inf
+    finally:
+        met.close()

@@ -339,12 +339,14 @@ class MetrizerNode(Node):
 
     def on_heartbeat(self, msg: msgs.Message) -> None:
         """The worker of a slot is the node whose heartbeat says it published on its topic."""
-        topics = getattr(msg, "topics", None) or {}
-        if getattr(msg, "status", "") == "stopped":
+        topics = getattr(msg, "topics", None)
+        if not isinstance(topics, dict) or getattr(msg, "status", "") == "stopped":
             return
         p: MetrizerNodeParams = self.params
         for slot, topic in (("masks", p.masks_topic), ("prior", p.prior_topic)):
-            if topics.get(topic, {}).get("published", 0) > 0:
+            stats = topics.get(topic)
+            published = stats.get("published", 0) if isinstance(stats, dict) else 0
+            if isinstance(published, int | float) and published > 0:
                 self.matcher.worker_alive(slot, self.clock())
 
     def on_timer(self) -> None:
