@@ -315,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-docs", action="store_true")
     args = ap.parse_args(argv)
+    if args.keyframe_views < 1 or args.heldout_views < 0:
+        ap.error("--keyframe-views >= 1 (the report renders at least one), --heldout-views >= 0")
     modes = [m for m in args.modes.split(",") if m]
     unknown = set(modes) - set(MODES)
     if unknown:
