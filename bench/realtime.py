@@ -168,7 +168,9 @@ def run_mode(mode: str, drive: Path, out: Path, args: argparse.Namespace) -> dic
     ctx.term()
     summary_path = out / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-    return figures_of(summary, probe, meter, wall_s)
+    figures = figures_of(summary, probe, meter, wall_s)
+    write_json(out / "figures.json", figures)  # each run's own, as soon as it is done
+    return figures
 
 
 def figures_of(
