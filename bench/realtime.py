@@ -140,6 +140,8 @@ def run_mode(mode: str, drive: Path, out: Path, args: argparse.Namespace) -> dic
     }
     if args.end_s is not None:
         overrides["player"]["end_s"] = args.end_s
+    if args.mapper_iters is not None:
+        overrides["mapper"] = {"iters_per_keyframe": args.mapper_iters}
     base = load_launch_file(path, overrides=overrides)
     for node, params in run_dir_overrides(base, out, resume=False).items():
         overrides.setdefault(node, {}).update(params)
@@ -308,6 +310,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="/tmp/mogs-bench-realtime", help="run folders go here")
     ap.add_argument("--timeout", type=float, default=3600.0, help="per run [s]")
     ap.add_argument("--end-s", type=float, default=None, help="play the drive up to this [s]")
+    ap.add_argument(
+        "--mapper-iters", type=int, default=None, help="mapper.iters_per_keyframe (a loaded box)"
+    )
     ap.add_argument("--heldout-views", type=int, default=12, help="report.heldout_views")
     ap.add_argument("--keyframe-views", type=int, default=4, help="report.max_keyframe_views")
     ap.add_argument("--json", nargs="?", const="-", default=None, help="PATH, or stdout")
