@@ -333,6 +333,7 @@ def main(argv: list[str] | None = None) -> int:
         res = json.loads(Path(args.from_json).read_text())
         res.pop("checks", None)
         cmd = res.pop("command", cmd)
+        res = {m: res[m] for m in MODES if m in res}  # rate, fast, live
     else:
         out = Path(args.out)
         drive = Path(args.drive) if args.drive else out / f"drive_{args.frames}_{args.size}"
