@@ -17,6 +17,8 @@ A launch file (YAML)::
         respawn: on_failure         # never | on_failure | always
         max_respawns: 5
         host: localhost             # only localhost is started by this launcher
+        nice: 0                     # CPU priority 0..19 (real-time files: the mapper below the
+        cpus: []                    #   keyframe chain); CPUs it may use (empty: all; Linux)
 
 The launcher prefixes each child's log lines with its name, respawns crashed nodes by policy, and
 on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
@@ -52,6 +54,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import json
 import logging
 import os
@@ -122,6 +125,10 @@ class NodeSpec:
     startup_timeout_s: float = 300.0
     host: str = "localhost"
     env: dict[str, str] = field(default_factory=dict)
+    # CPU priority (issue 28): the node's niceness (0..19: higher yields the CPU to the others)
+    # and the CPUs it may run on (empty: all), where the OS allows (Linux sched_setaffinity)
+    nice: int = 0
+    cpus: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -141,6 +148,19 @@ def _require(d: dict, key: str, types: type | tuple[type, ...], where: str) -> A
     if not isinstance(d[key], types):
         raise ConfigError(f"{where}.{key}: expected {types}, got {d[key]!r}")
     return d[key]
+
+
+def _cpu_priority(nd: dict, where: str) -> dict[str, Any]:
+    """A node's ``nice`` (int 0..19) and ``cpus`` (list of CPU indices), checked."""
+    nice = nd.get("nice", 0)
+    if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= 19:
+        raise ConfigError(f"{where}.nice: expected an integer 0..19, got {nice!r}")
+    cpus = nd.get("cpus") or []
+    if not isinstance(cpus, list) or not all(
+        isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in cpus
+    ):
+        raise ConfigError(f"{where}.cpus: expected a list of CPU indices >= 0, got {cpus!r}")
+    return {"nice": nice, "cpus": tuple(cpus)}
 
 
 def parse_launch(
@@ -183,6 +203,8 @@ def parse_launch(
             "startup_timeout_s",
             "host",
             "env",
+            "nice",
+            "cpus",
         }
         if unknown:
             raise ConfigError(f"{w}: unknown key(s) {sorted(unknown)}")
@@ -214,6 +236,7 @@ def parse_launch(
                 startup_timeout_s=float(nd.get("startup_timeout_s", 300.0)),
                 host=str(nd.get("host", "localhost")),
                 env={str(k): str(v) for k, v in (nd.get("env") or {}).items()},
+                **_cpu_priority(nd, w),
             )
         )
     unknown_nodes = sorted(set(overrides or {}) - seen)
@@ -313,6 +336,21 @@ def _set_pdeathsig() -> None:  # runs in the child between fork and exec
         libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: a hung node must not survive either
     except OSError:
         pass
+
+
+def usable_cpus(cpus: tuple[int, ...]) -> tuple[int, ...]:
+    """The CPUs of ``cpus`` this process may use (all of them where the OS has no affinity)."""
+    if not cpus or not hasattr(os, "sched_getaffinity"):
+        return ()
+    return tuple(sorted(set(cpus) & os.sched_getaffinity(0)))
+
+
+def _child_setup(nice: int, cpus: tuple[int, ...]) -> None:  # in the child, before exec
+    _set_pdeathsig()
+    if nice:
+        os.nice(nice)
+    if cpus:
+        os.sched_setaffinity(0, cpus)
 
 
 @dataclass
@@ -432,6 +470,7 @@ class Launcher:
         # a respawned node, or any node of a resumed run, catches up from the journal
         restart = child.respawns > 0 or self.resume
         env[CATCH_UP_ENV] = "1" if restart and self._has_journal else "0"
+        nice, cpus = self._cpu_priority(child)
         child.proc = subprocess.Popen(
             child.argv,
             stdout=subprocess.PIPE,
@@ -439,7 +478,7 @@ class Launcher:
             stdin=subprocess.DEVNULL,
             env=env,
             start_new_session=True,
-            preexec_fn=_set_pdeathsig,
+            preexec_fn=functools.partial(_child_setup, nice, cpus),
         )
         child.exited = None
         child.restart_at = None
@@ -450,6 +489,19 @@ class Launcher:
         )
         child.reader.start()
         self._print(f"[launch] started {child.name} (pid {child.proc.pid})")
+
+    def _cpu_priority(self, child: _Child) -> tuple[int, tuple[int, ...]]:
+        """The child's niceness and CPUs (those of the launch file this machine has)."""
+        spec = child.spec
+        if spec is None:
+            return 0, ()
+        cpus = usable_cpus(spec.cpus)
+        if spec.cpus and not cpus and child.respawns == 0:
+            self._print(
+                f"[launch] {spec.name}: none of cpus {list(spec.cpus)} is usable here "
+                "(or the OS has no CPU affinity): it runs on every CPU"
+            )
+        return spec.nice, cpus
 
     def request_stop(self) -> None:
         self._stop.set()

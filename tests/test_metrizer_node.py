@@ -48,7 +48,9 @@ def test_bounded_wait_releases_partial_and_drops_orphans():
     assert m.expire(11.9) == []
     out = m.expire(12.0)
     assert len(out) == 1 and out[0].keyframe_id == 3 and out[0].prior is None
-    assert m.counters == {"complete": 0, "partial": 1, "dropped": 1, "duplicates": 0}
+    c = m.counters
+    assert (c["complete"], c["partial"], c["dropped"], c["duplicates"]) == (0, 1, 1, 0)
+    assert out[0].missing == {"prior": "prior worker silent for 2.0 s"}
     assert len(m) == 0
 
 

@@ -177,9 +177,13 @@ def run_burst(
                 if last == "mapper"
                 else ("/frontend/keyframe",)
             )
+            # the metrizer waits for late priors (issue 28): every keyframe metrized, too
+            met = d.get("metrizer")
+            metrized = met.topics.get("/metrizer/depth", {}).get("published", -1) if met else -1
             return (
                 all(d[last].topics.get(t, {}).get("received", -1) == kf for t in topics)
                 and d["frontend"].topics.get("/imu", {}).get("received", -1) == n_imu
+                and ("metrizer" not in nodes or metrized == kf)
             )
 
         drained_ok = mon.wait_for(drained, drain_s, 0.5)

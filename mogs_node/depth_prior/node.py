@@ -30,6 +30,7 @@ from mogs_node.depth_prior.flow_prior import FlowPriorParams, fit_scale_huber
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
 from mogs_node.errors import ConfigError
+from mogs_node.keyframe_chain import failed_prior
 from mogs_node.node import Node, parse_params
 
 __all__ = ["DepthPriorNode", "DepthPriorParams"]
@@ -198,6 +199,13 @@ class DepthPriorNode(Node):
     def _process(self, kf: msgs.Keyframe) -> None:
         if self.already_published(self.params.out_topic, kf.keyframe_id) and self.net is not None:
             return  # done before a restart; the learned prior keeps no state
+        try:
+            self._compute_and_publish(kf)
+        except Exception as err:  # the metrizer must not wait for a prior that never comes
+            self.publish(self.params.out_topic, failed_prior(kf, err))
+            raise  # logged and counted by the node shell (handler_errors)
+
+    def _compute_and_publish(self, kf: msgs.Keyframe) -> None:
         # the flow prior recomputes a keyframe done before a restart (publish() suppresses the
         # duplicate): the carried prior and warped depth of the next keyframes depend on it
         if self._lfm is not None:

@@ -30,6 +30,7 @@ import numpy as np
 
 from mogs_node import msgs
 from mogs_node.errors import ConfigError, GeometryError
+from mogs_node.frontend.backlog import BacklogParams, KeyframeBacklog
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.estimator import EstimatorParams
 from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams, KeyframeOutput
@@ -106,6 +107,8 @@ class FrontendNodeParams:
     tracker: dict[str, Any] = field(default_factory=dict)  # TrackerParams fields
     estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
     keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
+    backlog: dict[str, Any] = field(default_factory=dict)  # BacklogParams fields: shed whole
+    # keyframes while max_backlog are in the chain (real-time sources; frontend/backlog.py)
     points: dict[str, Any] = field(default_factory=dict)  # TrackPointsParams fields: the
     # keyframes' sparse points from the dense tracks (docs/frontend.md, round 6)
     init: dict[str, Any] = field(default_factory=dict)  # InitParams fields
@@ -302,6 +305,12 @@ class FrontendNode(Node):
         self.subscribe(p.pose_topic, self.on_pose, reliable=True, msg_type=msgs.PoseStamped)
         self.subscribe(p.imu_topic, self.on_imu, reliable=True, msg_type=msgs.Imu)
         self.subscribe(p.image_topic, self.on_image, reliable=False, msg_type=msgs.Image)
+        self.backlog = KeyframeBacklog(
+            parse_params(BacklogParams, p.backlog, where=f"{self.name}.backlog")
+        )
+        self.counters["keyframes_shed"] = 0
+        if self.backlog.params.max_backlog > 0:  # the latest is enough: the chain works in order
+            self.subscribe(self.backlog.params.done_topic, self.on_chain_done, reliable=False)
         # after a restart: replay every journaled calibration, image and IMU sample
         # (deterministic: the same keyframe ids); only missing outputs are published
         self.catch_up(
@@ -478,7 +487,23 @@ class FrontendNode(Node):
             out.stamp_ns, out.frame_index, self._last_T_world_cam, self._last_velocity, out.status
         )
         if out.keyframe is not None:
-            self.publish(p.keyframe_topic, keyframe_message(out.keyframe, p.frame_id))
+            shed = self.backlog.admit(out.keyframe.keyframe_id)
+            if shed is None:
+                self.publish(p.keyframe_topic, keyframe_message(out.keyframe, p.frame_id))
+            else:
+                self._shed(out.keyframe.keyframe_id, shed)
+
+    def on_chain_done(self, msg: msgs.Message) -> None:
+        self.backlog.done(int(msg.keyframe_id))
+
+    def _shed(self, keyframe_id: int, reason: str) -> None:
+        """A keyframe not published: counted by reason, said at the 1st, 2nd, 4th, 8th, ..."""
+        n = self.backlog.shed_total
+        self.counters["keyframes_shed"] = n
+        for why, count in self.backlog.shed.items():
+            self.counters[f"keyframes_shed_{why}"] = count
+        if n & (n - 1) == 0:
+            self.log.info("keyframe %d shed (%s); %d shed so far", keyframe_id, reason, n)
 
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
         d = super().diagnostics(status)

@@ -181,7 +181,28 @@ def summarise(c: RunCollector) -> dict[str, Any]:
         }
     if c.node_counters:  # what each node dropped (best effort) or lost (reliable gaps)
         out["nodes"] = {n: dict(v) for n, v in sorted(c.node_counters.items())}
+        out["realtime"] = realtime_figures(c.node_counters)
     return out
+
+
+def realtime_figures(node_counters: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """Issue 28: keyframes shed whole (by reason) and keyframes metrized without their masks or
+    prior (a failed or silent worker), summed over the nodes that count them."""
+    total: dict[str, float] = {}
+    for counters in node_counters.values():
+        for k, v in counters.items():
+            total[k] = total.get(k, 0.0) + v
+    return {
+        "keyframes_shed": int(total.get("keyframes_shed", 0)),
+        "shed_reasons": {
+            k[len("keyframes_shed_") :]: int(v)
+            for k, v in sorted(total.items())
+            if k.startswith("keyframes_shed_") and v
+        },
+        "metrized_without_inputs": int(total.get("metrized_without_inputs", 0)),
+        "inputs_failed": int(total.get("match_failed_inputs", 0)),
+        "inputs_stalled": int(total.get("match_stalled_inputs", 0)),
+    }
 
 
 def summarise_views(scores: list[ViewScore]) -> dict[str, Any]:
@@ -262,6 +283,14 @@ def write_report(path: Path, figures: dict[str, Any], *, title: str = "MOGS run"
         f"{figures['frames_with_odometry']} (plus {figures.get('frames_without_estimate', 0)} "
         "acknowledged while initialising or rejected)."
     )
+    rt = figures.get("realtime")
+    if rt:
+        lines.append(
+            f"Keyframes shed whole: {rt['keyframes_shed']} "
+            f"({', '.join(f'{k} {v}' for k, v in rt['shed_reasons'].items()) or 'none'}); "
+            f"metrized without masks or prior: {rt['metrized_without_inputs']} "
+            f"({rt['inputs_failed']} failed, {rt['inputs_stalled']} silent worker)."
+        )
     summary = [f"{figures['keyframes']} keyframes"]
     if "depth" in figures:
         d = figures["depth"]

@@ -66,6 +66,11 @@ NODE_COUNTERS = (
     "frames_unreadable",
     "ack_timeouts",
     "frontend_image_time_backwards",
+    # issue 28: keyframes shed whole (frontend, by reason) and metrized without an input (metrizer)
+    "keyframes_shed",
+    "metrized_without_inputs",
+    "match_failed_inputs",
+    "match_stalled_inputs",
 )
 
 
@@ -220,7 +225,9 @@ class RunReportNode(Node):
 
     def on_diagnostics(self, m: msgs.Diagnostics) -> None:
         self.c.node_counters[m.node] = {
-            k: float(m.counters.get(k, 0.0)) for k in NODE_COUNTERS if k in m.counters
+            k: float(v)
+            for k, v in m.counters.items()
+            if k in NODE_COUNTERS or k.startswith("keyframes_shed_")
         }
         fe = {k[9:]: float(v) for k, v in m.counters.items() if k.startswith("frontend_")}
         if len(fe) > 1:  # the frontend's own figures (not another node's one counter)

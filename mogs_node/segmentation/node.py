@@ -15,6 +15,7 @@ import numpy as np
 
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
+from mogs_node.keyframe_chain import failed_masks
 from mogs_node.node import Node, parse_params
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
 from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
@@ -61,10 +62,14 @@ class SegmentationNode(Node):
         if self.already_published(self.params.out_topic, kf.keyframe_id):
             return  # segmented before this process restarted
         rgb = kf.rgb()
-        if self.sam is not None:
-            labels = self.sam.generate(np.ascontiguousarray(rgb)).labels
-        else:
-            labels = segment_graph(rgb, self.graph_params)
+        try:
+            if self.sam is not None:
+                labels = self.sam.generate(np.ascontiguousarray(rgb)).labels
+            else:
+                labels = segment_graph(rgb, self.graph_params)
+        except Exception as err:  # the metrizer must not wait for masks that never come
+            self.publish(self.params.out_topic, failed_masks(kf, err))
+            raise  # logged and counted by the node shell (handler_errors)
         self.publish(
             self.params.out_topic,
             msgs.Masks(
