@@ -65,6 +65,8 @@ class Trace:
     mapped_at: list[tuple[int, float]] = dataclasses.field(default_factory=list)  # id, t
     cpu_ms: dict[int, float] = dataclasses.field(default_factory=dict)  # id -> mapper CPU since
     # the previous keyframe's stats (ms)
+    node_cpu_s: dict[str, float] = dataclasses.field(default_factory=dict)  # node -> CPU s, all
+    # its processes (respawns summed): which node paces the drive
 
 
 def _ply_vertices(path: Path) -> int:
@@ -131,6 +133,28 @@ def _mapper_cpu_s(launcher: Launcher, procs: dict[int, psutil.Process]) -> tuple
     return mapper.proc.pid, t.user + t.system
 
 
+def _sample_node_cpu(
+    launcher: Launcher, procs: dict[int, psutil.Process], cpu_by_pid: dict[int, tuple[str, float]]
+) -> None:
+    """Latest user + system CPU seconds of every child process (with its own children), by
+    pid; a pid keeps its last value once it has exited."""
+    for child in launcher.children:
+        if child.proc is None:
+            continue
+        pid = child.proc.pid
+        try:
+            if pid not in procs:
+                procs[pid] = psutil.Process(pid)
+            p = procs[pid]
+            total = sum(p.cpu_times()[:2])
+            for sub in p.children(recursive=True):
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    total += sum(sub.cpu_times()[:2])
+        except psutil.NoSuchProcess:
+            continue
+        cpu_by_pid[pid] = (child.name, total)
+
+
 def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: float) -> None:
     """Follow the run; once the player has finished and the mapper has mapped every keyframe
     (or nothing arrived for ``drain_s``), stop the launcher (the mapper then writes its PLY)."""
@@ -140,6 +164,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
         sub.subscribe(t)
     procs: dict[int, psutil.Process] = {}
     cpu_prev: tuple[int, float] | None = None  # (pid, user + system s) at the previous stats
+    cpu_by_pid: dict[int, tuple[str, float]] = {}
     last_sample = last_input = time.monotonic()
     try:
         while runner.is_alive():
@@ -161,6 +186,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
                     cpu_prev = cpu
             if now - last_sample >= 0.5:
                 last_sample = now
+                _sample_node_cpu(launcher, procs, cpu_by_pid)
                 mapper = next((c for c in launcher.children if c.name == "mapper"), None)
                 if mapper is not None and mapper.proc is not None and mapper.exited is None:
                     with contextlib.suppress(psutil.NoSuchProcess):
@@ -175,6 +201,9 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
     finally:
         sub.close()
         ctx.term()
+        trace.node_cpu_s.clear()
+        for name, cpu_s in cpu_by_pid.values():
+            trace.node_cpu_s[name] = trace.node_cpu_s.get(name, 0.0) + cpu_s
 
 
 def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict[str, Any]:
@@ -222,6 +251,9 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
         "ack_timeouts": _count_lines(out / "launch.log", "no acknowledgement for"),
         "heartbeat_kills": lf["launch"]["heartbeat_kills"],
         "progress_kills": lf["launch"]["progress_kills"],
+        # CPU seconds of each node over the run (sampled every 0.5 s): on a CPU-bound machine
+        # the node with the largest share paces the drive
+        "node_cpu_s": {n: round(v, 1) for n, v in sorted(trace.node_cpu_s.items())},
         "launch": lf["launch"],
         "nodes": lf["nodes"],
     }
@@ -281,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
+    ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "long_drive.yaml"))
     ap.add_argument("--frames", type=int, default=3000, help="frames of the drive (10 Hz)")
     ap.add_argument("--timeout", type=float, default=6 * 3600.0)
     ap.add_argument("--drain", type=float, default=300.0, help="s without input before giving up")

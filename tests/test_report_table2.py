@@ -8,7 +8,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bench.pipeline_table2 import RANDOM_TOPIC, FixedView, launch_dict, ratios
+from bench.pipeline_table2 import (
+    RANDOM_TOPIC,
+    HeldOutViews,
+    choose_view,
+    launch_dict,
+    ratios,
+    reached,
+)
 from mogs_node.geometry import make_T, so3_exp
 from mogs_node.mapper.rasterizer import RasterParams
 
@@ -53,81 +60,85 @@ def _gaussians(rgb: np.ndarray, depth: float, K: np.ndarray, T: np.ndarray, keyf
     )
 
 
-def test_fixed_view_reaches_the_target_when_the_map_holds_the_view() -> None:
+def _feed_frames(hv: HeldOutViews, K: np.ndarray, img: np.ndarray, T_view: np.ndarray) -> None:
+    """Frames 0..5 on the bus: frame 1 is a keyframe, frame 2 is seen from ``T_view``, frame 4
+    has no pose (the frontend was not tracking)."""
+    for i in range(6):
+        s = 1000 + i
+        hv.on("/camera/image", SimpleNamespace(stamp_ns=s), 0.0)
+        if i == 1:
+            hv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=K, image=img), 0.0)
+        T = T_view if i == 2 else make_T(np.eye(3), np.array([0.0, 0.0, -5.0]))
+        status = "initializing" if i == 4 else "tracking"
+        hv.on("/frontend/odometry", SimpleNamespace(stamp_ns=s, status=status, T_world_cam=T), 0.0)
+
+
+def test_held_out_view_reaches_the_target_when_the_map_holds_the_view() -> None:
     rng = np.random.default_rng(0)
     H, W = 12, 16
     K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
     T_view = make_T(so3_exp(np.array([0.1, 0.2, -0.1])), np.array([3.0, 0.0, 1.0]))
     img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    # the pure-PyTorch backend (the same semantics as C++, no compilation); a dilation that ends
-    # before the next pixel, so the map of the view's pixels renders it back (test_report_views)
-    fv = FixedView(
-        view_frame=2, target_db=20.0, raster=RasterParams(backend="torch", eps2d_px2=0.05)
+    # candidates 1 (a keyframe), 2 (the view), 4 (no pose); the pure-PyTorch backend (the same
+    # semantics as C++, no compilation) with a dilation that ends before the next pixel, so the
+    # map of the view's pixels renders it back (test_report_views)
+    hv = HeldOutViews(
+        {1: img, 2: img, 4: img}, raster=RasterParams(backend="torch", eps2d_px2=0.05)
     )
-    t = 0.0
-    for i in range(6):  # frames 0..5; frame 1 is a keyframe, frame 2 the view
-        s = 1000 + i
-        fv.on(
-            "/camera/image",
-            SimpleNamespace(stamp_ns=s, data=img if i == 2 else img // 2, encoding="rgb8"),
-            t,
-        )
-        if i == 1:
-            fv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=K, image=img), t)
-        T = T_view if i == 2 else make_T(np.eye(3), np.array([0.0, 0.0, -5.0]))
-        fv.on(
-            "/frontend/odometry", SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=T), t
-        )
+    _feed_frames(hv, K, img, T_view)
     # update 1: a map that is the view's image darkened; update 2: the view itself
-    fv.on("/mapper/stats", SimpleNamespace(iterations=6, extra={}), 1.0)
-    fv.on("/mapper/gaussians", _gaussians(img // 4, 5.0, K, T_view, 1), 1.0)
-    assert fv.stamp == 1002
-    fv.on("/mapper/stats", SimpleNamespace(iterations=12, extra={}), 2.0)
-    fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 2.0)
-    fig = fv.figures()
+    hv.on("/mapper/stats", SimpleNamespace(iterations=6, extra={"inserted": 5, "pruned": 1}), 1.0)
+    hv.on("/mapper/gaussians", _gaussians(img // 4, 5.0, K, T_view, 1), 1.0)
+    hv.on("/mapper/stats", SimpleNamespace(iterations=12, extra={"inserted": 2}), 2.0)
+    hv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 2.0)
+    assert list(hv.curves) == [2] and hv.keyframe_indices == {1}  # 4 has no pose
+    fig = hv.view_figures(2, 20.0)
     assert fig["curve"]["fixed_view_psnr_db"][0] < 20 <= fig["curve"]["fixed_view_psnr_db"][1]
     assert fig["iters_to_target"] == 12 and fig["gaussians_at_target"] == H * W
     assert fig["wall_s_to_target"] == pytest.approx(2.0)
     assert fig["iterations_budget"] == 12
+    assert (fig["gaussians_inserted"], fig["gaussians_pruned"]) == (7, 1)
+    assert reached(hv.curves, 20.0) == {2} and reached(hv.curves, 500.0) == set()
     # the mapper's final refinement: its update comes first, then its stats marked final
-    fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 3.0)
-    fv.on("/mapper/stats", SimpleNamespace(iterations=15, extra={"final": 1.0}), 3.0)
-    fig = fv.figures()
+    hv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 3.0)
+    hv.on("/mapper/stats", SimpleNamespace(iterations=15, extra={"final": 1.0}), 3.0)
+    fig = hv.view_figures(2, 20.0)
     assert fig["curve"]["iterations"] == [6, 12, 15] and fig["iterations_budget"] == 15
+    assert hv.view_figures(None, 20.0)["iters_to_target"] is None
 
 
-def test_the_view_skips_frames_whose_best_effort_image_was_dropped() -> None:
-    fv = FixedView(view_frame=1, target_db=20.0)
+def test_a_view_is_scored_only_once_two_later_frames_have_a_pose() -> None:
     img = np.zeros((2, 2, 3), np.uint8)
-    for i in range(6):
-        s = 10 + i
-        if i not in (1, 2):  # the images of frames 1 and 2 never arrived
-            fv.on("/camera/image", SimpleNamespace(stamp_ns=s, data=img, encoding="rgb8"), 0.0)
-        fv.on(
+    hv = HeldOutViews({3: img})
+    hv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=0, K=np.eye(3), image=img), 0.0)
+    for i in range(5):  # frames 0..4: frame 3 has one later frame with a pose
+        hv.on(
             "/frontend/odometry",
-            SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=np.eye(4)),
+            SimpleNamespace(stamp_ns=i, status="tracking", T_world_cam=np.eye(4)),
             0.0,
         )
-    fv._decide()
-    assert fv.stamp == 13 and list(fv.images) == [13]  # only the view's image is kept
+    assert hv._scoreable(3) is None
+    hv.on(
+        "/frontend/odometry",
+        SimpleNamespace(stamp_ns=5, status="tracking", T_world_cam=np.eye(4)),
+        0,
+    )
+    assert hv._scoreable(3) == 3
 
 
-def test_the_view_skips_keyframes_and_frames_without_a_pose() -> None:
-    fv = FixedView(view_frame=1, target_db=20.0)
-    img = np.zeros((2, 2, 3), np.uint8)
-    for i in range(6):
-        s = 10 + i
-        fv.on("/camera/image", SimpleNamespace(stamp_ns=s, data=img, encoding="rgb8"), 0.0)
-        if i == 1:
-            fv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=np.eye(3), image=img), 0.0)
-        status = "initializing" if i == 2 else "tracking"
-        fv.on(
-            "/frontend/odometry",
-            SimpleNamespace(stamp_ns=s, status=status, T_world_cam=np.eye(4)),
-            0.0,
-        )
-    fv._decide()
-    assert fv.stamp == 13  # frame 1 is a keyframe, frame 2 has no pose
+def test_the_fixed_view_is_the_earliest_every_initialisation_reaches() -> None:
+    def views(psnr: dict[int, list[float]]) -> HeldOutViews:
+        hv = HeldOutViews({})
+        hv.curves = {i: [{"fixed_view_psnr_db": x} for x in v] for i, v in psnr.items()}
+        return hv
+
+    runs = {
+        "mogs": views({21: [19.0, 21.0], 23: [20.5], 25: [22.0]}),
+        "prior_global": views({21: [18.0], 23: [19.0, 20.0], 25: [21.0]}),
+        "random": views({21: [15.0, 20.1], 23: [20.0], 25: [19.9]}),
+    }
+    assert choose_view(runs, 20.0) == 23  # 21: prior_global never reaches it
+    assert choose_view(runs, 30.0) is None
 
 
 def test_ratios_with_and_without_a_target() -> None:
