@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import os
 import signal
 import statistics
 import sys
@@ -262,13 +263,13 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
     return fig
 
 
-def _plot(trace: Trace, out_png: Path) -> None:
+def _plot(trace: Trace, out_png: Path, dist: dict[int, float]) -> None:
+    """RSS and time per keyframe against ``dist`` (keyframe id -> distance driven, m)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    dist = _path_lengths(trace)
     ids = [k for k, _ in trace.mapped_at if k in dist]
     # RSS samples against distance: the distance of the latest keyframe mapped at that time
     at = sorted((t, dist[k]) for k, t in trace.mapped_at if k in dist)
@@ -321,7 +322,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
     ap.add_argument("--no-docs", action="store_true")
+    ap.add_argument(
+        "--docs-from",
+        default=None,
+        metavar="DIR",
+        help="write the plot and docs section from a finished run's folder (no new run)",
+    )
     args = ap.parse_args(argv)
+    if args.docs_from:
+        return _docs_from(Path(args.docs_from), args)
 
     out = Path(args.out or tempfile.mkdtemp(prefix="mogs-long-drive-")).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -345,45 +354,72 @@ def main(argv: list[str] | None = None) -> int:
         log.close()
     wall = time.monotonic() - t0
     figures = _figures(trace, launcher, out, wall)
+    cmd = "python bench/long_drive.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    figures["command"] = cmd.strip()
+    figures["load_average_end"] = round(psutil.getloadavg()[0], 1)
+    figures["frames_requested"] = args.frames
+    figures["launch_file"] = os.path.relpath(Path(args.launch).resolve(), REPO_ROOT)
+    dist = _path_lengths(trace)
     (out / "trace.json").write_text(
         json.dumps(
             {
                 "rss": trace.rss,
                 "mapped": [[k, t, trace.mapped[k]] for k, t in trace.mapped_at],
                 "cpu_ms": trace.cpu_ms,
-                "distance_m": _path_lengths(trace),
+                "distance_m": dist,
             },
             default=float,
         )
     )
+    write_json(str(out / "figures.json"), figures)
     png = out / "long_drive.png"
-    _plot(trace, png)
+    _plot(trace, png, dist)
     for k, v in figures.items():
         if not isinstance(v, dict):
             print(f"{k:40s} {v}")
     print(f"outputs in {out} (plot {png})")
     write_json(args.json, figures)
     if not args.no_docs:
-        _write_docs(args, argv, figures, png)
+        _write_docs(args.frames, figures, png)
     return 0
 
 
-def _write_docs(args: argparse.Namespace, argv: list[str] | None, f: dict, png: Path) -> None:
+def _docs_from(run_dir: Path, args: argparse.Namespace) -> int:
+    """The plot and the docs section of a finished run (its ``figures.json``, ``trace.json``)."""
+    figures = json.loads((run_dir / "figures.json").read_text())
+    saved = json.loads((run_dir / "trace.json").read_text())
+    trace = Trace(
+        rss=[tuple(r) for r in saved["rss"]],
+        mapped={int(k): m for k, _, m in saved["mapped"]},
+        mapped_at=[(int(k), t) for k, t, _ in saved["mapped"]],
+        cpu_ms={int(k): v for k, v in saved["cpu_ms"].items()},
+    )
+    png = run_dir / "long_drive.png"
+    _plot(trace, png, {int(k): v for k, v in saved["distance_m"].items()})
+    _write_docs(figures.get("frames_requested", args.frames), figures, png)
+    return 0
+
+
+def _write_docs(frames: int, f: dict, png: Path) -> None:
     import shutil
 
     docs_png = REPO_ROOT / "docs" / "long_drive.png"
     docs_png.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(png, docs_png)
-    cmd = "python bench/long_drive.py " + " ".join(argv if argv is not None else sys.argv[1:])
     gaps = ", ".join(f"{n} {v['heartbeat_gap_max_s']}" for n, v in f["nodes"].items())
+    cpu = f.get("node_cpu_s", {})
+    total = sum(cpu.values()) or float("nan")
+    shares = ", ".join(f"{n} {v:.0f} s ({100 * v / total:.0f} %)" for n, v in cpu.items())
+    load = round(f.get("load_average_end", psutil.getloadavg()[0]), 1)
     body = f"""## Long drive: memory and time per keyframe against distance (issues 17, 23)
 
-Command: `{cmd.strip()}`
+Command: `{f.get("command", "python bench/long_drive.py")}`
 
-Machine: {machine_line()}; 2 cores shared with other jobs (load average {psutil.getloadavg()[0]:.1f}
-at the end): times are upper bounds. `launch/demo.yaml` on a synthetic drive of {args.frames}
-frames at 10 Hz, player `fast: true`, the run's state in one folder as `mogs demo` has it (journal,
-checkpoints, offloaded submaps); the report node is left out.
+Machine: {machine_line()}; 2 cores shared with other jobs (load average {load}
+at the end): times are upper bounds. `{f.get("launch_file", "launch/long_drive.yaml")}` (the
+demo pipeline with a lighter mapper schedule, stated in the file) on a synthetic drive of
+{frames} frames at 10 Hz, player `fast: true`, the run's state in one folder as `mogs demo` has it
+(journal, checkpoints, offloaded submaps); the report node is left out.
 
 | figure | value |
 | --- | ---: |
@@ -399,6 +435,7 @@ checkpoints, offloaded submaps); the report node is left out.
 | kills for no heartbeat / for no progress; player ack timeouts | {f["heartbeat_kills"]} / {f["progress_kills"]}; {f["ack_timeouts"]} |
 | largest heartbeat gap per node [s] | {gaps} |
 | wall time [s] | {f["wall_s"]} |
+| CPU time per node over the run (share) | {shares} |
 
 ![mapper RSS and time per keyframe against distance](long_drive.png)
 """
