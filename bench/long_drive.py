@@ -263,6 +263,33 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
     return fig
 
 
+def save_trace(trace: Trace, dist: dict[int, float], path: Path) -> None:
+    """What the plot needs of a run, as JSON (``load_trace`` reads it back)."""
+    path.write_text(
+        json.dumps(
+            {
+                "rss": trace.rss,
+                "mapped": [[k, t, trace.mapped[k]] for k, t in trace.mapped_at],
+                "cpu_ms": trace.cpu_ms,
+                "distance_m": dist,
+            },
+            default=float,
+        )
+    )
+
+
+def load_trace(path: Path) -> tuple[Trace, dict[int, float]]:
+    """The trace and the distance per keyframe saved by :func:`save_trace`."""
+    saved = json.loads(path.read_text())
+    trace = Trace(
+        rss=[(float(t), int(f), float(r)) for t, f, r in saved["rss"]],
+        mapped={int(k): m for k, _, m in saved["mapped"]},
+        mapped_at=[(int(k), float(t)) for k, t, _ in saved["mapped"]],
+        cpu_ms={int(k): float(v) for k, v in saved["cpu_ms"].items()},
+    )
+    return trace, {int(k): float(v) for k, v in saved["distance_m"].items()}
+
+
 def _plot(trace: Trace, out_png: Path, dist: dict[int, float]) -> None:
     """RSS and time per keyframe against ``dist`` (keyframe id -> distance driven, m)."""
     import matplotlib
@@ -360,17 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     figures["frames_requested"] = args.frames
     figures["launch_file"] = os.path.relpath(Path(args.launch).resolve(), REPO_ROOT)
     dist = _path_lengths(trace)
-    (out / "trace.json").write_text(
-        json.dumps(
-            {
-                "rss": trace.rss,
-                "mapped": [[k, t, trace.mapped[k]] for k, t in trace.mapped_at],
-                "cpu_ms": trace.cpu_ms,
-                "distance_m": dist,
-            },
-            default=float,
-        )
-    )
+    save_trace(trace, dist, out / "trace.json")
     write_json(str(out / "figures.json"), figures)
     png = out / "long_drive.png"
     _plot(trace, png, dist)
@@ -387,15 +404,9 @@ def main(argv: list[str] | None = None) -> int:
 def _docs_from(run_dir: Path, args: argparse.Namespace) -> int:
     """The plot and the docs section of a finished run (its ``figures.json``, ``trace.json``)."""
     figures = json.loads((run_dir / "figures.json").read_text())
-    saved = json.loads((run_dir / "trace.json").read_text())
-    trace = Trace(
-        rss=[tuple(r) for r in saved["rss"]],
-        mapped={int(k): m for k, _, m in saved["mapped"]},
-        mapped_at=[(int(k), t) for k, t, _ in saved["mapped"]],
-        cpu_ms={int(k): v for k, v in saved["cpu_ms"].items()},
-    )
+    trace, dist = load_trace(run_dir / "trace.json")
     png = run_dir / "long_drive.png"
-    _plot(trace, png, {int(k): v for k, v in saved["distance_m"].items()})
+    _plot(trace, png, dist)
     _write_docs(figures.get("frames_requested", args.frames), figures, png)
     return 0
 

@@ -12,18 +12,24 @@ metrizer -> mapper -> report) runs three times, with the same mapper policy and 
   run costs the same upstream).
 
 This script listens on the run's bus: it rebuilds the map from ``/mapper/gaussians``
-(:class:`~mogs_node.report.views.MapReplica`) and, after every map update, renders it at one fixed
-held-out frame (``--view-frame``, a frame that is not a keyframe; its pose is the frontend's
-odometry) and scores it against that frame's camera image. ``iters_to_target`` is the mapper's
-iteration count (``/mapper/stats``) at the first update where the view reaches ``--target-db``,
-``wall_s_to_target`` the seconds since the first camera image, ``gaussians_at_target`` the map's
-size then (``null`` when never reached). At the budget (the end of the drive),
-``psnr_at_budget_db`` / ``ssim_at_budget`` are the run report's means over its held-out frames
-(``map.heldout_psnr_db`` / ``map.heldout_ssim``, docs/report.md).
+(:class:`~mogs_node.report.views.MapReplica`) and, after every map update, renders it at the
+candidate held-out frames (every ``--candidate-step``-th frame from ``--candidates-from`` on that
+is not a keyframe; pose: the frontend's odometry, as the run report's held-out views; ground
+truth: the sim's own rendering of that frame, so a dropped best-effort image cannot change which
+view is scored) and scores them. The fixed held-out view is then, unless ``--view-frame`` names
+one, the earliest candidate that every initialisation's map reaches ``--target-db`` at: the same
+rule for all three, decided after all runs so that the view is one where the target is
+reachable and the ratios are defined. At that view ``iters_to_target`` is the mapper's cumulative
+iteration count (``/mapper/stats``) at the first update reaching the target, ``wall_s_to_target``
+the seconds since the first camera image, ``gaussians_at_target`` the map's size then (``null``
+when never reached); the medians of the MOGS / random ratios over every candidate both reach are
+given too. At the budget (the end of the drive), ``psnr_at_budget_db`` / ``ssim_at_budget`` are
+the run report's means over its held-out frames (``map.heldout_psnr_db`` /
+``map.heldout_ssim``, docs/report.md).
 
 Usage::
 
-    python bench/pipeline_table2.py [--frames 60] [--view-frame 40] [--json PATH] [--no-docs]
+    python bench/pipeline_table2.py [--frames 60] [--view-frame N] [--json PATH] [--no-docs]
 """
 
 from __future__ import annotations
