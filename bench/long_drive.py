@@ -161,7 +161,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
     (or nothing arrived for ``drain_s``), stop the launcher (the mapper then writes its PLY)."""
     ctx = zmq.Context()
     sub = Subscriber(launcher.launch.bus, context=ctx)
-    for t in ("/camera/image", "/frontend/keyframe", "/mapper/stats"):
+    for t in ("/frontend/odometry", "/frontend/keyframe", "/mapper/stats"):
         sub.subscribe(t)
     procs: dict[int, psutil.Process] = {}
     cpu_prev: tuple[int, float] | None = None  # (pid, user + system s) at the previous stats
@@ -174,7 +174,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
             if env is not None:
                 last_input = now
                 m = env.msg
-                if env.topic == "/camera/image":
+                if env.topic == "/frontend/odometry":  # one per frame, small (not the image)
                     trace.frames += 1
                 elif isinstance(m, msgs.Keyframe):
                     trace.kf_pos[m.keyframe_id] = np.asarray(m.T_world_cam)[:3, 3].copy()
