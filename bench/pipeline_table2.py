@@ -280,9 +280,18 @@ def run_init(
         if env is not None:
             views.on(env.topic, env.msg, time.monotonic())
     runner.join()
+    while (env := sub.receive(timeout_ms=200)) is not None:  # what is still queued
+        views.on(env.topic, env.msg, time.monotonic())
+    # what the bench itself missed (a slow consumer): the views depend on every map update
+    bus_stats = {t: st.as_dict() for t, st in sub.stats.items()}
     sub.close()
     ctx.term()
     fig: dict[str, Any] = {"wall_s": round(time.monotonic() - t_start, 1)}
+    fig["bench_missed"] = {
+        t: {k: v for k, v in st.items() if k in ("lost", "dropped", "shm_missed") and v}
+        for t, st in bus_stats.items()
+    }
+    fig["frames_with_odometry"] = len(views.frame_stamps)
     summary = out / "summary.json"
     m = json.loads(summary.read_text()).get("map", {}) if summary.exists() else {}
     fig["psnr_at_budget_db"] = m.get("heldout_psnr_db")
@@ -341,7 +350,9 @@ def _fmt(v: Any, spec: str = ".2f") -> str:
     return "-" if v is None else format(v, spec)
 
 
-def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any]) -> str:
+def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any], notes: str = "") -> str:
+    """The ``pipeline-table2`` section of docs/benchmarks.md; ``notes``: text after the ratios."""
+    notes = f"\n{notes.strip()}\n" if notes.strip() else ""
     rows = "\n".join(
         f"| {k} | {_fmt(r['iters_to_target'], 'd')} | {_fmt(r['wall_s_to_target'], '.1f')} | "
         f"{_fmt(r['gaussians_at_target'], 'd')} | {_fmt(r['fixed_view_psnr_at_budget_db'])} | "
@@ -381,7 +392,7 @@ Ratios: MOGS / random iterations to target {_fmt(rt["iters_to_target_mogs_over_r
 reached within the budget. Over every candidate both MOGS and random reach: median ratio of
 iterations {_fmt(rt.get("iters_to_target_mogs_over_random_median"), ".3f")}, of Gaussians
 {_fmt(rt.get("gaussians_at_target_mogs_over_random_median"), ".3f")}.
-
+{notes}
 ![Table II in the live pipeline](pipeline_table2.png)
 """
 
@@ -427,7 +438,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=2400.0, help="per run")
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-docs", action="store_true")
+    ap.add_argument("--notes", default=None, metavar="FILE", help="text for the docs section")
+    ap.add_argument(
+        "--docs-from",
+        default=None,
+        metavar="JSON",
+        help="write the table and plot from a finished run's JSON (no new runs)",
+    )
     args = ap.parse_args(argv)
+    if args.docs_from:
+        res = json.loads(Path(args.docs_from).read_text())
+        write_docs(argparse.Namespace(**{**vars(args), **res["args"]}), res, res["command"])
+        return 0
     inits = [k.strip() for k in args.inits.split(",") if k.strip()]
     if not set(inits) <= set(INITS) or not 0 <= args.candidates_from < args.frames:
         ap.error(f"--inits: a subset of {INITS}; --candidates-from: in [0, --frames)")
@@ -460,6 +482,12 @@ def main(argv: list[str] | None = None) -> int:
         "view_frame": view,
         "candidates_scored": len(scored),
         "iters_per_keyframe": mapper["params"].get("iters_per_keyframe"),
+        "command": "python bench/pipeline_table2.py "
+        + " ".join(argv if argv is not None else sys.argv[1:]),
+        "args": {
+            k: getattr(args, k)
+            for k in ("frames", "view_frame", "candidates_from", "candidate_step", "target_db")
+        },
         "inits": {},
     }
     for init, (r, v) in runs.items():
@@ -482,12 +510,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{k:45s} {v}")
     write_json(args.json, res)
     if not args.no_docs:
-        plot(res["inits"], args.target_db, REPO_ROOT / "docs" / "pipeline_table2.png")
-        cmd = "python bench/pipeline_table2.py " + " ".join(
-            argv if argv is not None else sys.argv[1:]
-        )
-        update_markdown_section("pipeline-table2", markdown(cmd.strip(), args, res))
+        write_docs(args, res, res["command"])
     return 0
+
+
+def write_docs(args: argparse.Namespace, res: dict[str, Any], cmd: str) -> None:
+    """The plot and the ``pipeline-table2`` section of docs/benchmarks.md."""
+    plot(res["inits"], args.target_db, REPO_ROOT / "docs" / "pipeline_table2.png")
+    notes = Path(args.notes).read_text() if args.notes else ""
+    update_markdown_section("pipeline-table2", markdown(cmd.strip(), args, res, notes))
 
 
 if __name__ == "__main__":
