@@ -66,7 +66,6 @@ def _feed_frames(hv: HeldOutViews, K: np.ndarray, img: np.ndarray, T_view: np.nd
     has no pose (the frontend was not tracking)."""
     for i in range(6):
         s = 1000 + i
-        hv.on("/camera/image", SimpleNamespace(stamp_ns=s), 0.0)
         if i == 1:
             hv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=K, image=img), 0.0)
         T = T_view if i == 2 else make_T(np.eye(3), np.array([0.0, 0.0, -5.0]))
