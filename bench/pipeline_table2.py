@@ -55,7 +55,8 @@ from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
-from mogs_node.mapper.insertion import random_depth
+from mogs_node.mapper.insertion import InsertionParams, random_depth
+from mogs_node.mapper.insertion import _stride_map as stride_map
 from mogs_node.mapper.rasterizer import RasterParams
 from mogs_node.node import Node, parse_params
 from mogs_node.report.node import NOT_ESTIMATED
@@ -151,6 +152,7 @@ class HeldOutViews:
     keyframe_indices: set[int] = field(default_factory=set)  # candidates that were keyframes
     inserted: int = 0  # Gaussians inserted / pruned over the run (/mapper/stats extra)
     pruned: int = 0
+    depth_stats: list[dict[str, float]] = field(default_factory=list)  # per depth map received
 
     def on(self, topic: str, m: Any, now: float) -> None:
         if topic == "/frontend/odometry":  # reliable: one per frame, estimated or not
@@ -175,6 +177,8 @@ class HeldOutViews:
         elif topic == "/mapper/gaussians":
             self.replica.apply_update(m)
             self._evaluate(now)
+        elif isinstance(m, msgs.DepthMap):  # the depth the mapper gets
+            self.depth_stats.append(depth_statistics(m.depth, m.confidence))
 
     def _scoreable(self, index: int) -> int | None:
         """The stamp of candidate ``index`` once it has a pose and is known not to be a keyframe
@@ -229,6 +233,29 @@ class HeldOutViews:
         }
 
 
+def depth_statistics(
+    depth_m: np.ndarray, confidence: np.ndarray, params: InsertionParams | None = None
+) -> dict[str, float]:
+    """What the insertion policy makes of one depth map (``depth_m``/``confidence`` [H, W]):
+    the fraction of pixels with depth, of those the fraction at or above the coarse-stride
+    confidence, their median depth, and ``gaussians_per_px``: Gaussians per pixel that the policy
+    samples where the map explains nothing (1 / stride^2 over the pixels with depth; stride from
+    :func:`mogs_node.mapper.insertion.stride_map`, the same for every initialisation)."""
+    p = params or InsertionParams()
+    d = np.asarray(depth_m, np.float32)
+    c = np.asarray(confidence, np.float32)
+    ok = np.isfinite(d) & (d >= p.min_depth_m)
+    if not ok.any():
+        return {"valid": 0.0, "confident": 0.0, "median_depth_m": 0.0, "gaussians_per_px": 0.0}
+    stride = stride_map(np.where(ok, d, 0.0), c, p)[ok].astype(np.float64)
+    return {
+        "valid": round(float(ok.mean()), 4),
+        "confident": round(float((c[ok] >= p.coarse_conf).mean()), 4),
+        "median_depth_m": round(float(np.median(d[ok])), 3),
+        "gaussians_per_px": round(float(np.mean(1.0 / stride**2)), 6),
+    }
+
+
 def reached(curves: dict[int, list[dict[str, float]]], target_db: float) -> set[int]:
     """Candidate frames whose held-out view reaches ``target_db`` at some map update."""
     return {i for i, c in curves.items() if any(x["fixed_view_psnr_db"] >= target_db for x in c)}
@@ -266,7 +293,8 @@ def run_init(
     launch = load_launch_file(path)
     ctx = zmq.Context()
     sub = Subscriber(launch.bus, context=ctx)
-    for t in (*TOPICS, "/mapper/gaussians"):
+    depth_topic = RANDOM_TOPIC if init == "random" else "/metrizer/depth"
+    for t in (*TOPICS, "/mapper/gaussians", depth_topic):
         sub.subscribe(t, reliable=True)
     views = HeldOutViews(gt_images)
     launcher = Launcher(launch, out=open(out / "launch.log", "w"), grace_s=30.0)  # noqa: SIM115
@@ -304,6 +332,11 @@ def run_init(
         for t, st in bus_stats.items()
     }
     fig["frames_with_odometry"] = len(views.frame_stamps)
+    # the depth the mapper got, as the insertion policy sees it: medians over the keyframes
+    fig["depth_to_mapper"] = {
+        k: round(float(np.median([d[k] for d in views.depth_stats])), 4)
+        for k in (views.depth_stats[0] if views.depth_stats else {})
+    }
     summary = out / "summary.json"
     m = json.loads(summary.read_text()).get("map", {}) if summary.exists() else {}
     fig["psnr_at_budget_db"] = m.get("heldout_psnr_db")

@@ -12,6 +12,7 @@ from bench.pipeline_table2 import (
     RANDOM_TOPIC,
     HeldOutViews,
     choose_view,
+    depth_statistics,
     launch_dict,
     markdown,
     ratios,
@@ -188,3 +189,19 @@ def test_the_docs_section_names_the_view_and_the_ratios() -> None:
     assert "frame\n23, the earliest candidate" in text or "frame 23" in text.replace("\n", " ")
     assert "| mogs | 60 | 30.0 | 800 |" in text and "2/5 |" in text
     assert "iterations to target 0.500" in text and "Why: the stride." in text
+
+
+def test_depth_statistics_follow_the_insertion_stride() -> None:
+    # near confident depth: stride 2 doubled once (conf >= 0.7) and planar x2 -> 8; 1/64 per px
+    # (a flat plane at 5 m, confidence 1); unconfident: stride 2 -> 1/4; beyond 25 m: doubled
+    d = np.full((20, 30), 5.0, np.float32)
+    st = depth_statistics(d, np.ones_like(d))
+    assert st["valid"] == 1.0 and st["confident"] == 1.0 and st["median_depth_m"] == 5.0
+    assert st["gaussians_per_px"] == pytest.approx(1 / 64)
+    assert depth_statistics(d, np.zeros_like(d))["gaussians_per_px"] == pytest.approx(1 / 4)
+    far = depth_statistics(np.full_like(d, 30.0), np.zeros_like(d))
+    assert far["gaussians_per_px"] == pytest.approx(1 / 16)
+    d[:10] = 0.0  # no depth in the upper half: not counted
+    half = depth_statistics(d, np.zeros_like(d))
+    assert half["valid"] == 0.5 and half["gaussians_per_px"] == pytest.approx(1 / 4)
+    assert depth_statistics(np.zeros_like(d), np.ones_like(d))["valid"] == 0.0
