@@ -546,8 +546,9 @@ def main(argv: list[str] | None = None) -> int:
             **v.view_figures(view, args.target_db),
             **r,
             "candidates_reached": sorted(reached(v.curves, args.target_db)),
+            # every candidate's scores after each update (runs of one init each can be merged)
             "candidate_curves": {
-                str(i): [round(c["fixed_view_psnr_db"], 2) for c in v.curves[i]]
+                str(i): {k: [c[k] for c in v.curves[i]] for k in v.curves[i][0]}
                 for i in sorted(v.curves)
             },
         }
