@@ -264,8 +264,10 @@ def reached(curves: dict[int, list[dict[str, float]]], target_db: float) -> set[
 def choose_view(views: dict[str, HeldOutViews], target_db: float) -> int | None:
     """The fixed held-out view: the earliest candidate frame that every initialisation's map
     reaches ``target_db`` at (the same rule for all: none is favoured; a view no run reaches
-    gives no ratio). None when there is no such frame."""
-    common = set.intersection(*(reached(v.curves, target_db) for v in views.values()))
+    gives no ratio). None when there is no such frame. A run that scored no candidate at all
+    (e.g. an older run merged in) has no say."""
+    scored = [reached(v.curves, target_db) for v in views.values() if v.curves]
+    common = set.intersection(*scored) if scored else set()
     return min(common) if common else None
 
 
@@ -491,6 +493,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-docs", action="store_true")
     ap.add_argument("--notes", default=None, metavar="FILE", help="text for the docs section")
     ap.add_argument(
+        "--merge",
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="no new runs: the runs in these JSON files (e.g. one init each, run side by side)",
+    )
+    ap.add_argument(
         "--docs-from",
         default=None,
         metavar="JSON",
@@ -500,6 +509,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.docs_from:
         res = json.loads(Path(args.docs_from).read_text())
         write_docs(argparse.Namespace(**{**vars(args), **res["args"]}), res, res["command"])
+        return 0
+    if args.merge:
+        runs, ipk = runs_from_json(args.merge)
+        cmd = "python bench/pipeline_table2.py " + " ".join(
+            argv if argv is not None else sys.argv[1:]
+        )
+        res = assemble(runs, args, cmd.strip(), ipk)
+        write_json(args.json, res)
+        if not args.no_docs:
+            write_docs(args, res, res["command"])
         return 0
     inits = [k.strip() for k in args.inits.split(",") if k.strip()]
     if not set(inits) <= set(INITS) or not 0 <= args.candidates_from < args.frames:
@@ -524,6 +543,22 @@ def main(argv: list[str] | None = None) -> int:
             f"{sorted(reached(v.curves, args.target_db))} of {sorted(v.curves)}, {r['wall_s']} s",
             flush=True,
         )
+    cmd = "python bench/pipeline_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    res = assemble(runs, args, cmd.strip(), mapper["params"].get("iters_per_keyframe"))
+    write_json(args.json, res)
+    if not args.no_docs:
+        write_docs(args, res, res["command"])
+    return 0
+
+
+def assemble(
+    runs: dict[str, tuple[dict[str, Any], HeldOutViews]],
+    args: argparse.Namespace,
+    cmd: str,
+    iters_per_keyframe: int | None,
+) -> dict[str, Any]:
+    """The results of the runs of every init: the fixed view (chosen across them), each init's
+    figures there and at the budget, the ratios."""
     views = {k: v for k, (_, v) in runs.items()}
     view = args.view_frame if args.view_frame is not None else choose_view(views, args.target_db)
     scored = set.union(*(set(v.curves) for v in views.values())) if views else set()
@@ -532,9 +567,8 @@ def main(argv: list[str] | None = None) -> int:
         "frames": args.frames,
         "view_frame": view,
         "candidates_scored": len(scored),
-        "iters_per_keyframe": mapper["params"].get("iters_per_keyframe"),
-        "command": "python bench/pipeline_table2.py "
-        + " ".join(argv if argv is not None else sys.argv[1:]),
+        "iters_per_keyframe": iters_per_keyframe,
+        "command": cmd,
         "args": {
             k: getattr(args, k)
             for k in ("frames", "view_frame", "candidates_from", "candidate_step", "target_db")
@@ -560,10 +594,34 @@ def main(argv: list[str] | None = None) -> int:
         )
     for k, v in res["ratios"].items():
         print(f"{k:45s} {v}")
-    write_json(args.json, res)
-    if not args.no_docs:
-        write_docs(args, res, res["command"])
-    return 0
+    return res
+
+
+AT_BUDGET = ("iterations_budget", "gaussians_at_budget", "gaussians_inserted", "gaussians_pruned")
+
+
+def runs_from_json(paths: list[str]) -> tuple[dict[str, tuple[dict[str, Any], HeldOutViews]], int]:
+    """The runs saved in the JSON of earlier invocations (one init each, say, run side by side):
+    their run-level figures and their candidates' curves, and the iterations per keyframe."""
+    runs: dict[str, tuple[dict[str, Any], HeldOutViews]] = {}
+    ipk = None
+    for path in paths:
+        saved = json.loads(Path(path).read_text())
+        ipk = saved.get("iters_per_keyframe", ipk)
+        for init, r in saved["inits"].items():
+            v = HeldOutViews({})
+            v.curves = {
+                int(i): [dict(zip(c, vals, strict=True)) for vals in zip(*c.values(), strict=True)]
+                for i, c in r["candidate_curves"].items()
+            }
+            v.iterations, v.inserted, v.pruned = (
+                r["iterations_budget"],
+                r["gaussians_inserted"],
+                r["gaussians_pruned"],
+            )
+            keep = set(r) - set(v.view_figures(None, 0.0)) - {"candidates_reached"}
+            runs[init] = ({k: r[k] for k in keep} | {k: r[k] for k in AT_BUDGET}, v)
+    return runs, ipk
 
 
 def write_docs(args: argparse.Namespace, res: dict[str, Any], cmd: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -11,12 +12,14 @@ import pytest
 from bench.pipeline_table2 import (
     RANDOM_TOPIC,
     HeldOutViews,
+    assemble,
     choose_view,
     depth_statistics,
     launch_dict,
     markdown,
     ratios,
     reached,
+    runs_from_json,
 )
 from mogs_node.geometry import make_T, so3_exp
 from mogs_node.mapper.rasterizer import RasterParams
@@ -205,3 +208,50 @@ def test_depth_statistics_follow_the_insertion_stride() -> None:
     half = depth_statistics(d, np.zeros_like(d))
     assert half["valid"] == 0.5 and half["gaussians_per_px"] == pytest.approx(1 / 4)
     assert depth_statistics(np.zeros_like(d), np.ones_like(d))["valid"] == 0.0
+
+
+def test_runs_saved_one_init_each_merge_into_the_same_table(tmp_path: Path) -> None:
+    def run(psnr: dict[int, list[float]]) -> tuple[dict, HeldOutViews]:
+        hv = HeldOutViews({})
+        hv.curves = {
+            i: [
+                {
+                    "iterations": 20 * (k + 1),
+                    "wall_s": 10.0 * (k + 1),
+                    "n_gaussians": 1000 * (k + 1),
+                    "fixed_view_psnr_db": x,
+                    "fixed_view_ssim": 0.5,
+                }
+                for k, x in enumerate(v)
+            ]
+            for i, v in psnr.items()
+        }
+        hv.iterations, hv.inserted, hv.pruned = 60, 5000, 400
+        return {"wall_s": 99.0, "psnr_at_budget_db": 21.0, "ssim_at_budget": 0.7}, hv
+
+    args = SimpleNamespace(
+        frames=60, view_frame=None, candidates_from=40, candidate_step=2, target_db=20.0
+    )
+    runs = {
+        "mogs": run({40: [19.0, 20.5, 21.0], 42: [20.1, 21.0, 22.0]}),
+        "random": run({40: [15.0, 18.0, 20.2], 42: [19.0, 19.5, 19.9]}),
+    }
+    res = assemble(runs, args, "cmd", 20)
+    assert res["view_frame"] == 40  # 42: random never reaches it
+    assert res["inits"]["mogs"]["iters_to_target"] == 40
+    assert res["inits"]["random"]["iters_to_target"] == 60
+    assert res["ratios"]["iters_to_target_mogs_over_random"] == pytest.approx(0.667, abs=1e-3)
+    paths = []
+    for init in runs:  # saved by two invocations, one init each
+        one = assemble({init: runs[init]}, args, "cmd", 20)
+        paths.append(tmp_path / f"{init}.json")
+        paths[-1].write_text(json.dumps(one))
+    merged_runs, ipk = runs_from_json([str(p) for p in paths])
+    merged = assemble(merged_runs, args, "cmd", ipk)
+    assert ipk == 20 and merged["view_frame"] == 40
+    for init in runs:
+        assert merged["inits"][init] == res["inits"][init]
+    assert merged["ratios"] == res["ratios"]
+    # a run without candidate scores has no say in the choice of the view
+    merged_runs["prior_global"] = ({"psnr_at_budget_db": 20.5}, HeldOutViews({}))
+    assert choose_view({k: v for k, (_, v) in merged_runs.items()}, 20.0) == 40
