@@ -376,16 +376,22 @@ def plot(inits: dict[str, Any], target_db: float, path: Path) -> None:
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
     for init, r in inits.items():
-        c = r["curve"]
-        if not c:
+        # every candidate view (thin), the fixed one (thick) where there is one
+        cands = list(r.get("candidate_curves", {}).values())
+        longest = max(cands, key=lambda c: len(c["iterations"]), default=r["curve"])
+        if not longest:
             continue
-        (line,) = a1.plot(c["iterations"], c["n_gaussians"], ".-", label=init)
-        a2.plot(c["iterations"], c["fixed_view_psnr_db"], ".-", label=init, color=line.get_color())
+        (line,) = a1.plot(longest["iterations"], longest["n_gaussians"], ".-", label=init)
+        for c in cands:
+            a2.plot(c["iterations"], c["fixed_view_psnr_db"], "-", lw=0.8, color=line.get_color())
+        if r["curve"]:
+            c = r["curve"]
+            a2.plot(c["iterations"], c["fixed_view_psnr_db"], ".-", lw=2, color=line.get_color())
     a1.set_xlabel("mapper iterations")
     a1.set_ylabel("Gaussians")
     a2.axhline(target_db, color="k", ls=":", lw=1)
     a2.set_xlabel("mapper iterations")
-    a2.set_ylabel("fixed held-out view PSNR [dB]")
+    a2.set_ylabel("held-out view PSNR [dB] (thin: each candidate)")
     a1.legend()
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
