@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import os
 import signal
 import statistics
 import sys
@@ -65,6 +66,8 @@ class Trace:
     mapped_at: list[tuple[int, float]] = dataclasses.field(default_factory=list)  # id, t
     cpu_ms: dict[int, float] = dataclasses.field(default_factory=dict)  # id -> mapper CPU since
     # the previous keyframe's stats (ms)
+    node_cpu_s: dict[str, float] = dataclasses.field(default_factory=dict)  # node -> CPU s, all
+    # its processes (respawns summed): which node paces the drive
 
 
 def _ply_vertices(path: Path) -> int:
@@ -131,15 +134,38 @@ def _mapper_cpu_s(launcher: Launcher, procs: dict[int, psutil.Process]) -> tuple
     return mapper.proc.pid, t.user + t.system
 
 
+def _sample_node_cpu(
+    launcher: Launcher, procs: dict[int, psutil.Process], cpu_by_pid: dict[int, tuple[str, float]]
+) -> None:
+    """Latest user + system CPU seconds of every child process (with its own children), by
+    pid; a pid keeps its last value once it has exited."""
+    for child in launcher.children:
+        if child.proc is None:
+            continue
+        pid = child.proc.pid
+        try:
+            if pid not in procs:
+                procs[pid] = psutil.Process(pid)
+            p = procs[pid]
+            total = sum(p.cpu_times()[:2])
+            for sub in p.children(recursive=True):
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    total += sum(sub.cpu_times()[:2])
+        except psutil.NoSuchProcess:
+            continue
+        cpu_by_pid[pid] = (child.name, total)
+
+
 def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: float) -> None:
     """Follow the run; once the player has finished and the mapper has mapped every keyframe
     (or nothing arrived for ``drain_s``), stop the launcher (the mapper then writes its PLY)."""
     ctx = zmq.Context()
     sub = Subscriber(launcher.launch.bus, context=ctx)
-    for t in ("/camera/image", "/frontend/keyframe", "/mapper/stats"):
+    for t in ("/frontend/odometry", "/frontend/keyframe", "/mapper/stats"):
         sub.subscribe(t)
     procs: dict[int, psutil.Process] = {}
     cpu_prev: tuple[int, float] | None = None  # (pid, user + system s) at the previous stats
+    cpu_by_pid: dict[int, tuple[str, float]] = {}
     last_sample = last_input = time.monotonic()
     try:
         while runner.is_alive():
@@ -148,7 +174,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
             if env is not None:
                 last_input = now
                 m = env.msg
-                if env.topic == "/camera/image":
+                if env.topic == "/frontend/odometry":  # one per frame, small (not the image)
                     trace.frames += 1
                 elif isinstance(m, msgs.Keyframe):
                     trace.kf_pos[m.keyframe_id] = np.asarray(m.T_world_cam)[:3, 3].copy()
@@ -161,6 +187,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
                     cpu_prev = cpu
             if now - last_sample >= 0.5:
                 last_sample = now
+                _sample_node_cpu(launcher, procs, cpu_by_pid)
                 mapper = next((c for c in launcher.children if c.name == "mapper"), None)
                 if mapper is not None and mapper.proc is not None and mapper.exited is None:
                     with contextlib.suppress(psutil.NoSuchProcess):
@@ -175,6 +202,9 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
     finally:
         sub.close()
         ctx.term()
+        trace.node_cpu_s.clear()
+        for name, cpu_s in cpu_by_pid.values():
+            trace.node_cpu_s[name] = trace.node_cpu_s.get(name, 0.0) + cpu_s
 
 
 def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict[str, Any]:
@@ -222,6 +252,9 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
         "ack_timeouts": _count_lines(out / "launch.log", "no acknowledgement for"),
         "heartbeat_kills": lf["launch"]["heartbeat_kills"],
         "progress_kills": lf["launch"]["progress_kills"],
+        # CPU seconds of each node over the run (sampled every 0.5 s): on a CPU-bound machine
+        # the node with the largest share paces the drive
+        "node_cpu_s": {n: round(v, 1) for n, v in sorted(trace.node_cpu_s.items())},
         "launch": lf["launch"],
         "nodes": lf["nodes"],
     }
@@ -230,13 +263,40 @@ def _figures(trace: Trace, launcher: Launcher, out: Path, wall_s: float) -> dict
     return fig
 
 
-def _plot(trace: Trace, out_png: Path) -> None:
+def save_trace(trace: Trace, dist: dict[int, float], path: Path) -> None:
+    """What the plot needs of a run, as JSON (``load_trace`` reads it back)."""
+    path.write_text(
+        json.dumps(
+            {
+                "rss": trace.rss,
+                "mapped": [[k, t, trace.mapped[k]] for k, t in trace.mapped_at],
+                "cpu_ms": trace.cpu_ms,
+                "distance_m": dist,
+            },
+            default=float,
+        )
+    )
+
+
+def load_trace(path: Path) -> tuple[Trace, dict[int, float]]:
+    """The trace and the distance per keyframe saved by :func:`save_trace`."""
+    saved = json.loads(path.read_text())
+    trace = Trace(
+        rss=[(float(t), int(f), float(r)) for t, f, r in saved["rss"]],
+        mapped={int(k): m for k, _, m in saved["mapped"]},
+        mapped_at=[(int(k), float(t)) for k, t, _ in saved["mapped"]],
+        cpu_ms={int(k): float(v) for k, v in saved["cpu_ms"].items()},
+    )
+    return trace, {int(k): float(v) for k, v in saved["distance_m"].items()}
+
+
+def _plot(trace: Trace, out_png: Path, dist: dict[int, float]) -> None:
+    """RSS and time per keyframe against ``dist`` (keyframe id -> distance driven, m)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    dist = _path_lengths(trace)
     ids = [k for k, _ in trace.mapped_at if k in dist]
     # RSS samples against distance: the distance of the latest keyframe mapped at that time
     at = sorted((t, dist[k]) for k, t in trace.mapped_at if k in dist)
@@ -281,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
+    ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "long_drive.yaml"))
     ap.add_argument("--frames", type=int, default=3000, help="frames of the drive (10 Hz)")
     ap.add_argument("--timeout", type=float, default=6 * 3600.0)
     ap.add_argument("--drain", type=float, default=300.0, help="s without input before giving up")
@@ -289,7 +349,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
     ap.add_argument("--no-docs", action="store_true")
+    ap.add_argument(
+        "--docs-from",
+        default=None,
+        metavar="DIR",
+        help="write the plot and docs section from a finished run's folder (no new run)",
+    )
     args = ap.parse_args(argv)
+    if args.docs_from:
+        return _docs_from(Path(args.docs_from), args)
 
     out = Path(args.out or tempfile.mkdtemp(prefix="mogs-long-drive-")).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -313,45 +381,56 @@ def main(argv: list[str] | None = None) -> int:
         log.close()
     wall = time.monotonic() - t0
     figures = _figures(trace, launcher, out, wall)
-    (out / "trace.json").write_text(
-        json.dumps(
-            {
-                "rss": trace.rss,
-                "mapped": [[k, t, trace.mapped[k]] for k, t in trace.mapped_at],
-                "cpu_ms": trace.cpu_ms,
-                "distance_m": _path_lengths(trace),
-            },
-            default=float,
-        )
-    )
+    cmd = "python bench/long_drive.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    figures["command"] = cmd.strip()
+    figures["load_average_end"] = round(psutil.getloadavg()[0], 1)
+    figures["frames_requested"] = args.frames
+    figures["launch_file"] = os.path.relpath(Path(args.launch).resolve(), REPO_ROOT)
+    dist = _path_lengths(trace)
+    save_trace(trace, dist, out / "trace.json")
+    write_json(str(out / "figures.json"), figures)
     png = out / "long_drive.png"
-    _plot(trace, png)
+    _plot(trace, png, dist)
     for k, v in figures.items():
         if not isinstance(v, dict):
             print(f"{k:40s} {v}")
     print(f"outputs in {out} (plot {png})")
     write_json(args.json, figures)
     if not args.no_docs:
-        _write_docs(args, argv, figures, png)
+        _write_docs(args.frames, figures, png)
     return 0
 
 
-def _write_docs(args: argparse.Namespace, argv: list[str] | None, f: dict, png: Path) -> None:
+def _docs_from(run_dir: Path, args: argparse.Namespace) -> int:
+    """The plot and the docs section of a finished run (its ``figures.json``, ``trace.json``)."""
+    figures = json.loads((run_dir / "figures.json").read_text())
+    trace, dist = load_trace(run_dir / "trace.json")
+    png = run_dir / "long_drive.png"
+    _plot(trace, png, dist)
+    _write_docs(figures.get("frames_requested", args.frames), figures, png)
+    return 0
+
+
+def _write_docs(frames: int, f: dict, png: Path) -> None:
     import shutil
 
     docs_png = REPO_ROOT / "docs" / "long_drive.png"
     docs_png.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(png, docs_png)
-    cmd = "python bench/long_drive.py " + " ".join(argv if argv is not None else sys.argv[1:])
     gaps = ", ".join(f"{n} {v['heartbeat_gap_max_s']}" for n, v in f["nodes"].items())
+    cpu = f.get("node_cpu_s", {})
+    total = sum(cpu.values()) or float("nan")
+    shares = ", ".join(f"{n} {v:.0f} s ({100 * v / total:.0f} %)" for n, v in cpu.items())
+    load = round(f.get("load_average_end", psutil.getloadavg()[0]), 1)
     body = f"""## Long drive: memory and time per keyframe against distance (issues 17, 23)
 
-Command: `{cmd.strip()}`
+Command: `{f.get("command", "python bench/long_drive.py")}`
 
-Machine: {machine_line()}; 2 cores shared with other jobs (load average {psutil.getloadavg()[0]:.1f}
-at the end): times are upper bounds. `launch/demo.yaml` on a synthetic drive of {args.frames}
-frames at 10 Hz, player `fast: true`, the run's state in one folder as `mogs demo` has it (journal,
-checkpoints, offloaded submaps); the report node is left out.
+Machine: {machine_line()}; 2 cores shared with other jobs (load average {load}
+at the end): times are upper bounds. `{f.get("launch_file", "launch/long_drive.yaml")}` (the
+demo pipeline with a lighter mapper schedule, stated in the file) on a synthetic drive of
+{frames} frames at 10 Hz, player `fast: true`, the run's state in one folder as `mogs demo` has it
+(journal, checkpoints, offloaded submaps); the report node is left out.
 
 | figure | value |
 | --- | ---: |
@@ -367,6 +446,7 @@ checkpoints, offloaded submaps); the report node is left out.
 | kills for no heartbeat / for no progress; player ack timeouts | {f["heartbeat_kills"]} / {f["progress_kills"]}; {f["ack_timeouts"]} |
 | largest heartbeat gap per node [s] | {gaps} |
 | wall time [s] | {f["wall_s"]} |
+| CPU time per node over the run (share) | {shares} |
 
 ![mapper RSS and time per keyframe against distance](long_drive.png)
 """

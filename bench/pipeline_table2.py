@@ -12,18 +12,24 @@ metrizer -> mapper -> report) runs three times, with the same mapper policy and 
   run costs the same upstream).
 
 This script listens on the run's bus: it rebuilds the map from ``/mapper/gaussians``
-(:class:`~mogs_node.report.views.MapReplica`) and, after every map update, renders it at one fixed
-held-out frame (``--view-frame``, a frame that is not a keyframe; its pose is the frontend's
-odometry) and scores it against that frame's camera image. ``iters_to_target`` is the mapper's
-iteration count (``/mapper/stats``) at the first update where the view reaches ``--target-db``,
-``wall_s_to_target`` the seconds since the first camera image, ``gaussians_at_target`` the map's
-size then (``null`` when never reached). At the budget (the end of the drive),
-``psnr_at_budget_db`` / ``ssim_at_budget`` are the run report's means over its held-out frames
-(``map.heldout_psnr_db`` / ``map.heldout_ssim``, docs/report.md).
+(:class:`~mogs_node.report.views.MapReplica`) and, after every map update, renders it at the
+candidate held-out frames (every ``--candidate-step``-th frame from ``--candidates-from`` on that
+is not a keyframe; pose: the frontend's odometry, as the run report's held-out views; ground
+truth: the sim's own rendering of that frame, so a dropped best-effort image cannot change which
+view is scored) and scores them. The fixed held-out view is then, unless ``--view-frame`` names
+one, the earliest candidate that every initialisation's map reaches ``--target-db`` at: the same
+rule for all three, decided after all runs so that the view is one where the target is
+reachable and the ratios are defined. At that view ``iters_to_target`` is the mapper's cumulative
+iteration count (``/mapper/stats``) at the first update reaching the target, ``wall_s_to_target``
+the seconds since the first frame's odometry, ``gaussians_at_target`` the map's size then (``null``
+when never reached); the medians of the MOGS / random ratios over every candidate both reach are
+given too. At the budget (the end of the drive), ``psnr_at_budget_db`` / ``ssim_at_budget`` are
+the run report's means over its held-out frames (``map.heldout_psnr_db`` /
+``map.heldout_ssim``, docs/report.md).
 
 Usage::
 
-    python bench/pipeline_table2.py [--frames 60] [--view-frame 40] [--json PATH] [--no-docs]
+    python bench/pipeline_table2.py [--frames 60] [--view-frame N] [--json PATH] [--no-docs]
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import queue
 import sys
 import tempfile
 import threading
@@ -48,11 +55,13 @@ from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
-from mogs_node.mapper.insertion import random_depth
+from mogs_node.mapper.insertion import InsertionParams, random_depth
+from mogs_node.mapper.insertion import _stride_map as stride_map
 from mogs_node.mapper.rasterizer import RasterParams
-from mogs_node.node import Node
+from mogs_node.node import Node, parse_params
 from mogs_node.report.node import NOT_ESTIMATED
-from mogs_node.report.views import MapReplica, image_to_rgb, render_map_view, score_view
+from mogs_node.report.views import MapReplica, render_map_view, score_view
+from mogs_node.sim import SimConfig, make_sequence
 
 INITS = ("mogs", "prior_global", "random")
 RANDOM_TOPIC = "/table2/random_depth"
@@ -119,29 +128,35 @@ def launch_dict(init: str, frames: int, out: Path) -> dict[str, Any]:
 
 
 @dataclass
-class FixedView:
-    """Follows the run on the bus and scores the map at one fixed held-out frame."""
+class HeldOutViews:
+    """Follows the run on the bus and scores the map at candidate held-out frames.
 
-    view_frame: int
-    target_db: float
+    Candidates: frame indices ``candidates`` that turn out not to be keyframes. Their
+    ground-truth images come from the sim itself (``gt_images``, index -> RGB: the same
+    deterministic renderer the player uses), not from the best-effort ``/camera/image`` topic, so a
+    dropped message cannot change which view is scored. Their poses are the frontend's odometry
+    (the map's frame, as the run report's held-out views). After every map update each candidate
+    whose pose is known and which is known not to be a keyframe is rendered and scored.
+    """
+
+    gt_images: dict[int, np.ndarray]  # frame index -> RGB uint8
     raster: RasterParams = field(default_factory=RasterParams)  # rasterizer settings of the view
     replica: MapReplica = field(default_factory=MapReplica)
     frame_stamps: list[int] = field(default_factory=list)  # every frame, from its odometry
-    images: dict[int, np.ndarray] = field(default_factory=dict)
-    poses: dict[int, np.ndarray] = field(default_factory=dict)
+    poses: dict[int, np.ndarray] = field(default_factory=dict)  # stamp -> T_world_cam
     kf_stamps: set[int] = field(default_factory=set)
     camera: tuple[np.ndarray, int, int] | None = None
-    stamp: int | None = None  # the fixed view, once decided
     iterations: int = 0
     t0: float | None = None
-    curve: list[dict[str, float]] = field(default_factory=list)
+    curves: dict[int, list[dict[str, float]]] = field(default_factory=dict)  # index -> scores
+    keyframe_indices: set[int] = field(default_factory=set)  # candidates that were keyframes
+    inserted: int = 0  # Gaussians inserted / pruned over the run (/mapper/stats extra)
+    pruned: int = 0
+    depth_stats: list[dict[str, float]] = field(default_factory=list)  # per depth map received
 
     def on(self, topic: str, m: Any, now: float) -> None:
-        if topic == "/camera/image":
+        if topic == "/frontend/odometry":  # reliable: one per frame, estimated or not
             self.t0 = now if self.t0 is None else self.t0
-            if self.stamp is None:  # best effort: any frame may be missing, keep them all
-                self.images[m.stamp_ns] = image_to_rgb(m.data, m.encoding)
-        elif topic == "/frontend/odometry":  # reliable: one per frame, estimated or not
             self.frame_stamps.append(m.stamp_ns)
             if m.status not in NOT_ESTIMATED:
                 self.poses[m.stamp_ns] = np.array(m.T_world_cam)
@@ -151,66 +166,128 @@ class FixedView:
                 self.camera = (np.array(m.K), m.image.shape[1], m.image.shape[0])
         elif topic == "/mapper/stats":
             self.iterations = int(m.iterations)
-            if m.extra.get("final") and self.curve:
-                # the refined map's update came just before its stats: its iterations are these
-                self.curve[-1]["iterations"] = self.iterations
+            if m.extra.get("final"):
+                if self.curves:  # the refined map's update came just before its stats
+                    for c in self.curves.values():
+                        if c:
+                            c[-1]["iterations"] = self.iterations
+            else:
+                self.inserted += int(m.extra.get("inserted", 0))
+            self.pruned += int(m.extra.get("pruned", 0))
         elif topic == "/mapper/gaussians":
             self.replica.apply_update(m)
-            self._decide()
-            if self.stamp is not None:
-                self._evaluate(now)
+            self._evaluate(now)
+        elif isinstance(m, msgs.DepthMap):  # the depth the mapper gets
+            self.depth_stats.append(depth_statistics(m.depth, m.confidence))
 
-    def _decide(self) -> None:
-        """The view: the first frame from index ``view_frame`` on that has a pose, an image (the
-        camera topic is best effort: a frame's image may have been dropped) and is not a
-        keyframe, decided once two later frames have a pose (their keyframe status is known)."""
-        if self.stamp is not None or len(self.frame_stamps) <= self.view_frame + 2:
-            return
-        for s in sorted(self.frame_stamps)[self.view_frame :]:
-            later = [t for t in self.poses if t > s]
-            if len(later) < 2:
-                return  # not yet known whether it is a keyframe: decide on a later update
-            if s in self.poses and s in self.images and s not in self.kf_stamps:
-                self.stamp = s
-                self.images = {s: self.images[s]}
-                return
+    def _scoreable(self, index: int) -> int | None:
+        """The stamp of candidate ``index`` once it has a pose and is known not to be a keyframe
+        (two later frames have a pose: its keyframe decision has been published)."""
+        frames = sorted(self.frame_stamps)
+        if index >= len(frames) or self.camera is None:
+            return None
+        s = frames[index]
+        if s in self.kf_stamps:
+            self.keyframe_indices.add(index)
+            return None
+        if s not in self.poses or sum(t > s for t in self.poses) < 2:
+            return None
+        return s
 
     def _evaluate(self, now: float) -> None:
-        K, W, H = self.camera
-        rgb, _, _ = render_map_view(
-            self.replica.arrays, self.poses[self.stamp], K, W, H, raster=self.raster
-        )
-        psnr, ssim = score_view(self.images[self.stamp], rgb)
-        self.curve.append(
-            {
-                "iterations": self.iterations,
-                "wall_s": round(now - (now if self.t0 is None else self.t0), 2),
-                "n_gaussians": len(self.replica),
-                "fixed_view_psnr_db": psnr,
-                "fixed_view_ssim": ssim,
-            }
-        )
+        for index, gt in self.gt_images.items():
+            s = self._scoreable(index)
+            if s is None:
+                continue
+            K, W, H = self.camera
+            rgb, _, _ = render_map_view(
+                self.replica.arrays, self.poses[s], K, W, H, raster=self.raster
+            )
+            psnr, ssim = score_view(gt, rgb)
+            self.curves.setdefault(index, []).append(
+                {
+                    "iterations": self.iterations,
+                    "wall_s": round(now - (now if self.t0 is None else self.t0), 2),
+                    "n_gaussians": len(self.replica),
+                    "fixed_view_psnr_db": psnr,
+                    "fixed_view_ssim": ssim,
+                }
+            )
 
-    def figures(self) -> dict[str, Any]:
-        hit = next((c for c in self.curve if c["fixed_view_psnr_db"] >= self.target_db), None)
-        last = self.curve[-1] if self.curve else {}
+    def view_figures(self, index: int | None, target_db: float) -> dict[str, Any]:
+        """Table II's figures at held-out frame ``index`` (None: no view)."""
+        curve = self.curves.get(index, []) if index is not None else []
+        hit = next((c for c in curve if c["fixed_view_psnr_db"] >= target_db), None)
+        last = curve[-1] if curve else {}
         return {
-            "view_stamp_ns": self.stamp,
+            "view_frame": index,
             "iters_to_target": None if hit is None else hit["iterations"],
             "wall_s_to_target": None if hit is None else hit["wall_s"],
             "gaussians_at_target": None if hit is None else hit["n_gaussians"],
             "fixed_view_psnr_at_budget_db": last.get("fixed_view_psnr_db"),
             "iterations_budget": self.iterations,
             "gaussians_at_budget": len(self.replica),
-            "curve": {k: [c[k] for c in self.curve] for k in (last or {})},
+            "gaussians_inserted": self.inserted,
+            "gaussians_pruned": self.pruned,
+            "curve": {k: [c[k] for c in curve] for k in (last or {})},
         }
 
 
-TOPICS = ("/camera/image", "/frontend/odometry", "/frontend/keyframe", "/mapper/stats")
+def depth_statistics(
+    depth_m: np.ndarray, confidence: np.ndarray, params: InsertionParams | None = None
+) -> dict[str, float]:
+    """What the insertion policy makes of one depth map (``depth_m``/``confidence`` [H, W]):
+    the fraction of pixels with depth, of those the fraction at or above the coarse-stride
+    confidence, their median depth, and ``gaussians_per_px``: Gaussians per pixel that the policy
+    samples where the map explains nothing (1 / stride^2 over the pixels with depth; stride from
+    :func:`mogs_node.mapper.insertion.stride_map`, the same for every initialisation)."""
+    p = params or InsertionParams()
+    d = np.asarray(depth_m, np.float32)
+    c = np.asarray(confidence, np.float32)
+    ok = np.isfinite(d) & (d >= p.min_depth_m)
+    if not ok.any():
+        return {"valid": 0.0, "confident": 0.0, "median_depth_m": 0.0, "gaussians_per_px": 0.0}
+    stride = stride_map(np.where(ok, d, 0.0), c, p)[ok].astype(np.float64)
+    return {
+        "valid": round(float(ok.mean()), 4),
+        "confident": round(float((c[ok] >= p.coarse_conf).mean()), 4),
+        "median_depth_m": round(float(np.median(d[ok])), 3),
+        "gaussians_per_px": round(float(np.mean(1.0 / stride**2)), 6),
+    }
 
 
-def run_init(init: str, args: argparse.Namespace, root: Path) -> dict[str, Any]:
-    """One run of the demo drive with initialisation ``init``; its figures."""
+def reached(curves: dict[int, list[dict[str, float]]], target_db: float) -> set[int]:
+    """Candidate frames whose held-out view reaches ``target_db`` at some map update."""
+    return {i for i, c in curves.items() if any(x["fixed_view_psnr_db"] >= target_db for x in c)}
+
+
+def choose_view(views: dict[str, HeldOutViews], target_db: float) -> int | None:
+    """The fixed held-out view: the earliest candidate frame that every initialisation's map
+    reaches ``target_db`` at (the same rule for all: none is favoured; a view no run reaches
+    gives no ratio). None when there is no such frame. A run that scored no candidate at all
+    (e.g. an older run merged in) has no say."""
+    scored = [reached(v.curves, target_db) for v in views.values() if v.curves]
+    common = set.intersection(*scored) if scored else set()
+    return min(common) if common else None
+
+
+def sim_images(frames: int, indices: list[int]) -> dict[int, np.ndarray]:
+    """Ground-truth RGB of the demo drive's frames ``indices`` (the player's sim, re-rendered)."""
+    demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
+    player = next(n for n in demo["nodes"] if n["name"] == "player")
+    sim = {**player["params"]["sim"], "n_frames": frames}
+    seq = make_sequence(parse_params(SimConfig, sim, where="sim"))
+    return {i: seq.render(i).rgb for i in indices}
+
+
+TOPICS = ("/frontend/odometry", "/frontend/keyframe", "/mapper/stats")
+
+
+def run_init(
+    init: str, args: argparse.Namespace, root: Path, gt_images: dict[int, np.ndarray]
+) -> tuple[dict[str, Any], HeldOutViews]:
+    """One run of the demo drive with initialisation ``init``: its run-level figures and the
+    scores of its candidate held-out views."""
     out = root / init
     out.mkdir(parents=True, exist_ok=True)
     path = out / "launch.yaml"
@@ -218,37 +295,57 @@ def run_init(init: str, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     launch = load_launch_file(path)
     ctx = zmq.Context()
     sub = Subscriber(launch.bus, context=ctx)
-    for t in (*TOPICS, "/mapper/gaussians"):
-        sub.subscribe(t, reliable=t != "/camera/image")
-    view = FixedView(args.view_frame, args.target_db)
+    depth_topic = RANDOM_TOPIC if init == "random" else "/metrizer/depth"
+    for t in (*TOPICS, "/mapper/gaussians", depth_topic):
+        sub.subscribe(t, reliable=True)
+    views = HeldOutViews(gt_images)
     launcher = Launcher(launch, out=open(out / "launch.log", "w"), grace_s=30.0)  # noqa: SIM115
     runner = threading.Thread(
         target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": args.timeout}
     )
     t_start = time.monotonic()
+    # a receiving thread stamps each message on arrival; scoring the views (renders) runs here
+    # and may lag behind on a loaded machine without shifting the wall times it records
+    inbox: queue.Queue[tuple[Any, float] | None] = queue.Queue()
+
+    def receive() -> None:
+        while runner.is_alive():
+            env = sub.receive(timeout_ms=100)
+            if env is not None:
+                inbox.put((env, time.monotonic()))
+        while (env := sub.receive(timeout_ms=200)) is not None:  # what is still queued
+            inbox.put((env, time.monotonic()))
+        inbox.put(None)
+
     runner.start()
-    while runner.is_alive():
-        env = sub.receive(timeout_ms=100)
-        if env is not None:
-            view.on(env.topic, env.msg, time.monotonic())
+    receiver = threading.Thread(target=receive, daemon=True)
+    receiver.start()
+    while (item := inbox.get()) is not None:
+        views.on(item[0].topic, item[0].msg, item[1])
     runner.join()
+    receiver.join()
+    # what the bench itself missed (a slow consumer): the views depend on every map update
+    bus_stats = {t: st.as_dict() for t, st in sub.stats.items()}
     sub.close()
     ctx.term()
-    fig = view.figures()
-    if view.stamp is None:
-        print(
-            f"[table2] {init}: no fixed view: {len(view.frame_stamps)} frames, "
-            f"{len(view.poses)} poses, {len(view.images)} images, {len(view.kf_stamps)} keyframes",
-            flush=True,
-        )
-    fig["wall_s"] = round(time.monotonic() - t_start, 1)
+    fig: dict[str, Any] = {"wall_s": round(time.monotonic() - t_start, 1)}
+    fig["bench_missed"] = {
+        t: {k: v for k, v in st.items() if k in ("lost", "dropped", "shm_missed") and v}
+        for t, st in bus_stats.items()
+    }
+    fig["frames_with_odometry"] = len(views.frame_stamps)
+    # the depth the mapper got, as the insertion policy sees it: medians over the keyframes
+    fig["depth_to_mapper"] = {
+        k: round(float(np.median([d[k] for d in views.depth_stats])), 4)
+        for k in (views.depth_stats[0] if views.depth_stats else {})
+    }
     summary = out / "summary.json"
     m = json.loads(summary.read_text()).get("map", {}) if summary.exists() else {}
     fig["psnr_at_budget_db"] = m.get("heldout_psnr_db")
     fig["ssim_at_budget"] = m.get("heldout_ssim")
     fig["heldout_frames"] = m.get("heldout_frames", 0)
     fig["run_dir"] = str(out)
-    return fig
+    return fig, views
 
 
 def ratios(inits: dict[str, Any]) -> dict[str, float | None]:
@@ -279,16 +376,22 @@ def plot(inits: dict[str, Any], target_db: float, path: Path) -> None:
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
     for init, r in inits.items():
-        c = r["curve"]
-        if not c:
+        # every candidate view (thin), the fixed one (thick) where there is one
+        cands = list(r.get("candidate_curves", {}).values())
+        longest = max(cands, key=lambda c: len(c["iterations"]), default=r["curve"])
+        if not longest:
             continue
-        (line,) = a1.plot(c["iterations"], c["n_gaussians"], ".-", label=init)
-        a2.plot(c["iterations"], c["fixed_view_psnr_db"], ".-", label=init, color=line.get_color())
+        (line,) = a1.plot(longest["iterations"], longest["n_gaussians"], ".-", label=init)
+        for c in cands:
+            a2.plot(c["iterations"], c["fixed_view_psnr_db"], "-", lw=0.8, color=line.get_color())
+        if r["curve"]:
+            c = r["curve"]
+            a2.plot(c["iterations"], c["fixed_view_psnr_db"], ".-", lw=2, color=line.get_color())
     a1.set_xlabel("mapper iterations")
     a1.set_ylabel("Gaussians")
     a2.axhline(target_db, color="k", ls=":", lw=1)
     a2.set_xlabel("mapper iterations")
-    a2.set_ylabel("fixed held-out view PSNR [dB]")
+    a2.set_ylabel("held-out view PSNR [dB] (thin: each candidate)")
     a1.legend()
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -300,15 +403,24 @@ def _fmt(v: Any, spec: str = ".2f") -> str:
     return "-" if v is None else format(v, spec)
 
 
-def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any]) -> str:
+def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any], notes: str = "") -> str:
+    """The ``pipeline-table2`` section of docs/benchmarks.md; ``notes``: text after the ratios."""
+    notes = f"\n{notes.strip()}\n" if notes.strip() else ""
     rows = "\n".join(
         f"| {k} | {_fmt(r['iters_to_target'], 'd')} | {_fmt(r['wall_s_to_target'], '.1f')} | "
         f"{_fmt(r['gaussians_at_target'], 'd')} | {_fmt(r['fixed_view_psnr_at_budget_db'])} | "
         f"{_fmt(r['psnr_at_budget_db'])} | {_fmt(r['ssim_at_budget'], '.3f')} | "
-        f"{r['iterations_budget']} | {r['gaussians_at_budget']} |"
+        f"{r['iterations_budget']} | {r['gaussians_at_budget']} | {r['gaussians_inserted']} | "
+        f"{r['gaussians_pruned']} | {len(r['candidates_reached'])}/{res['candidates_scored']} |"
         for k, r in res["inits"].items()
     )
     rt = res["ratios"]
+    how = (
+        "given on the command line"
+        if args.view_frame is not None
+        else f"the earliest candidate that every initialisation's map reaches {args.target_db:g} dB "
+        "at (same rule for all)"
+    )
     return f"""## Table II in the live pipeline (issue 17)
 
 Command: `{cmd}`
@@ -316,22 +428,50 @@ Command: `{cmd}`
 Machine: {machine_line()}; 2 cores shared by all processes (wall times are not comparable across
 machines or loads). Demo drive ({args.frames} frames, 621x188), the same mapper policy and budget
 (`launch/demo.yaml`: {res["iters_per_keyframe"]} iterations per keyframe) for every
-initialisation. Fixed held-out view: frame {args.view_frame} (the first non-keyframe from there),
-scored after every map update; target {args.target_db:g} dB. At the budget: the run report's
-held-out frames (docs/report.md).
+initialisation. Candidate held-out views: every {args.candidate_step}th frame from frame
+{args.candidates_from} on that is not a keyframe ({res["candidates_scored"]} frames), ground truth
+from the sim, pose from the frontend, scored after every map update. Fixed held-out view: frame
+{res["view_frame"]}, {how}; target {args.target_db:g} dB. At the budget: the run report's held-out
+frames (docs/report.md).
 
-| init | iterations to {args.target_db:g} dB | wall s to target | Gaussians at target | fixed view PSNR at budget [dB] | held-out PSNR at budget [dB] | held-out SSIM | iterations (budget) | Gaussians at budget |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
+| init | iterations to {args.target_db:g} dB | wall s to target | Gaussians at target | fixed view PSNR at budget [dB] | held-out PSNR at budget [dB] | held-out SSIM | iterations (budget) | Gaussians at budget | inserted | pruned | candidates reaching {args.target_db:g} dB |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
 {rows}
 
 Ratios: MOGS / random iterations to target {_fmt(rt["iters_to_target_mogs_over_random"], ".3f")}
 (goal <= 0.7), Gaussians at target {_fmt(rt["gaussians_at_target_mogs_over_random"], ".3f")}
 (goal <= 0.8); MOGS - prior_global held-out PSNR at budget
 {_fmt(rt["psnr_at_budget_mogs_minus_prior_global_db"])} dB (goal >= 0). "-": the target was not
-reached within the budget.
-
+reached within the budget. Over every candidate both MOGS and random reach: median ratio of
+iterations {_fmt(rt.get("iters_to_target_mogs_over_random_median"), ".3f")}, of Gaussians
+{_fmt(rt.get("gaussians_at_target_mogs_over_random_median"), ".3f")}.
+{notes}
 ![Table II in the live pipeline](pipeline_table2.png)
 """
+
+
+def candidate_ratios(views: dict[str, HeldOutViews], target_db: float) -> dict[str, float | None]:
+    """Median MOGS / random ratios over every candidate view both reach (robustness of the
+    single fixed view's ratios)."""
+    if "mogs" not in views or "random" not in views:
+        return {}
+    both = sorted(
+        reached(views["mogs"].curves, target_db) & reached(views["random"].curves, target_db)
+    )
+    it, ga = [], []
+    for i in both:
+        mo = views["mogs"].view_figures(i, target_db)
+        ra = views["random"].view_figures(i, target_db)
+        if ra["iters_to_target"] and ra["gaussians_at_target"]:
+            it.append(mo["iters_to_target"] / ra["iters_to_target"])
+            ga.append(mo["gaussians_at_target"] / ra["gaussians_at_target"])
+    return {
+        "iters_to_target_mogs_over_random_median": round(float(np.median(it)), 3) if it else None,
+        "gaussians_at_target_mogs_over_random_median": round(float(np.median(ga)), 3)
+        if ga
+        else None,
+        "candidates_both_reach": len(both),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -339,7 +479,17 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--frames", type=int, default=60, help="frames of the synthetic drive")
-    ap.add_argument("--view-frame", type=int, default=40, help="index of the fixed held-out frame")
+    ap.add_argument(
+        "--view-frame", type=int, default=None, help="fixed held-out frame (default: chosen)"
+    )
+    ap.add_argument(
+        "--candidates-from",
+        type=int,
+        default=40,
+        help="first candidate frame (the demo drives off at frame 20: views in its first 2 s of "
+        "driving are near-copies of the static start's keyframes)",
+    )
+    ap.add_argument("--candidate-step", type=int, default=2, help="frames between candidates")
     ap.add_argument("--target-db", type=float, default=20.0)
     ap.add_argument(
         "--inits", default=",".join(INITS), help="comma-separated subset of " + ", ".join(INITS)
@@ -347,40 +497,144 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=2400.0, help="per run")
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-docs", action="store_true")
+    ap.add_argument("--notes", default=None, metavar="FILE", help="text for the docs section")
+    ap.add_argument(
+        "--merge",
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="no new runs: the runs in these JSON files (e.g. one init each, run side by side)",
+    )
+    ap.add_argument(
+        "--docs-from",
+        default=None,
+        metavar="JSON",
+        help="write the table and plot from a finished run's JSON (no new runs)",
+    )
     args = ap.parse_args(argv)
-    inits = [k.strip() for k in args.inits.split(",") if k.strip()]
-    if not set(inits) <= set(INITS) or not 0 <= args.view_frame < args.frames:
-        ap.error(f"--inits: a subset of {INITS}; --view-frame: in [0, --frames)")
-    root = Path(tempfile.mkdtemp(prefix="mogs-bench-table2-"))
-    demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
-    mapper = next(n for n in demo["nodes"] if n["name"] == "mapper")
-    res: dict[str, Any] = {
-        "target_psnr_db": args.target_db,
-        "frames": args.frames,
-        "view_frame": args.view_frame,
-        "iters_per_keyframe": mapper["params"].get("iters_per_keyframe"),
-        "inits": {},
-    }
-    for init in inits:
-        print(f"[table2] {init} ...", flush=True)
-        r = res["inits"][init] = run_init(init, args, root)
-        print(
-            f"[table2] {init}: iterations to target {r['iters_to_target']}, Gaussians at target "
-            f"{r['gaussians_at_target']}, held-out PSNR at budget {r['psnr_at_budget_db']} "
-            f"(SSIM {r['ssim_at_budget']}), {r['wall_s']} s",
-            flush=True,
-        )
-    res["ratios"] = ratios(res["inits"])
-    for k, v in res["ratios"].items():
-        print(f"{k:45s} {v}")
-    write_json(args.json, res)
-    if not args.no_docs:
-        plot(res["inits"], args.target_db, REPO_ROOT / "docs" / "pipeline_table2.png")
+    if args.docs_from:
+        res = json.loads(Path(args.docs_from).read_text())
+        write_docs(argparse.Namespace(**{**vars(args), **res["args"]}), res, res["command"])
+        return 0
+    if args.merge:
+        runs, ipk = runs_from_json(args.merge)
         cmd = "python bench/pipeline_table2.py " + " ".join(
             argv if argv is not None else sys.argv[1:]
         )
-        update_markdown_section("pipeline-table2", markdown(cmd.strip(), args, res))
+        res = assemble(runs, args, cmd.strip(), ipk)
+        write_json(args.json, res)
+        if not args.no_docs:
+            write_docs(args, res, res["command"])
+        return 0
+    inits = [k.strip() for k in args.inits.split(",") if k.strip()]
+    if not set(inits) <= set(INITS) or not 0 <= args.candidates_from < args.frames:
+        ap.error(f"--inits: a subset of {INITS}; --candidates-from: in [0, --frames)")
+    if args.view_frame is not None and not 0 <= args.view_frame < args.frames:
+        ap.error("--view-frame: in [0, --frames)")
+    candidates = list(range(args.candidates_from, args.frames, args.candidate_step))
+    if args.view_frame is not None and args.view_frame not in candidates:
+        candidates.append(args.view_frame)
+    gt_images = sim_images(args.frames, candidates)
+    root = Path(tempfile.mkdtemp(prefix="mogs-bench-table2-"))
+    demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
+    mapper = next(n for n in demo["nodes"] if n["name"] == "mapper")
+    runs: dict[str, tuple[dict[str, Any], HeldOutViews]] = {}
+    for init in inits:
+        print(f"[table2] {init} ...", flush=True)
+        runs[init] = run_init(init, args, root, gt_images)
+        r, v = runs[init]
+        print(
+            f"[table2] {init}: held-out PSNR at budget {r['psnr_at_budget_db']} "
+            f"(SSIM {r['ssim_at_budget']}), candidates reaching the target "
+            f"{sorted(reached(v.curves, args.target_db))} of {sorted(v.curves)}, {r['wall_s']} s",
+            flush=True,
+        )
+    cmd = "python bench/pipeline_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    res = assemble(runs, args, cmd.strip(), mapper["params"].get("iters_per_keyframe"))
+    write_json(args.json, res)
+    if not args.no_docs:
+        write_docs(args, res, res["command"])
     return 0
+
+
+def assemble(
+    runs: dict[str, tuple[dict[str, Any], HeldOutViews]],
+    args: argparse.Namespace,
+    cmd: str,
+    iters_per_keyframe: int | None,
+) -> dict[str, Any]:
+    """The results of the runs of every init: the fixed view (chosen across them), each init's
+    figures there and at the budget, the ratios."""
+    views = {k: v for k, (_, v) in runs.items()}
+    view = args.view_frame if args.view_frame is not None else choose_view(views, args.target_db)
+    scored = set.union(*(set(v.curves) for v in views.values())) if views else set()
+    res: dict[str, Any] = {
+        "target_psnr_db": args.target_db,
+        "frames": args.frames,
+        "view_frame": view,
+        "candidates_scored": len(scored),
+        "iters_per_keyframe": iters_per_keyframe,
+        "command": cmd,
+        "args": {
+            k: getattr(args, k)
+            for k in ("frames", "view_frame", "candidates_from", "candidate_step", "target_db")
+        },
+        "inits": {},
+    }
+    for init, (r, v) in runs.items():
+        res["inits"][init] = {
+            **v.view_figures(view, args.target_db),
+            **r,
+            "candidates_reached": sorted(reached(v.curves, args.target_db)),
+            # every candidate's scores after each update (runs of one init each can be merged)
+            "candidate_curves": {
+                str(i): {k: [c[k] for c in v.curves[i]] for k in v.curves[i][0]}
+                for i in sorted(v.curves)
+            },
+        }
+    res["ratios"] = {**ratios(res["inits"]), **candidate_ratios(views, args.target_db)}
+    for init, r in res["inits"].items():
+        print(
+            f"[table2] {init} at frame {view}: iterations to target {r['iters_to_target']}, "
+            f"Gaussians at target {r['gaussians_at_target']}"
+        )
+    for k, v in res["ratios"].items():
+        print(f"{k:45s} {v}")
+    return res
+
+
+AT_BUDGET = ("iterations_budget", "gaussians_at_budget", "gaussians_inserted", "gaussians_pruned")
+
+
+def runs_from_json(paths: list[str]) -> tuple[dict[str, tuple[dict[str, Any], HeldOutViews]], int]:
+    """The runs saved in the JSON of earlier invocations (one init each, say, run side by side):
+    their run-level figures and their candidates' curves, and the iterations per keyframe."""
+    runs: dict[str, tuple[dict[str, Any], HeldOutViews]] = {}
+    ipk = None
+    for path in paths:
+        saved = json.loads(Path(path).read_text())
+        ipk = saved.get("iters_per_keyframe", ipk)
+        for init, r in saved["inits"].items():
+            v = HeldOutViews({})
+            v.curves = {
+                int(i): [dict(zip(c, vals, strict=True)) for vals in zip(*c.values(), strict=True)]
+                for i, c in r["candidate_curves"].items()
+            }
+            v.iterations, v.inserted, v.pruned = (
+                r["iterations_budget"],
+                r["gaussians_inserted"],
+                r["gaussians_pruned"],
+            )
+            keep = set(r) - set(v.view_figures(None, 0.0)) - {"candidates_reached"}
+            runs[init] = ({k: r[k] for k in keep} | {k: r[k] for k in AT_BUDGET}, v)
+    return runs, ipk
+
+
+def write_docs(args: argparse.Namespace, res: dict[str, Any], cmd: str) -> None:
+    """The plot and the ``pipeline-table2`` section of docs/benchmarks.md."""
+    plot(res["inits"], args.target_db, REPO_ROOT / "docs" / "pipeline_table2.png")
+    notes = Path(args.notes).read_text() if args.notes else ""
+    update_markdown_section("pipeline-table2", markdown(cmd.strip(), args, res, notes))
 
 
 if __name__ == "__main__":

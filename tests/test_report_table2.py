@@ -2,13 +2,25 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from bench.pipeline_table2 import RANDOM_TOPIC, FixedView, launch_dict, ratios
+from bench.pipeline_table2 import (
+    RANDOM_TOPIC,
+    HeldOutViews,
+    assemble,
+    choose_view,
+    depth_statistics,
+    launch_dict,
+    markdown,
+    ratios,
+    reached,
+    runs_from_json,
+)
 from mogs_node.geometry import make_T, so3_exp
 from mogs_node.mapper.rasterizer import RasterParams
 
@@ -53,81 +65,84 @@ def _gaussians(rgb: np.ndarray, depth: float, K: np.ndarray, T: np.ndarray, keyf
     )
 
 
-def test_fixed_view_reaches_the_target_when_the_map_holds_the_view() -> None:
+def _feed_frames(hv: HeldOutViews, K: np.ndarray, img: np.ndarray, T_view: np.ndarray) -> None:
+    """Frames 0..5 on the bus: frame 1 is a keyframe, frame 2 is seen from ``T_view``, frame 4
+    has no pose (the frontend was not tracking)."""
+    for i in range(6):
+        s = 1000 + i
+        if i == 1:
+            hv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=K, image=img), 0.0)
+        T = T_view if i == 2 else make_T(np.eye(3), np.array([0.0, 0.0, -5.0]))
+        status = "initializing" if i == 4 else "tracking"
+        hv.on("/frontend/odometry", SimpleNamespace(stamp_ns=s, status=status, T_world_cam=T), 0.0)
+
+
+def test_held_out_view_reaches_the_target_when_the_map_holds_the_view() -> None:
     rng = np.random.default_rng(0)
     H, W = 12, 16
     K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
     T_view = make_T(so3_exp(np.array([0.1, 0.2, -0.1])), np.array([3.0, 0.0, 1.0]))
     img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    # the pure-PyTorch backend (the same semantics as C++, no compilation); a dilation that ends
-    # before the next pixel, so the map of the view's pixels renders it back (test_report_views)
-    fv = FixedView(
-        view_frame=2, target_db=20.0, raster=RasterParams(backend="torch", eps2d_px2=0.05)
+    # candidates 1 (a keyframe), 2 (the view), 4 (no pose); the pure-PyTorch backend (the same
+    # semantics as C++, no compilation) with a dilation that ends before the next pixel, so the
+    # map of the view's pixels renders it back (test_report_views)
+    hv = HeldOutViews(
+        {1: img, 2: img, 4: img}, raster=RasterParams(backend="torch", eps2d_px2=0.05)
     )
-    t = 0.0
-    for i in range(6):  # frames 0..5; frame 1 is a keyframe, frame 2 the view
-        s = 1000 + i
-        fv.on(
-            "/camera/image",
-            SimpleNamespace(stamp_ns=s, data=img if i == 2 else img // 2, encoding="rgb8"),
-            t,
-        )
-        if i == 1:
-            fv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=K, image=img), t)
-        T = T_view if i == 2 else make_T(np.eye(3), np.array([0.0, 0.0, -5.0]))
-        fv.on(
-            "/frontend/odometry", SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=T), t
-        )
+    _feed_frames(hv, K, img, T_view)
     # update 1: a map that is the view's image darkened; update 2: the view itself
-    fv.on("/mapper/stats", SimpleNamespace(iterations=6, extra={}), 1.0)
-    fv.on("/mapper/gaussians", _gaussians(img // 4, 5.0, K, T_view, 1), 1.0)
-    assert fv.stamp == 1002
-    fv.on("/mapper/stats", SimpleNamespace(iterations=12, extra={}), 2.0)
-    fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 2.0)
-    fig = fv.figures()
+    hv.on("/mapper/stats", SimpleNamespace(iterations=6, extra={"inserted": 5, "pruned": 1}), 1.0)
+    hv.on("/mapper/gaussians", _gaussians(img // 4, 5.0, K, T_view, 1), 1.0)
+    hv.on("/mapper/stats", SimpleNamespace(iterations=12, extra={"inserted": 2}), 2.0)
+    hv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 2.0)
+    assert list(hv.curves) == [2] and hv.keyframe_indices == {1}  # 4 has no pose
+    fig = hv.view_figures(2, 20.0)
     assert fig["curve"]["fixed_view_psnr_db"][0] < 20 <= fig["curve"]["fixed_view_psnr_db"][1]
     assert fig["iters_to_target"] == 12 and fig["gaussians_at_target"] == H * W
     assert fig["wall_s_to_target"] == pytest.approx(2.0)
     assert fig["iterations_budget"] == 12
+    assert (fig["gaussians_inserted"], fig["gaussians_pruned"]) == (7, 1)
+    assert reached(hv.curves, 20.0) == {2} and reached(hv.curves, 500.0) == set()
     # the mapper's final refinement: its update comes first, then its stats marked final
-    fv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 3.0)
-    fv.on("/mapper/stats", SimpleNamespace(iterations=15, extra={"final": 1.0}), 3.0)
-    fig = fv.figures()
+    hv.on("/mapper/gaussians", _gaussians(img, 5.0, K, T_view, 2), 3.0)
+    hv.on("/mapper/stats", SimpleNamespace(iterations=15, extra={"final": 1.0}), 3.0)
+    fig = hv.view_figures(2, 20.0)
     assert fig["curve"]["iterations"] == [6, 12, 15] and fig["iterations_budget"] == 15
+    assert hv.view_figures(None, 20.0)["iters_to_target"] is None
 
 
-def test_the_view_skips_frames_whose_best_effort_image_was_dropped() -> None:
-    fv = FixedView(view_frame=1, target_db=20.0)
+def test_a_view_is_scored_only_once_two_later_frames_have_a_pose() -> None:
     img = np.zeros((2, 2, 3), np.uint8)
-    for i in range(6):
-        s = 10 + i
-        if i not in (1, 2):  # the images of frames 1 and 2 never arrived
-            fv.on("/camera/image", SimpleNamespace(stamp_ns=s, data=img, encoding="rgb8"), 0.0)
-        fv.on(
+    hv = HeldOutViews({3: img})
+    hv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=0, K=np.eye(3), image=img), 0.0)
+    for i in range(5):  # frames 0..4: frame 3 has one later frame with a pose
+        hv.on(
             "/frontend/odometry",
-            SimpleNamespace(stamp_ns=s, status="tracking", T_world_cam=np.eye(4)),
+            SimpleNamespace(stamp_ns=i, status="tracking", T_world_cam=np.eye(4)),
             0.0,
         )
-    fv._decide()
-    assert fv.stamp == 13 and list(fv.images) == [13]  # only the view's image is kept
+    assert hv._scoreable(3) is None
+    hv.on(
+        "/frontend/odometry",
+        SimpleNamespace(stamp_ns=5, status="tracking", T_world_cam=np.eye(4)),
+        0,
+    )
+    assert hv._scoreable(3) == 3
 
 
-def test_the_view_skips_keyframes_and_frames_without_a_pose() -> None:
-    fv = FixedView(view_frame=1, target_db=20.0)
-    img = np.zeros((2, 2, 3), np.uint8)
-    for i in range(6):
-        s = 10 + i
-        fv.on("/camera/image", SimpleNamespace(stamp_ns=s, data=img, encoding="rgb8"), 0.0)
-        if i == 1:
-            fv.on("/frontend/keyframe", SimpleNamespace(stamp_ns=s, K=np.eye(3), image=img), 0.0)
-        status = "initializing" if i == 2 else "tracking"
-        fv.on(
-            "/frontend/odometry",
-            SimpleNamespace(stamp_ns=s, status=status, T_world_cam=np.eye(4)),
-            0.0,
-        )
-    fv._decide()
-    assert fv.stamp == 13  # frame 1 is a keyframe, frame 2 has no pose
+def test_the_fixed_view_is_the_earliest_every_initialisation_reaches() -> None:
+    def views(psnr: dict[int, list[float]]) -> HeldOutViews:
+        hv = HeldOutViews({})
+        hv.curves = {i: [{"fixed_view_psnr_db": x} for x in v] for i, v in psnr.items()}
+        return hv
+
+    runs = {
+        "mogs": views({21: [19.0, 21.0], 23: [20.5], 25: [22.0]}),
+        "prior_global": views({21: [18.0], 23: [19.0, 20.0], 25: [21.0]}),
+        "random": views({21: [15.0, 20.1], 23: [20.0], 25: [19.9]}),
+    }
+    assert choose_view(runs, 20.0) == 23  # 21: prior_global never reaches it
+    assert choose_view(runs, 30.0) is None
 
 
 def test_ratios_with_and_without_a_target() -> None:
@@ -146,3 +161,97 @@ def test_ratios_with_and_without_a_target() -> None:
     assert r["psnr_at_budget_mogs_minus_prior_global_db"] == 0.5
     inits["random"]["iters_to_target"] = None
     assert ratios(inits)["iters_to_target_mogs_over_random"] is None
+
+
+def test_the_docs_section_names_the_view_and_the_ratios() -> None:
+    row = {
+        "iters_to_target": 60,
+        "wall_s_to_target": 30.0,
+        "gaussians_at_target": 800,
+        "fixed_view_psnr_at_budget_db": 22.0,
+        "psnr_at_budget_db": 21.5,
+        "ssim_at_budget": 0.75,
+        "iterations_budget": 300,
+        "gaussians_at_budget": 900,
+        "gaussians_inserted": 1000,
+        "gaussians_pruned": 100,
+        "candidates_reached": [21, 23],
+    }
+    inits = {"mogs": row, "random": {**row, "iters_to_target": 120, "gaussians_at_target": 1000}}
+    res = {
+        "view_frame": 23,
+        "candidates_scored": 5,
+        "iters_per_keyframe": 20,
+        "inits": inits,
+        "ratios": ratios(inits),
+    }
+    args = SimpleNamespace(
+        frames=60, view_frame=None, candidates_from=21, candidate_step=2, target_db=20.0
+    )
+    text = markdown("python bench/pipeline_table2.py", args, res, notes="Why: the stride.")
+    assert "frame\n23, the earliest candidate" in text or "frame 23" in text.replace("\n", " ")
+    assert "| mogs | 60 | 30.0 | 800 |" in text and "2/5 |" in text
+    assert "iterations to target 0.500" in text and "Why: the stride." in text
+
+
+def test_depth_statistics_follow_the_insertion_stride() -> None:
+    # near confident depth: stride 2 doubled once (conf >= 0.7) and planar x2 -> 8; 1/64 per px
+    # (a flat plane at 5 m, confidence 1); unconfident: stride 2 -> 1/4; beyond 25 m: doubled
+    d = np.full((20, 30), 5.0, np.float32)
+    st = depth_statistics(d, np.ones_like(d))
+    assert st["valid"] == 1.0 and st["confident"] == 1.0 and st["median_depth_m"] == 5.0
+    assert st["gaussians_per_px"] == pytest.approx(1 / 64)
+    assert depth_statistics(d, np.zeros_like(d))["gaussians_per_px"] == pytest.approx(1 / 4)
+    far = depth_statistics(np.full_like(d, 30.0), np.zeros_like(d))
+    assert far["gaussians_per_px"] == pytest.approx(1 / 16)
+    d[:10] = 0.0  # no depth in the upper half: not counted
+    half = depth_statistics(d, np.zeros_like(d))
+    assert half["valid"] == 0.5 and half["gaussians_per_px"] == pytest.approx(1 / 4)
+    assert depth_statistics(np.zeros_like(d), np.ones_like(d))["valid"] == 0.0
+
+
+def test_runs_saved_one_init_each_merge_into_the_same_table(tmp_path: Path) -> None:
+    def run(psnr: dict[int, list[float]]) -> tuple[dict, HeldOutViews]:
+        hv = HeldOutViews({})
+        hv.curves = {
+            i: [
+                {
+                    "iterations": 20 * (k + 1),
+                    "wall_s": 10.0 * (k + 1),
+                    "n_gaussians": 1000 * (k + 1),
+                    "fixed_view_psnr_db": x,
+                    "fixed_view_ssim": 0.5,
+                }
+                for k, x in enumerate(v)
+            ]
+            for i, v in psnr.items()
+        }
+        hv.iterations, hv.inserted, hv.pruned = 60, 5000, 400
+        return {"wall_s": 99.0, "psnr_at_budget_db": 21.0, "ssim_at_budget": 0.7}, hv
+
+    args = SimpleNamespace(
+        frames=60, view_frame=None, candidates_from=40, candidate_step=2, target_db=20.0
+    )
+    runs = {
+        "mogs": run({40: [19.0, 20.5, 21.0], 42: [20.1, 21.0, 22.0]}),
+        "random": run({40: [15.0, 18.0, 20.2], 42: [19.0, 19.5, 19.9]}),
+    }
+    res = assemble(runs, args, "cmd", 20)
+    assert res["view_frame"] == 40  # 42: random never reaches it
+    assert res["inits"]["mogs"]["iters_to_target"] == 40
+    assert res["inits"]["random"]["iters_to_target"] == 60
+    assert res["ratios"]["iters_to_target_mogs_over_random"] == pytest.approx(0.667, abs=1e-3)
+    paths = []
+    for init in runs:  # saved by two invocations, one init each
+        one = assemble({init: runs[init]}, args, "cmd", 20)
+        paths.append(tmp_path / f"{init}.json")
+        paths[-1].write_text(json.dumps(one))
+    merged_runs, ipk = runs_from_json([str(p) for p in paths])
+    merged = assemble(merged_runs, args, "cmd", ipk)
+    assert ipk == 20 and merged["view_frame"] == 40
+    for init in runs:
+        assert merged["inits"][init] == res["inits"][init]
+    assert merged["ratios"] == res["ratios"]
+    # a run without candidate scores has no say in the choice of the view
+    merged_runs["prior_global"] = ({"psnr_at_budget_db": 20.5}, HeldOutViews({}))
+    assert choose_view({k: v for k, (_, v) in merged_runs.items()}, 20.0) == 40
