@@ -28,15 +28,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
-from mogs_node.frontend.camera import CameraModel  # noqa: E402
-from mogs_node.frontend.frontend import FrontendParams  # noqa: E402
-from mogs_node.frontend.runs import (  # noqa: E402
+from mogs_node.eval.frontend_runs import (  # noqa: E402
     keyframe_point_figures,
     load_dataset,
     run_dataset_frames,
     score_run,
 )
+from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.frontend.camera import CameraModel  # noqa: E402
+from mogs_node.frontend.frontend import FrontendParams  # noqa: E402
 
 
 def pin_one_core() -> None:
@@ -62,9 +62,9 @@ def with_knob(params: FrontendParams, group: str, name: str, value) -> FrontendP
 def seeded_run(seq, images, params: FrontendParams):
     """Sweep harness: the frontend starts from the true state at frame 0 (benchmark only, never in
     product code) so that a knob's effect is not drowned by the initialisation's scale choice."""
+    from mogs_node.eval.frontend_runs import RunResult, run_frontend
     from mogs_node.frontend.camera import CameraModel
     from mogs_node.frontend.frontend import Frontend
-    from mogs_node.frontend.runs import RunResult, run_frontend
 
     fe = Frontend(params, CameraModel(seq.camera), seq.T_imu_cam)
     k = int(np.searchsorted(seq.imu_stamps_ns, seq.stamps_ns[0], side="right"))

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from mogs_node.errors import ConfigError
+from mogs_node.eval.frontend_runs import DEFAULT_DATA
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
 from mogs_node.frontend.initialization import InitParams
 from mogs_node.frontend.keyframes import KeyframeParams
-from mogs_node.frontend.runs import DEFAULT_DATA
 from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
 from mogs_node.geometry import se3_inverse
 from mogs_node.sim import GRAVITY_WORLD_M_S2, SimConfig, make_sequence
@@ -186,7 +186,7 @@ def test_sim_evaluation_starts_parked_by_default():
     """``mogs eval traj --dataset sim`` starts with a standstill (static initialisation fixes the
     metric scale); a moving start stays available, the OXTS drive has no standstill."""
     from mogs_node.errors import DatasetError
-    from mogs_node.frontend.runs import SIM_STATIC_START_S, load_dataset
+    from mogs_node.eval.frontend_runs import SIM_STATIC_START_S, load_dataset
 
     d = load_dataset("sim", seconds=3.0)
     parked = d["stamps_ns"] - d["stamps_ns"][0] < (SIM_STATIC_START_S - 0.1) * 1e9
@@ -207,7 +207,7 @@ def test_oxts_drive_meets_the_issue_bounds():
     road measured at the camera's calibrated height): ATE after SE(3) alignment under 1 % of the
     distance and metric scale error under 2 %, with the scale set at the initialisation from the
     road (the first pose within 1 s). Camera + IMU alone: test below."""
-    from mogs_node.frontend.runs import run_dataset
+    from mogs_node.eval.frontend_runs import run_dataset
 
     f = run_dataset("oxts", ground=True)
     assert f["resets"] == 0
@@ -224,7 +224,7 @@ def test_oxts_drive_meets_the_issue_bounds():
 )
 def test_oxts_drive_without_the_road_meets_the_issue_bounds():
     """The same bounds with the visual-inertial estimate only. Measured: 6.2 % and 26 %."""
-    from mogs_node.frontend.runs import run_dataset
+    from mogs_node.eval.frontend_runs import run_dataset
 
     f = run_dataset("oxts")
     assert f["resets"] == 0

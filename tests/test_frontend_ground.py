@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from test_frontend_estimator import CAM, SYNTH, make_scene
 
 from mogs_node.errors import ConfigError
+from mogs_node.eval.frontend_runs import DEFAULT_DATA
 from mogs_node.frontend.estimator import VioEstimator
 from mogs_node.frontend.ground import (
     GroundParams,
@@ -18,7 +19,6 @@ from mogs_node.frontend.ground import (
     road_scale_of_sfm,
 )
 from mogs_node.frontend.preintegration import ImuNoise
-from mogs_node.frontend.runs import DEFAULT_DATA
 from mogs_node.geometry import se3_inverse
 from mogs_node.sim import T_IMU_CAM_DEFAULT, SimConfig, make_sequence
 

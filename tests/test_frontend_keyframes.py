@@ -113,7 +113,7 @@ def _keyframe_with(uv_px, z_m, stamp_ns=7):
 def test_edge_figures_tell_a_silhouette_corner_from_a_straddling_point():
     """A 5 m box (columns < 15) in front of 20 m: points on the box's silhouette with the box's
     or the background's depth are on an edge but right; a depth between the two is wrong."""
-    from mogs_node.frontend.runs import keyframe_point_figures
+    from mogs_node.eval.frontend_runs import keyframe_point_figures
 
     depth = np.full((20, 30), 20.0)
     depth[:, :15] = 5.0
@@ -144,8 +144,8 @@ def test_the_bench_replaces_the_points_block_and_its_note_once():
 def test_a_run_parked_throughout_is_scored_on_every_frame():
     """No keyframe while parked (the EuRoC excerpt hovers): the trajectory is scored on every
     frame instead of failing for want of keyframes."""
+    from mogs_node.eval.frontend_runs import RunResult, score_run
     from mogs_node.frontend.frontend import FrameOutput
-    from mogs_node.frontend.runs import RunResult, score_run
 
     stamps = (np.arange(6) * S // 10).astype(np.int64)
     gt = np.stack([np.eye(4)] * 6)

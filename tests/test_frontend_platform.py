@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mogs_node.errors import ConfigError
+from mogs_node.eval.frontend_runs import run_frontend
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
 from mogs_node.frontend.platform import (
@@ -20,7 +21,6 @@ from mogs_node.frontend.platform import (
     motion_violation,
     platform_profile,
 )
-from mogs_node.frontend.runs import run_frontend
 from mogs_node.frontend.time_offset import TimeOffsetParams
 from mogs_node.geometry import make_T, so3_exp
 from mogs_node.sim import SimConfig, make_sequence

@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from mogs_node.eval.frontend_runs import keyframe_point_figures, run_frontend
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
 from mogs_node.frontend.keyframes import KeyframeParams
-from mogs_node.frontend.runs import keyframe_point_figures, run_frontend
 from mogs_node.sim import SimConfig, make_sequence
 
 # launch/demo.yaml's drive and keyframe policy

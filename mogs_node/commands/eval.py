@@ -1,7 +1,7 @@
 """``mogs eval depth|traj|map``: run an evaluation and print / write its figures.
 
 Dataset-specific work lives in ``mogs_node.eval``: ``depth_<dataset>.evaluate(args)``,
-``traj.evaluate(args)`` and ``map.evaluate(args)`` each return the JSON-ready dict whose keys are
+``frontend_runs.evaluate(args)`` and ``map.evaluate(args)`` each return the JSON-ready dict whose keys are
 fixed by DESIGN.md section 7. Nothing under ``docs/`` is written unless ``--write-docs`` (the
 standard run of each then replaces its section of ``docs/benchmarks.md``; ``eval map`` also
 its plot), so that ``git status`` stays clean after any evaluation.
@@ -100,7 +100,7 @@ def command(args: argparse.Namespace) -> int:
     if args._eval == "depth":
         module_name = DEPTH_DATASETS[args.dataset]
     elif args._eval == "traj":
-        module_name = "mogs_node.eval.traj"
+        module_name = "mogs_node.eval.frontend_runs"
     else:
         module_name = "mogs_node.eval.map"
     try:

@@ -86,9 +86,9 @@ def prepare_keyframes(
     Images and IMU are streamed in the player's order (IMU first at equal stamps), every frame
     (the pipeline's flow control delivers every frame too).
     """
+    from mogs_node.eval.frontend_runs import run_frontend
     from mogs_node.frontend.frontend import Frontend
     from mogs_node.frontend.node import FrontendNodeParams, keyframe_message
-    from mogs_node.frontend.runs import run_frontend
     from mogs_node.node import parse_params
     from mogs_node.sim import SimConfig, make_sequence
 

@@ -1,13 +1,12 @@
-"""``mogs eval traj``: run the visual-inertial frontend on a sequence and score it with ``evo``.
+"""Trajectory scores with ``evo``: estimated poses against ground truth (ATE, RPE, scale).
 
-:func:`trajectory_metrics` is the pure part (trajectories in, figures out); :func:`evaluate` loads
-or simulates the sequence, runs :class:`mogs_node.frontend.frontend.Frontend` and returns the figures
-with the keys fixed by DESIGN.md section 7. Ground truth is used only here, for the alignment.
+:func:`trajectory_metrics` is pure (trajectories in, figures with the keys fixed by DESIGN.md
+section 7 out); ``mogs eval traj`` runs the frontend on a sequence in
+:mod:`mogs_node.eval.frontend_runs` and scores it here. Ground truth is used only for the alignment.
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
 import logging
 
@@ -20,7 +19,7 @@ from numpy.typing import NDArray
 from mogs_node.errors import ShapeError
 from mogs_node.geometry import check_array, nearest_rotation, rotation_defect
 
-__all__ = ["MAX_ROTATION_DEFECT", "evaluate", "orthonormalized", "trajectory_metrics"]
+__all__ = ["MAX_ROTATION_DEFECT", "orthonormalized", "trajectory_metrics"]
 
 #: a pose whose rotation is further than this from SO(3) (max |R R^T - I|) cannot be scored
 MAX_ROTATION_DEFECT = 1e-2
@@ -99,23 +98,3 @@ def trajectory_metrics(
         rpe.process_data((traj_ref, traj_est))
         out[name] = float(rpe.get_statistic(metrics.StatisticsType.rmse))
     return out
-
-
-def evaluate(args: argparse.Namespace) -> dict:
-    """Run the frontend on ``args.dataset`` (sim | oxts | euroc) and score its keyframe poses.
-
-    The sim drive starts with a standstill (``runs.SIM_STATIC_START_S``, overridable by an
-    ``args.static_start_s`` attribute) so that the static initialisation fixes the metric scale; the
-    OXTS drive has none and uses the dynamic initialisation. On both (a car with a calibrated
-    camera height) the road measures translations too, unless ``args.no_ground``."""
-    from mogs_node.frontend.runs import run_dataset
-
-    return run_dataset(
-        args.dataset,
-        seconds=args.seconds,
-        seed=args.seed,
-        data=args.data,
-        out_dir=args.out,
-        static_start_s=getattr(args, "static_start_s", None),
-        ground=args.dataset in ("sim", "oxts") and not getattr(args, "no_ground", False),
-    )

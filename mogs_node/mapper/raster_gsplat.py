@@ -15,7 +15,7 @@ import functools
 
 import torch
 
-from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput
+from mogs_node.mapper.raster_types import GaussianTensors, RasterParams, RenderOutput
 
 __all__ = ["gsplat_available", "render_gsplat"]
 

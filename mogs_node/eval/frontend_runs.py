@@ -1,8 +1,10 @@
-"""Offline runs of the frontend on a whole sequence (sim, sim along the KITTI OXTS drive, EuRoC),
-used by ``mogs eval traj`` and ``bench/frontend.py``. Ground truth is read here only to score."""
+"""Offline runs of the frontend on a whole sequence (sim, sim along the KITTI OXTS drive, EuRoC):
+``mogs eval traj`` (:func:`evaluate`) and ``bench/frontend.py``. Ground truth is read here only to
+score (with :mod:`mogs_node.eval.traj`)."""
 
 from __future__ import annotations
 
+import argparse
 import logging
 import time
 from collections.abc import Callable, Iterable
@@ -21,6 +23,7 @@ from mogs_node.shared_data import shared_data_dir
 
 __all__ = [
     "RunResult",
+    "evaluate",
     "keyframe_point_figures",
     "load_dataset",
     "run_dataset",
@@ -349,3 +352,21 @@ def run_dataset(
         write_kitti(out / "estimate_kitti.txt", est)
         write_kitti(out / "groundtruth_kitti.txt", ref)
     return figures
+
+
+def evaluate(args: argparse.Namespace) -> dict:
+    """Run the frontend on ``args.dataset`` (sim | oxts | euroc) and score its keyframe poses.
+
+    The sim drive starts with a standstill (:data:`SIM_STATIC_START_S`, overridable by an
+    ``args.static_start_s`` attribute) so that the static initialisation fixes the metric scale; the
+    OXTS drive has none and uses the dynamic initialisation. On both (a car with a calibrated
+    camera height) the road measures translations too, unless ``args.no_ground``."""
+    return run_dataset(
+        args.dataset,
+        seconds=args.seconds,
+        seed=args.seed,
+        data=args.data,
+        out_dir=args.out,
+        static_start_s=getattr(args, "static_start_s", None),
+        ground=args.dataset in ("sim", "oxts") and not getattr(args, "no_ground", False),
+    )
