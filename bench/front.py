@@ -79,8 +79,8 @@ def grid(quick: bool) -> list[Config]:
     configs = [Config(p, preset=p) for p in ("balanced", "fast", "quality")]
     if quick:
         return configs
-    for path, values in KNOBS:
-        configs += [Config(f"{path}={v}", knob=(path, v)) for v in values]
+    for i in range(max(len(v) for _, v in KNOBS)):  # every knob's first value (the cheaper) first
+        configs += [Config(f"{p}={v[i]}", knob=(p, v[i])) for p, v in KNOBS if i < len(v)]
     return configs
 
 
@@ -360,15 +360,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
     ap.add_argument("--json", default=None, help="results (read back to resume a grid)")
     ap.add_argument("--quick", action="store_true", help="short drive, the three presets")
-    ap.add_argument("--frames", type=int, default=None, help="default 60 (quick: 40)")
+    ap.add_argument("--frames", type=int, default=None, help="default 60 (quick: 30)")
     ap.add_argument("--only", action="append", default=[], help="run only these names")
     ap.add_argument("--fresh", action="store_true", help="measure again what --json holds")
+    ap.add_argument(
+        "--no-run", action="store_true", help="only the picture and docs from what --json holds"
+    )
     ap.add_argument("--timeout", type=float, default=1800.0, help="per configuration [s]")
     ap.add_argument("--png", default=str(REPO_ROOT / "docs" / "front.png"))
     ap.add_argument("--no-docs", action="store_true")
     ap.add_argument("--load", default="", help="the machine's load, said in the docs")
     args = ap.parse_args(argv)
-    frames = args.frames or (40 if args.quick else 60)
+    frames = args.frames or (30 if args.quick else 60)
     configs = [c for c in grid(args.quick) if not args.only or c.name in args.only]
 
     done: dict[str, dict[str, Any]] = {}
@@ -376,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
         for p in json.loads(Path(args.json).read_text()).get("points", []):
             done[p["name"]] = p
     work = Path(tempfile.mkdtemp(prefix="mogs-front-"))
-    for i, cfg in enumerate(configs):
+    for i, cfg in enumerate([] if args.no_run else configs):
         prev = done.get(cfg.name)
         if (
             prev
@@ -411,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         write_results(args, done, frames)
     results = write_results(args, done, frames)
-    if not args.quick and not args.only:
+    if not args.quick and not args.only and {"fast", "balanced", "quality"} <= done.keys():
         figs = {
             n: {k: results_point(results, n).get(k) for k in ("cpu_s_per_frame", *ERRORS)}
             for n in results["presets"]
@@ -432,6 +435,7 @@ def results_point(results: dict[str, Any], name: str) -> dict[str, Any]:
 
 def write_results(args, done: dict[str, dict[str, Any]], frames: int) -> dict[str, Any]:
     points = list(done.values())
+    frames = next((p["frames_requested"] for p in points), frames)
     results = {"frames": frames, "quick": args.quick, "points": points, **analyse(points)}
     write_json(args.json, results)
     return results

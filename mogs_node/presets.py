@@ -64,7 +64,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "balanced": {},
     "quality": {
         # full-resolution optimisation, more iterations and a longer refinement after the drive
-        "mapper": {"iters_per_keyframe": 40, "train_downsample": 1, "final_refine_iters": 120},
+        "mapper": {"iters_per_keyframe": 30, "train_downsample": 1, "final_refine_iters": 90},
         "metrizer": {"cdr": {"irls_iters": 6}},
     },
 }
