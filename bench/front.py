@@ -40,13 +40,16 @@ from typing import Any
 import numpy as np
 import psutil
 import zmq
-from front_plot import ERRORS, front_markdown, plot_front  # bench/ (this script's folder)
 
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 from mogs_node.presets import FIGURES_PATH, PRESETS, deep_merge, role_of
+
+if not __package__:  # run as a script (python bench/front.py): the repo root holds bench/
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.front_plot import ERRORS, front_markdown, plot_front  # noqa: E402
 
 # (role.param[.sub], values moved to): each alone from balanced. The costly knobs of issue 27.
 KNOBS: tuple[tuple[str, tuple[Any, ...]], ...] = (
