@@ -10,6 +10,7 @@ A launch file (YAML)::
       curve: {server_public_key: keys/broker.key, client_secret_key: keys/client.key_secret,
               server_secret_key: keys/broker.key_secret, authorized_keys_dir: keys/authorized}
     exit_when: [source]             # stop everything once these nodes have exited with code 0
+    preset: balanced                # fast | balanced | quality (mogs_node/presets.py; --preset wins)
     nodes:
       - name: source
         class: mogs_node.demo_nodes:SyntheticSource   # module:Class, a Node subclass
