@@ -343,6 +343,7 @@ def analyse(points: list[dict[str, Any]]) -> dict[str, Any]:
     if "balanced" in by_name:
         b = by_name["balanced"]
         out["standstill_over_moving_cpu"] = b.get("standstill_over_moving_cpu")
+        out["standstill_over_moving_cpu_without_source_and_report"] = pipeline_only_ratio(b)
         out["knobs"] = [
             {
                 "knob": p["knob"][0],
@@ -354,6 +355,16 @@ def analyse(points: list[dict[str, Any]]) -> dict[str, Any]:
             if p.get("knob")
         ]
     return out
+
+
+def pipeline_only_ratio(point: dict[str, Any]) -> float | None:
+    """Standing still over moving CPU per frame without the player (the sensor: a sim renderer
+    or a file reader here, nothing on a car) and the report (the scorer)."""
+    still = point.get("standstill_cpu_s_per_frame_by_node") or {}
+    moving = point.get("moving_cpu_s_per_frame_by_node") or {}
+    skip = {"player", "report"}
+    m = sum(v for n, v in moving.items() if n not in skip)
+    return round(sum(v for n, v in still.items() if n not in skip) / m, 4) if m > 0 else None
 
 
 def main(argv: list[str] | None = None) -> int:

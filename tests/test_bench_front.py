@@ -17,6 +17,7 @@ from bench.front import (
     dominates,
     grid,
     knob_overrides,
+    pipeline_only_ratio,
     scene_figures,
 )
 from bench.front_plot import ERRORS, pareto_2d
@@ -137,3 +138,12 @@ def test_grid_and_one_knobs_overrides_merge_nested_groups() -> None:
     # every knob of the grid names a node of the demo and loads
     for cfg in grid(quick=False)[3:]:
         load_launch_file(REPO / "launch" / "demo.yaml", overrides=knob_overrides(lf, *cfg.knob))
+
+
+def test_standstill_ratio_without_the_sensor_and_the_scorer() -> None:
+    point = {
+        "standstill_cpu_s_per_frame_by_node": {"player": 0.2, "report": 0.1, "mapper": 0.05},
+        "moving_cpu_s_per_frame_by_node": {"player": 0.2, "report": 0.1, "mapper": 0.5},
+    }
+    assert pipeline_only_ratio(point) == 0.1
+    assert pipeline_only_ratio({}) is None
