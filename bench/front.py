@@ -167,6 +167,11 @@ def run_config(
     frame_rate_hz = float(sim.get("frame_rate_hz", 10.0))
     overrides = run_dir_overrides(base, out, resume=False)
     overrides.setdefault("player", {})["sim"] = sim
+    # the scorer renders only what the errors need: the held-out views (the same 12 as the
+    # demo's report), one keyframe view, no pictures (minutes of wall time on a loaded machine)
+    overrides.setdefault("report", {}).update(
+        max_keyframe_views=1, save_renders=False, save_snapshots=False
+    )
     if cfg.knob is not None:
         for node, params in knob_overrides(base, *cfg.knob).items():
             overrides.setdefault(node, {}).update(params)
