@@ -53,13 +53,13 @@ from bench.front_plot import ERRORS, front_markdown, plot_front  # noqa: E402
 
 # (role.param[.sub], values moved to): each alone from balanced. The costly knobs of issue 27.
 KNOBS: tuple[tuple[str, tuple[Any, ...]], ...] = (
-    ("mapper.iters_per_keyframe", (8, 40)),
+    ("prior.flow.dis_preset", ("fast",)),
+    ("frontend.points.max_tracks", (500, 1500)),
+    ("metrizer.cdr.irls_iters", (1, 6)),
     ("mapper.train_downsample", (4, 1)),
+    ("mapper.iters_per_keyframe", (8, 40)),
     ("mapper.final_refine_iters", (0, 120)),
     ("mapper.window_size", (4, 10)),
-    ("frontend.points.max_tracks", (500, 1500)),
-    ("prior.flow.dis_preset", ("fast",)),
-    ("metrizer.cdr.irls_iters", (1, 6)),
     ("metrizer.consensus.max_iters", (64, 384)),
     ("segmentation.graph.scale", (0.5,)),
 )
