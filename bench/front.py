@@ -382,6 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="default 60 (quick: 30)")
     ap.add_argument("--only", action="append", default=[], help="run only these names")
     ap.add_argument("--fresh", action="store_true", help="measure again what --json holds")
+    ap.add_argument("--redo", action="append", default=[], help="measure this name again")
     ap.add_argument(
         "--no-run", action="store_true", help="only the picture and docs from what --json holds"
     )
@@ -402,6 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         prev = done.get(cfg.name)
         if (
             prev
+            and cfg.name not in args.redo
             and prev.get("frames_requested") == frames
             and {k: prev.get(k) for k in ("preset", "knob")} == cfg.key()
         ):

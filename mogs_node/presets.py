@@ -50,14 +50,14 @@ ROLES: dict[str, str] = {
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         # the mapper is most of the CPU: fewer, smaller iterations on a shorter window, no
-        # refinement after the drive
+        # refinement after the drive. The prior keeps DIS "medium": "fast" saved ~2 % of the
+        # CPU and cost AbsRel 0.131 -> 0.197 (knob table)
         "mapper": {
             "iters_per_keyframe": 8,
             "train_downsample": 4,
             "window_size": 4,
             "final_refine_iters": 0,
         },
-        "prior": {"flow": {"dis_preset": "fast"}},
         "metrizer": {"cdr": {"irls_iters": 1}},
         "frontend": {"points": {"max_tracks": 500}},
     },

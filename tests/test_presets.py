@@ -57,12 +57,14 @@ def test_precedence_file_then_preset_then_set() -> None:
     assert _params(lf, "mapper")["iters_per_keyframe"] == 20
     # the preset overrides the file; nested groups merge: the prior keeps its own flow keys
     fast = PRESETS["fast"]
-    lf = parse_launch(_demo(), preset="fast")
-    mapper, prior = _params(lf, "mapper"), _params(lf, "prior")
+    data = _demo()
+    metrizer = next(n for n in data["nodes"] if n["name"] == "metrizer")
+    metrizer["params"]["cdr"] = {"lambda_sm": 0.2}  # a nested group the file and fast both set
+    lf = parse_launch(data, preset="fast")
+    mapper, cdr = _params(lf, "mapper"), _params(lf, "metrizer")["cdr"]
     assert mapper["iters_per_keyframe"] == fast["mapper"]["iters_per_keyframe"]
     assert mapper["background_depth_m"] == 200.0  # a key the preset does not name
-    assert prior["flow"]["dis_preset"] == fast["prior"]["flow"]["dis_preset"]
-    assert prior["flow"]["max_flow_gradient"] == 2.0
+    assert cdr == {"lambda_sm": 0.2, "irls_iters": fast["metrizer"]["cdr"]["irls_iters"]}
     # `preset:` in the file, and --preset over it
     assert _params(parse_launch(_demo("quality")), "mapper")["train_downsample"] == 1
     assert (
