@@ -10,6 +10,7 @@ A launch file (YAML)::
       curve: {server_public_key: keys/broker.key, client_secret_key: keys/client.key_secret,
               server_secret_key: keys/broker.key_secret, authorized_keys_dir: keys/authorized}
     exit_when: [source]             # stop everything once these nodes have exited with code 0
+    preset: balanced                # fast | balanced | quality (mogs_node/presets.py; --preset wins)
     nodes:
       - name: source
         class: mogs_node.demo_nodes:SyntheticSource   # module:Class, a Node subclass
@@ -76,6 +77,7 @@ from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.diagnosis import DIAGNOSED_TOPICS, RunDoctor
 from mogs_node.errors import ConfigError
 from mogs_node.node import CATCH_UP_ENV
+from mogs_node.presets import DEFAULT_PRESET, apply_preset, validate_preset
 from mogs_node.supervision import (
     CHECKPOINT_FILES,
     EXIT_NODE_FAILED,
@@ -164,16 +166,26 @@ def _cpu_priority(nd: dict, where: str) -> dict[str, Any]:
 
 
 def parse_launch(
-    data: Any, *, path: Path | None = None, overrides: dict[str, Any] | None = None
+    data: Any,
+    *,
+    path: Path | None = None,
+    overrides: dict[str, Any] | None = None,
+    preset: str | None = None,
 ) -> LaunchFile:
-    """Validate a launch file's parsed YAML; errors name the offending key."""
+    """Validate a launch file's parsed YAML; errors name the offending key. Parameters: the
+    file's, then the preset's (``preset``, else the file's ``preset:``, else ``balanced``;
+    :mod:`mogs_node.presets`), then ``overrides``."""
     where = str(path) if path else "launch file"
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping at top level")
-    known = {"name", "bus", "nodes", "exit_when", "description"}
+    known = {"name", "bus", "nodes", "exit_when", "description", "preset"}
     unknown = set(data) - known
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
+    preset = preset or data.get("preset") or DEFAULT_PRESET
+    if not isinstance(preset, str):
+        raise ConfigError(f"{where}.preset: expected a preset name, got {preset!r}")
+    validate_preset(preset)
     name = data.get("name", path.stem if path else "default")
     if not isinstance(name, str) or not name.replace("-", "").replace("_", "").isalnum():
         raise ConfigError(f"{where}.name: expected a simple name, got {name!r}")
@@ -217,7 +229,7 @@ def parse_launch(
             raise ConfigError(f"{w}.class: expected 'package.module:ClassName', got {cls!r}")
         if not isinstance(nd.get("params") or {}, dict):
             raise ConfigError(f"{w}.params: expected a mapping, got {nd['params']!r}")
-        params = dict(nd.get("params") or {})
+        params = apply_preset(cls, dict(nd.get("params") or {}), preset)
         if overrides and nname in overrides:
             params.update(overrides[nname])
         respawn = nd.get("respawn", "on_failure")
@@ -260,7 +272,9 @@ def parse_launch(
     )
 
 
-def load_launch_file(path: str | Path, overrides: dict[str, Any] | None = None) -> LaunchFile:
+def load_launch_file(
+    path: str | Path, overrides: dict[str, Any] | None = None, preset: str | None = None
+) -> LaunchFile:
     p = Path(path)
     try:
         data = yaml.safe_load(p.read_text())
@@ -268,7 +282,7 @@ def load_launch_file(path: str | Path, overrides: dict[str, Any] | None = None) 
         raise ConfigError(f"cannot read launch file {p}: {err}") from err
     except yaml.YAMLError as err:
         raise ConfigError(f"{p}: invalid YAML: {err}") from err
-    return parse_launch(data, path=p, overrides=overrides)
+    return parse_launch(data, path=p, overrides=overrides, preset=preset)
 
 
 def _node_class(cls: str) -> type:

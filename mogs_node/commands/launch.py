@@ -21,10 +21,21 @@ from mogs_node.launch import (
     respawns_without_journal,
     run_dir_overrides,
 )
+from mogs_node.presets import DEFAULT_PRESET, PRESETS, validate_preset
+from mogs_node.presets import help_text as presets_help_text
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", help="launch file (YAML), e.g. launch/demo.yaml")
+    parser.add_argument(
+        "--preset",
+        default=None,
+        metavar="NAME",
+        help=f"operating point: {' | '.join(PRESETS)} (default: the file's `preset:`, else "
+        f"{DEFAULT_PRESET}); --set wins over it",
+    )
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = presets_help_text()
     parser.add_argument(
         "--set",
         action="append",
@@ -64,18 +75,19 @@ def parse_overrides(items: list[str]) -> dict[str, dict]:
 
 def command(args: argparse.Namespace) -> int:
     overrides = parse_overrides(args.set)
+    preset = validate_preset(args.preset) if args.preset else None
     run_dir = args.resume or args.run_dir
     if args.resume and args.run_dir:
         raise ConfigError("--resume RUN_DIR already names the run folder; drop --run-dir")
     if args.resume and not (Path(args.resume) / "journal" / "journal.log").exists():
         raise ConfigError(f"--resume {args.resume}: no journal/journal.log there to resume from")
     if run_dir:
-        base = load_launch_file(args.file)
+        base = load_launch_file(args.file, preset=preset)
         merged = run_dir_overrides(base, run_dir, resume=bool(args.resume))
         for node, params in overrides.items():  # --set wins
             merged.setdefault(node, {}).update(params)
         overrides = merged
-    launch = load_launch_file(args.file, overrides=overrides)
+    launch = load_launch_file(args.file, overrides=overrides, preset=preset)
     lonely = respawns_without_journal(launch)
     if lonely:
         print(
