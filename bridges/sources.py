@@ -17,6 +17,7 @@ A recording written by ``mogs record`` (raw bus frames) is opened with
 from __future__ import annotations
 
 import logging
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -111,12 +112,25 @@ def sequence_from_sim(seq: object) -> Sequence:
     if not isinstance(seq, SimSequence):
         raise ConfigError(f"seq: expected a SimSequence, got {type(seq).__name__}")
 
+    # a frame's image and its ground-truth depth come from one ray cast (the player loads both,
+    # one after the other): the last rendered frame is kept, which halves the player's CPU
+    last: dict[int, object] = {}
+    lock = threading.Lock()
+
+    def rendered(i: int):
+        with lock:
+            f = last.get(i)
+            if f is None:
+                last.clear()
+                f = last[i] = seq.render(i)
+            return f
+
     def image(i: int):
-        return lambda: seq.render(i).rgb
+        return lambda: rendered(i).rgb
 
     def depth(i: int):
         def load() -> np.ndarray:
-            d = seq.render(i).depth_m
+            d = rendered(i).depth_m
             return np.where(np.isfinite(d), d, 0.0).astype(np.float32)
 
         return load

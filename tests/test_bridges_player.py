@@ -484,3 +484,27 @@ def test_a_fast_player_blocked_on_acknowledgements_sleeps_instead_of_ticking(inp
     assert 1 <= len(ticks) <= 20, len(ticks)
     node.teardown()
     node.close()
+
+
+def test_the_sim_source_casts_each_frame_once_for_its_image_and_depth(monkeypatch) -> None:
+    """The player loads a frame's image and then its ground-truth depth: one render serves both,
+    with the pixels of a render of its own."""
+    from bridges.sources import open_sequence
+    from mogs_node.sim import SimConfig, SimSequence, make_sequence
+
+    cfg = {"seed": 0, "n_frames": 5, "width": 96, "height": 48}
+    own = make_sequence(SimConfig(**cfg)).render(2)
+    calls: list[int] = []
+    render = SimSequence.render
+
+    def counted(self: SimSequence, i: int):
+        calls.append(i)
+        return render(self, i)
+
+    monkeypatch.setattr(SimSequence, "render", counted)
+    seq = open_sequence("sim", sim=cfg)
+    for f in seq.frames[:3]:
+        image, depth = f.image, f.load_depth()
+    assert calls == [0, 1, 2]
+    assert np.array_equal(image, own.rgb)
+    assert np.array_equal(depth, np.where(np.isfinite(own.depth_m), own.depth_m, 0.0))
