@@ -193,3 +193,26 @@ def test_after_the_drive_the_map_is_refined_once_and_marked_final(inproc_bus, wi
     assert final.keyframe_id == 1
     node._final_refine()  # once only
     assert node.mapper.iterations == 11
+
+
+def test_without_a_refinement_the_map_is_still_marked_final(inproc_bus, wired_node) -> None:
+    """``final_refine_iters: 0`` (the fast preset): once the source stopped, the map as it is goes
+    out marked final, so that a report waiting for the final map does not wait for its timeout."""
+    bus, ctx = inproc_bus
+    params = {"iters_per_keyframe": 2, "final_refine_iters": 0, "threads": 1}
+    node = MapperNode("mapper", params, bus, context=ctx, diagnostics_period_s=0)
+    w = wired_node(node, ("/frontend/keyframe", "/metrizer/depth"), "/mapper/stats")
+    kf, d = messages(0, 0.0)
+    w.pub.publish("/frontend/keyframe", kf)
+    w.pub.publish("/metrizer/depth", d)
+    (first,) = w.collect(1, timeout_s=60)
+    assert not first.extra.get("final")
+    node.on_diagnostics(
+        msgs.Diagnostics(
+            stamp_ns=0, frame_id="", node="player", pid=1, uptime_s=1.0, status="stopped",
+            counters={}, topics={},
+        )
+    )  # fmt: skip
+    (final,) = w.collect(1, timeout_s=60)
+    assert final.extra.get("final") == 1.0 and final.iterations == 2  # no iteration added
+    node.close()

@@ -234,10 +234,11 @@ class MapperNode(Node):
             self.every(0.05, self._idle_optimize)
         self.refine_left = -1  # final refinement iterations still to run (-1: not started)
         self.last_stamp_ns = 0  # of the newest mapped keyframe
-        if p.final_refine_iters > 0:
-            self.source_done = False
-            self.subscribe("/diagnostics", self.on_diagnostics, msg_type=msgs.Diagnostics)
-            self.every(0.2, self._final_refine)
+        # after the drive: the refinement (if any), then the final map and its stats marked
+        # final, which a run report with wait_final_map waits for (with no refinement too)
+        self.source_done = False
+        self.subscribe("/diagnostics", self.on_diagnostics, msg_type=msgs.Diagnostics)
+        self.every(0.2, self._final_refine)
         self.subscribe(
             p.keyframe_topic,
             self.on_keyframe,
@@ -301,7 +302,13 @@ class MapperNode(Node):
         waits for it)."""
         p: MapperNodeParams = self.params
         m = self.mapper
-        if m is None or not self.source_done or self.queue_depth or len(self.pairs):
+        if (
+            m is None
+            or not m.keyframes
+            or not self.source_done
+            or self.queue_depth
+            or len(self.pairs)
+        ):
             return
         if self.refine_left < 0:
             if self.refine_left == -2:  # done
@@ -316,7 +323,11 @@ class MapperNode(Node):
                 torch.get_num_threads(),
             )
         n = min(p.final_refine_chunk, self.refine_left)
-        st = m.refine(n, p.final_refine_downsample, should_stop=lambda: self.stopping)
+        st = (
+            m.refine(n, p.final_refine_downsample, should_stop=lambda: self.stopping)
+            if n > 0
+            else m.stats()
+        )
         self.refine_left -= n
         if self.refine_left > 0:
             return
