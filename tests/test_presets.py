@@ -53,8 +53,11 @@ def _params(lf, name: str) -> dict:
 
 def test_precedence_file_then_preset_then_set() -> None:
     # no preset anywhere: balanced, the file's own values
-    lf = parse_launch(_demo())
-    assert _params(lf, "mapper")["iters_per_keyframe"] == 20
+    data = _demo()
+    own = next(n for n in data["nodes"] if n["name"] == "mapper")["params"]["iters_per_keyframe"]
+    lf = parse_launch(data)
+    assert _params(lf, "mapper")["iters_per_keyframe"] == own
+    assert own != PRESETS["fast"]["mapper"]["iters_per_keyframe"]  # so that the next check bites
     # the preset overrides the file; nested groups merge: the prior keeps its own flow keys
     fast = PRESETS["fast"]
     data = _demo()
