@@ -21,15 +21,28 @@ Levenberg-Marquardt solve; each frame's projection factors are built once and re
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.errors import ConfigError, MogsError
+from mogs_node.errors import ConfigError
+from mogs_node.frontend.estimator_types import (
+    B,
+    EstimatorDivergedError,
+    EstimatorParams,
+    EstimatorState,
+    L,
+    LandmarkView,
+    V,
+    WindowFrame,
+    X,
+    lookup,
+    sorted_map,
+)
 from mogs_node.frontend.keyframes import landmark_covariance, triangulate_midpoint
 from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params, preintegrate
+from mogs_node.frontend.schur import regularize_points, schur_complement
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse
 
 __all__ = [
@@ -41,120 +54,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-def X(k: int) -> int:
-    return gtsam.symbol("x", k)
-
-
-def V(k: int) -> int:
-    return gtsam.symbol("v", k)
-
-
-def B(k: int) -> int:
-    return gtsam.symbol("b", k)
-
-
-def L(i: int) -> int:
-    return gtsam.symbol("l", i)
-
-
-def _sorted_map(d: dict[int, int]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    k = np.fromiter(d.keys(), np.int64, len(d))
-    v = np.fromiter(d.values(), np.int64, len(d))
-    o = np.argsort(k)
-    return k[o], v[o]
-
-
-def _lookup(keys: NDArray, vals: NDArray, q: NDArray, default: int) -> NDArray[np.int64]:
-    """``vals`` at ``q`` in the sorted ``keys`` (``default`` where absent), vectorised."""
-    if len(keys) == 0:
-        return np.full(len(q), default, np.int64)
-    i = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-    return np.where(keys[i] == q, vals[i], default)
-
-
-class EstimatorDivergedError(MogsError, RuntimeError):
-    """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise.
-    ``reason`` names the cause in one word (``solve_failed``, ``speed``, ``gyro_bias``, ...)."""
-
-    def __init__(self, message: str, reason: str = "diverged") -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
-@dataclass(frozen=True)
-class EstimatorParams:
-    """Parameters of :class:`VioEstimator`."""
-
-    window_size: int = 8  # keyframes kept in the window (the newest frame comes on top)
-    lm_iterations: int = 2  # Levenberg-Marquardt iterations per update (warm-started; 3 costs
-    # ~20 % more estimation time for the same accuracy, docs/frontend.md)
-    pixel_sigma_px: float = 4.0  # reprojection noise (undistorted px); KLT on rendered or real
-    # images has heavy-tailed errors: 1 px lets vision override the IMU (jittery attitude)
-    huber_k: float = 1.345  # Huber threshold in sigmas
-    min_parallax_deg: float = 1.0  # triangulate only with at least this ray angle
-    min_depth_m: float = 0.5  # landmark depth bounds at triangulation
-    max_depth_m: float = 150.0
-    outlier_reproj_px: float = 5.0  # a landmark with a larger reprojection error is removed
-    marginalize_landmarks: bool = False  # Schur-complement the oldest keyframe's landmarks too
-    # (True: restarts every landmark it saw; False: they stay variables, see keep_visual_prior)
-    keep_visual_prior: bool = False  # the oldest keyframe's observations go into the
-    # marginalisation prior with their landmarks kept as variables (exact Schur complement; a
-    # landmark is marginalised out of the prior when it leaves the window). False: they are dropped
-    # and the window's scale drifts (docs/frontend.md, "Investigation")
-    visual_prior_min_obs: int = 4  # only landmarks seen by at least this many window frames go
-    # into the prior (a fresh two-view landmark is linearised far from its converged position)
-    zero_motion_sigma_m: float = 2e-3  # translation sigma of a zero-motion factor
-    zero_motion_sigma_rad: float = 2e-3  # rotation sigma of a zero-motion factor
-    init_rot_sigma_rad: float = 0.01  # prior on the first state (roll/pitch from gravity)
-    init_pos_sigma_m: float = 0.01
-    init_vel_sigma_m_s: float = 0.1
-    init_gyro_bias_sigma_rad_s: float = 5e-3
-    init_accel_bias_sigma_m_s2: float = 0.1
-    max_gyro_bias_rad_s: float = 0.3  # failure bounds
-    max_accel_bias_m_s2: float = 2.0
-    max_speed_m_s: float = 80.0
-
-    def __post_init__(self) -> None:
-        if self.window_size < 2 or self.lm_iterations < 1 or self.pixel_sigma_px <= 0:
-            raise ConfigError("estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px > 0")
-
-
-@dataclass
-class _Frame:
-    seq: int
-    t_ns: int
-    ids: NDArray[np.int64]
-    uv_px: NDArray[np.float64]
-    track_len: NDArray[np.int32]
-    is_keyframe: bool
-    stationary: bool
-
-
-@dataclass
-class EstimatorState:
-    """Estimate at the newest frame."""
-
-    t_ns: int
-    T_world_imu: NDArray[np.float64]  # [4, 4]
-    velocity_world_m_s: NDArray[np.float64]  # [3]
-    gyro_bias_rad_s: NDArray[np.float64]  # [3]
-    accel_bias_m_s2: NDArray[np.float64]  # [3]
-    n_landmarks: int
-    stats: dict[str, float] = field(default_factory=dict)
-
-
-@dataclass
-class LandmarkView:
-    """Landmarks seen in one frame, in that frame's camera. Arrays share length ``N``."""
-
-    track_ids: NDArray[np.int64]  # [N]
-    uv_px: NDArray[np.float32]  # [N, 2] undistorted pixel of the observation
-    xyz_cam_m: NDArray[np.float32]  # [N, 3] metric point in the camera frame
-    cov_cam_m2: NDArray[np.float32]  # [N, 3, 3] its covariance (poses fixed)
-    reproj_err_px: NDArray[np.float32]  # [N] worst reprojection error over the window
-    track_len: NDArray[np.int32]  # [N]
 
 
 class VioEstimator:
@@ -184,7 +83,7 @@ class VioEstimator:
     # ------------------------------------------------------------------------------------ state
 
     def reset(self) -> None:
-        self.frames: list[_Frame] = []
+        self.frames: list[WindowFrame] = []
         self.values = gtsam.Values()
         self._priors: list[gtsam.NonlinearFactor] = []
         self._imu: dict[int, gtsam.CombinedImuFactor] = {}  # keyed by the later frame's seq
@@ -258,7 +157,7 @@ class VioEstimator:
         track_len: NDArray | None,
         is_keyframe: bool,
         stationary: bool,
-    ) -> _Frame:
+    ) -> WindowFrame:
         ids = check_array("ids", ids, shape=(None,), dtype=np.integer).astype(np.int64)
         uv = check_array("uv_px", uv_px, shape=(len(ids), 2), finite=True).astype(np.float64)
         tl = (
@@ -266,7 +165,7 @@ class VioEstimator:
             if track_len is None
             else check_array("track_len", track_len, shape=(len(ids),)).astype(np.int32)
         )
-        f = _Frame(self._seq, int(t_ns), ids, uv, tl, is_keyframe, stationary)
+        f = WindowFrame(self._seq, int(t_ns), ids, uv, tl, is_keyframe, stationary)
         self._seq += 1
         self.frames.append(f)
         return f
@@ -370,7 +269,9 @@ class VioEstimator:
         self._imu.pop(f.seq, None)
         self._zero.pop(f.seq, None)
 
-    def _obs(self, f: _Frame) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    def _obs(
+        self, f: WindowFrame
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
         """Valid landmark observations of frame ``f``: (track ids, landmark ids, uv). Cached until
         the landmark bookkeeping changes (:meth:`_touch`)."""
         hit = self._obs_cache.get(f.seq)
@@ -380,10 +281,10 @@ class VioEstimator:
             out = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         else:
             if self._lut is None:
-                self._lut = (_sorted_map(self._lid_of_track), _sorted_map(self._min_seq_of_track))
+                self._lut = (sorted_map(self._lid_of_track), sorted_map(self._min_seq_of_track))
             (kl, vl), (km, vm) = self._lut
-            lid = _lookup(kl, vl, f.ids, -1)
-            mins = _lookup(km, vm, f.ids, 0)
+            lid = lookup(kl, vl, f.ids, -1)
+            mins = lookup(km, vm, f.ids, 0)
             ok = (lid >= 0) & (f.seq >= mins)
             out = (f.ids[ok], lid[ok], f.uv_px[ok])
         self._obs_cache[f.seq] = out
@@ -396,7 +297,7 @@ class VioEstimator:
     def _cam_poses(self) -> NDArray[np.float64]:
         return np.stack([self.pose(f.seq) @ self.T_imu_cam for f in self.frames])
 
-    def _triangulate_new(self, newest: _Frame) -> None:
+    def _triangulate_new(self, newest: WindowFrame) -> None:
         """Triangulate tracks of the newest frame that have no landmark yet (two-ray midpoint
         between their earliest valid observation in the window and the newest one)."""
         p = self.params
@@ -404,7 +305,6 @@ class VioEstimator:
         if len(cand) == 0 or len(self.frames) < 2:
             return
         Tc = self._cam_poses()
-        K_inv = np.linalg.inv(self.camera.K)
         first_uv = np.full((len(cand), 2), np.nan)
         first_f = np.full(len(cand), -1, np.int64)
         for fi, f in enumerate(self.frames[:-1]):
@@ -421,8 +321,8 @@ class VioEstimator:
         cand, first_uv, first_f = cand[ia], first_uv[ia], first_f[ia]
         last_uv = newest.uv_px[ib]
         Ta, Tb = Tc[first_f], Tc[-1]
-        ra = np.c_[first_uv, np.ones(len(cand))] @ K_inv.T
-        rb = np.c_[last_uv, np.ones(len(cand))] @ K_inv.T
+        ra = self.camera.rays(first_uv)
+        rb = self.camera.rays(last_uv)
         da = np.einsum("nij,nj->ni", Ta[:, :3, :3], ra)
         db = rb @ Tb[:3, :3].T
         pts, ang = triangulate_midpoint(Ta[:, :3, 3], da, np.broadcast_to(Tb[:3, 3], da.shape), db)
@@ -455,7 +355,7 @@ class VioEstimator:
             g.push_back(self._frame_factors(f))
         return g
 
-    def _frame_factors(self, f: _Frame) -> gtsam.NonlinearFactorGraph:
+    def _frame_factors(self, f: WindowFrame) -> gtsam.NonlinearFactorGraph:
         """Projection factors of frame ``f``, built once and reused while its valid landmark
         observations stay the same (factor construction dominated the per-frame Python time)."""
         _, lids, uv = self._obs(f)
@@ -552,23 +452,10 @@ class VioEstimator:
             for fac in touched:
                 lin.push_back(fac.linearize(self.values))
             elim = sorted(keys & set().union(*(set(f.keys()) for f in touched)))
-            for key in elim:  # keeps elimination determinate for a point seen by one frame only
-                lin.add(
-                    gtsam.JacobianFactor(
-                        key, np.eye(3) * 1e-2, np.zeros(3), gtsam.noiseModel.Unit.Create(3)
-                    )
-                )
-            order = gtsam.Ordering()
-            for key in elim:
-                order.push_back(key)
+            regularize_points(lin, elim)
             keep = [f for f in self._priors if not set(f.keys()) & keys]
             try:
-                _, remaining = lin.eliminatePartialMultifrontal(order)
-                self._priors = keep + [
-                    gtsam.LinearContainerFactor(remaining.at(i), self.values)
-                    for i in range(remaining.size())
-                    if remaining.at(i) is not None
-                ]
+                self._priors = keep + schur_complement(lin, elim, self.values)
             except RuntimeError as err:
                 log.warning("landmark marginalisation failed (%s); dropping its prior", err)
                 self._priors = keep
@@ -610,22 +497,9 @@ class VioEstimator:
                         )
                     )
         lin = g.linearize(self.values)
-        for lid in lid_set:  # keeps elimination determinate for poorly constrained points
-            lin.add(
-                gtsam.JacobianFactor(
-                    L(lid), np.eye(3) * 1e-2, np.zeros(3), gtsam.noiseModel.Unit.Create(3)
-                )
-            )
-        order = gtsam.Ordering()
-        for key in sorted(elim):
-            order.push_back(key)
+        regularize_points(lin, [L(lid) for lid in lid_set])
         try:
-            _, remaining = lin.eliminatePartialMultifrontal(order)
-            new_priors = [
-                gtsam.LinearContainerFactor(remaining.at(i), self.values)
-                for i in range(remaining.size())
-                if remaining.at(i) is not None
-            ]
+            new_priors = schur_complement(lin, sorted(elim), self.values)
         except RuntimeError as err:
             log.warning(
                 "marginalisation failed (%s); dropping the oldest keyframe's information", err
@@ -657,7 +531,7 @@ class VioEstimator:
         self._forget_landmarks(gone)
         # A track in no window frame never comes back (the tracker only continues the newest
         # frame's tracks or starts new ids): its entry would only grow the lookup.
-        k, v = _sorted_map(self._min_seq_of_track)
+        k, v = sorted_map(self._min_seq_of_track)
         keep = np.isin(k, np.concatenate([f.ids for f in self.frames]))
         self._min_seq_of_track = dict(zip(k[keep].tolist(), v[keep].tolist(), strict=True))
         self._touch()

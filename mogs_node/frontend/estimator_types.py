@@ -1,0 +1,141 @@
+"""Value types and variable keys of the sliding-window estimator (:mod:`.estimator`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from mogs_node.errors import ConfigError, MogsError
+
+__all__ = [
+    "B",
+    "EstimatorDivergedError",
+    "EstimatorParams",
+    "EstimatorState",
+    "L",
+    "LandmarkView",
+    "V",
+    "WindowFrame",
+    "X",
+    "lookup",
+    "sorted_map",
+]
+
+
+def X(k: int) -> int:
+    return gtsam.symbol("x", k)
+
+
+def V(k: int) -> int:
+    return gtsam.symbol("v", k)
+
+
+def B(k: int) -> int:
+    return gtsam.symbol("b", k)
+
+
+def L(i: int) -> int:
+    return gtsam.symbol("l", i)
+
+
+def sorted_map(d: dict[int, int]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    k = np.fromiter(d.keys(), np.int64, len(d))
+    v = np.fromiter(d.values(), np.int64, len(d))
+    o = np.argsort(k)
+    return k[o], v[o]
+
+
+def lookup(keys: NDArray, vals: NDArray, q: NDArray, default: int) -> NDArray[np.int64]:
+    """``vals`` at ``q`` in the sorted ``keys`` (``default`` where absent), vectorised."""
+    if len(keys) == 0:
+        return np.full(len(q), default, np.int64)
+    i = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+    return np.where(keys[i] == q, vals[i], default)
+
+
+class EstimatorDivergedError(MogsError, RuntimeError):
+    """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise.
+    ``reason`` names the cause in one word (``solve_failed``, ``speed``, ``gyro_bias``, ...)."""
+
+    def __init__(self, message: str, reason: str = "diverged") -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    """Parameters of :class:`VioEstimator`."""
+
+    window_size: int = 8  # keyframes kept in the window (the newest frame comes on top)
+    lm_iterations: int = 2  # Levenberg-Marquardt iterations per update (warm-started; 3 costs
+    # ~20 % more estimation time for the same accuracy, docs/frontend.md)
+    pixel_sigma_px: float = 4.0  # reprojection noise (undistorted px); KLT on rendered or real
+    # images has heavy-tailed errors: 1 px lets vision override the IMU (jittery attitude)
+    huber_k: float = 1.345  # Huber threshold in sigmas
+    min_parallax_deg: float = 1.0  # triangulate only with at least this ray angle
+    min_depth_m: float = 0.5  # landmark depth bounds at triangulation
+    max_depth_m: float = 150.0
+    outlier_reproj_px: float = 5.0  # a landmark with a larger reprojection error is removed
+    marginalize_landmarks: bool = False  # Schur-complement the oldest keyframe's landmarks too
+    # (True: restarts every landmark it saw; False: they stay variables, see keep_visual_prior)
+    keep_visual_prior: bool = False  # the oldest keyframe's observations go into the
+    # marginalisation prior with their landmarks kept as variables (exact Schur complement; a
+    # landmark is marginalised out of the prior when it leaves the window). False: they are dropped
+    # and the window's scale drifts (docs/frontend.md, "Investigation")
+    visual_prior_min_obs: int = 4  # only landmarks seen by at least this many window frames go
+    # into the prior (a fresh two-view landmark is linearised far from its converged position)
+    zero_motion_sigma_m: float = 2e-3  # translation sigma of a zero-motion factor
+    zero_motion_sigma_rad: float = 2e-3  # rotation sigma of a zero-motion factor
+    init_rot_sigma_rad: float = 0.01  # prior on the first state (roll/pitch from gravity)
+    init_pos_sigma_m: float = 0.01
+    init_vel_sigma_m_s: float = 0.1
+    init_gyro_bias_sigma_rad_s: float = 5e-3
+    init_accel_bias_sigma_m_s2: float = 0.1
+    max_gyro_bias_rad_s: float = 0.3  # failure bounds
+    max_accel_bias_m_s2: float = 2.0
+    max_speed_m_s: float = 80.0
+
+    def __post_init__(self) -> None:
+        if self.window_size < 2 or self.lm_iterations < 1 or self.pixel_sigma_px <= 0:
+            raise ConfigError("estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px > 0")
+
+
+@dataclass
+class WindowFrame:
+    """One frame of the window: its tracks' pixels and whether it is kept as a keyframe."""
+
+    seq: int
+    t_ns: int
+    ids: NDArray[np.int64]
+    uv_px: NDArray[np.float64]
+    track_len: NDArray[np.int32]
+    is_keyframe: bool
+    stationary: bool
+
+
+@dataclass
+class EstimatorState:
+    """Estimate at the newest frame."""
+
+    t_ns: int
+    T_world_imu: NDArray[np.float64]  # [4, 4]
+    velocity_world_m_s: NDArray[np.float64]  # [3]
+    gyro_bias_rad_s: NDArray[np.float64]  # [3]
+    accel_bias_m_s2: NDArray[np.float64]  # [3]
+    n_landmarks: int
+    stats: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class LandmarkView:
+    """Landmarks seen in one frame, in that frame's camera. Arrays share length ``N``."""
+
+    track_ids: NDArray[np.int64]  # [N]
+    uv_px: NDArray[np.float32]  # [N, 2] undistorted pixel of the observation
+    xyz_cam_m: NDArray[np.float32]  # [N, 3] metric point in the camera frame
+    cov_cam_m2: NDArray[np.float32]  # [N, 3, 3] its covariance (poses fixed)
+    reproj_err_px: NDArray[np.float32]  # [N] worst reprojection error over the window
+    track_len: NDArray[np.int32]  # [N]
