@@ -171,7 +171,7 @@ def open_sequence(
     if kind not in SOURCE_KINDS:
         raise ConfigError(f"source: expected one of {SOURCE_KINDS}, got {kind!r}")
     if kind == "sim":
-        from mogs_node.node import parse_params
+        from mogs_node.params import parse_params
         from mogs_node.sim import SimConfig, make_sequence
 
         cfg = parse_params(SimConfig, sim or {}, where="sim")

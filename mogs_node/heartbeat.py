@@ -18,6 +18,7 @@ shared between threads), as ROS 2 keeps liveliness apart from callbacks:
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -25,9 +26,9 @@ from collections.abc import Callable
 import zmq
 
 from mogs_node import msgs
-from mogs_node.bus import BusConfig, Publisher
+from mogs_node.bus import BusConfig, Publisher, Subscriber
 
-__all__ = ["Heartbeat", "Progress"]
+__all__ = ["Heartbeat", "Progress", "diagnostics_message", "topic_stats"]
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
@@ -170,3 +171,47 @@ class Heartbeat:
             if self._last_sent is not None:
                 self.gap_max_s = max(self.gap_max_s, now - self._last_sent)
             self._last_sent = now
+
+
+def topic_stats(sub: Subscriber | None, pub: Publisher) -> dict[str, dict[str, int]]:
+    """Per-topic counters of a node's sockets: received / lost / dropped ..., published, shm."""
+    out: dict[str, dict[str, int]] = {}
+    if sub is not None:
+        for topic, st in sub.stats.items():
+            out[topic] = st.as_dict()
+    for topic, n in pub.published.items():
+        out.setdefault(topic, {})["published"] = n
+    for topic, counters in pub.shm_counters().items():
+        out.setdefault(topic, {}).update(counters)
+    return out
+
+
+def diagnostics_message(
+    name: str,
+    counters: dict[str, float],
+    sub: Subscriber | None,
+    pub: Publisher,
+    uptime_s: float,
+    status: str | None = None,
+) -> msgs.Diagnostics:
+    """A node's ``/diagnostics`` message; ``counters`` gets the socket totals written into it.
+    ``status`` defaults to "ok", or "warn" once a message was lost or a handler failed."""
+    stats = topic_stats(sub, pub)
+    c = counters
+    if sub is not None:
+        c["lost"] = sum(s.lost for s in sub.stats.values())
+        c["malformed"] = sum(s.malformed for s in sub.stats.values()) + sub.malformed
+        c["received"] = sum(s.received for s in sub.stats.values())
+    c["dropped"] = sum(s.get("dropped", 0) for s in stats.values())
+    if status is None:
+        status = "ok" if c["lost"] == 0 and c["handler_errors"] == 0 else "warn"
+    return msgs.Diagnostics(
+        stamp_ns=time.time_ns(),
+        frame_id="",
+        node=name,
+        pid=os.getpid(),
+        uptime_s=uptime_s,
+        status=status,
+        counters=dict(c),
+        topics=stats,
+    )

@@ -21,18 +21,15 @@ subscriptions, and handlers publish results. The shell owns everything else:
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import logging
 import os
 import signal
 import threading
 import time
-import types
-import typing
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import zmq
 
@@ -40,7 +37,17 @@ from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber
 from mogs_node.errors import ConfigError, DatasetError, ModelError, MogsError
 from mogs_node.failure_log import FailureLog
-from mogs_node.heartbeat import DIAGNOSTICS_TOPIC, Heartbeat, Progress
+from mogs_node.heartbeat import (
+    DIAGNOSTICS_TOPIC,
+    Heartbeat,
+    Progress,
+    diagnostics_message,
+    topic_stats,
+)
+from mogs_node.params import EmptyParams, parse_params
+
+if TYPE_CHECKING:
+    from mogs_node.journal.replay import JournalReplay
 
 __all__ = [
     "CATCH_UP_ENV",
@@ -69,91 +76,6 @@ def message_key(msg: msgs.Message) -> int:
     return int(kid) if kid is not None else int(msg.stamp_ns)
 
 
-@dataclass(frozen=True)
-class EmptyParams:
-    """A node without parameters."""
-
-
-def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "params") -> Any:
-    """Build the frozen params dataclass ``cls`` from a mapping, strictly.
-
-    Unknown keys and values of the wrong type raise :class:`ConfigError` naming the key; ints are
-    accepted for float fields, lists for tuple fields.
-    """
-    if not dataclasses.is_dataclass(cls):
-        raise ConfigError(f"{where}: {cls!r} is not a dataclass")
-    values = dict(values or {})
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = set(values) - names
-    if unknown:
-        close = {u: difflib.get_close_matches(u, names, n=1) for u in sorted(unknown)}
-        hint = "; ".join(f"{u!r}: did you mean {c[0]!r}?" for u, c in close.items() if c)
-        raise ConfigError(
-            f"{where}: unknown parameter(s) {sorted(unknown)}"
-            + (f" ({hint})" if hint else "")
-            + f"; known: {sorted(names)}"
-        )
-    kwargs = {}
-    for name, value in values.items():
-        kwargs[name] = _coerce(hints.get(name, Any), value, f"{where}.{name}")
-    try:
-        return cls(**kwargs)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"{where}: {err}") from err
-
-
-def _coerce(tp: Any, value: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        for a in args:
-            try:
-                return _coerce(a, value, where)
-            except ConfigError:
-                continue
-        raise ConfigError(f"{where}: {value!r} does not fit {tp}")
-    if tp is type(None):
-        if value is None:
-            return None
-        raise ConfigError(f"{where}: expected null, got {value!r}")
-    if origin is typing.Literal:
-        if value in args:
-            return value
-        raise ConfigError(f"{where}: {value!r} is not one of {list(args)}")
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected a bool, got {value!r}")
-    if tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected an int, got {value!r}")
-    if tp is float:
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            return float(value)
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
-    if tp is str:
-        if isinstance(value, str):
-            return value
-        raise ConfigError(f"{where}: expected a string, got {value!r}")
-    if origin is tuple:
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-        if len(args) != len(value):
-            raise ConfigError(f"{where}: expected {len(args)} items, got {len(value)}")
-        return tuple(_coerce(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
-    if origin in (list, dict) or tp in (list, dict):
-        if not isinstance(value, origin or tp):
-            raise ConfigError(f"{where}: expected a {(origin or tp).__name__}, got {value!r}")
-        return value
-    return value
-
-
 Handler = Callable[[msgs.Message], None]
 
 
@@ -170,15 +92,6 @@ class _Subscription:
     waiting: deque[list[Any]] = dataclasses.field(default_factory=deque)
     idempotent: bool = False  # handle each key (keyframe id / stamp) once; repeats are dropped
     handled: set[int] = dataclasses.field(default_factory=set)
-
-
-@dataclass
-class _CatchUp:
-    client: Any  # mogs_node.journal.protocol.JournalClient
-    topics: tuple[str, ...]
-    start: int = 0
-    replayed: int = 0
-    t0: float = 0.0
 
 
 class Node:
@@ -217,11 +130,10 @@ class Node:
         # (subscription, [envelope]) in arrival order; a best-effort box may be emptied (None)
         self._queue: deque[tuple[_Subscription, list[Any]]] = deque()
         self._timers: list[list[Any]] = []  # [period_s, next_due, callback]
-        self._extra: dict[
-            Any, Callable[[], None]
-        ] = {}  # external socket / fd -> on-readable callback
+        # external socket / fd -> on-readable callback
+        self._extra: dict[Any, Callable[[], None]] = {}
         self._stop = threading.Event()
-        self._catch_up: _CatchUp | None = None
+        self._catch_up: JournalReplay | None = None
         self._replayed: dict[str, set[int]] = {}  # topic -> keys replayed from the journal
         self._published_keys: dict[str, set[int]] = {}  # topic -> keys the journal already has
         self._t0 = time.monotonic()
@@ -350,28 +262,32 @@ class Node:
         """
         if not (force or os.environ.get(CATCH_UP_ENV) == "1"):
             return False
-        from mogs_node.journal.protocol import JournalClient
+        from mogs_node.journal.replay import JournalReplay
 
         missing = [t for t in inputs if t not in self._subs]
         if missing:
             raise ConfigError(f"{self.name}: catch_up inputs {missing} are not subscribed")
-        client = JournalClient(self.bus, endpoint=endpoint, context=self._ctx, timeout_s=timeout_s)
-        if settle_s > 0:
-            time.sleep(settle_s)
         try:
-            keys = client.keys(list(outputs)) if outputs else {}
+            replay = JournalReplay.open(
+                self.bus,
+                self._ctx,
+                inputs,
+                outputs,
+                endpoint=endpoint,
+                timeout_s=timeout_s,
+                settle_s=settle_s,
+            )
         except MogsError as err:  # no journal: run on without the missed messages, loudly
-            client.close()
             self.log.error("no catch-up, journal unavailable: %s", err)
             return False
-        self._published_keys = {t: set(keys.get(t, ())) for t in outputs}
-        self._catch_up = _CatchUp(client, tuple(inputs), t0=time.monotonic())
+        self._published_keys = replay.published
+        self._catch_up = replay
         for k in ("catch_up_replayed", "catch_up_suppressed", "catch_up_duplicates"):
             self.counters.setdefault(k, 0)
         self.counters["catching_up"] = 1
         self.log.info(
             "catching up from %s: inputs %s; already published %s",
-            client.endpoint,
+            replay.client.endpoint,
             list(inputs),
             {t: len(v) for t, v in self._published_keys.items()},
         )
@@ -390,12 +306,11 @@ class Node:
         cu = self._catch_up
         assert cu is not None
         try:
-            records, nxt = cu.client.read(cu.topics, cu.start, max_records=max_records)
+            batch = cu.next_batch(max_records, self.bus.max_message_bytes)
         except MogsError as err:
             self.log.error("catch-up stopped, journal unavailable: %s", err)
-            records, nxt = [], cu.start
-        if not records:
-            cu.client.close()
+            batch = None
+        if batch is None:
             self._catch_up = None
             self.counters["catching_up"] = 0
             self.log.info(
@@ -405,13 +320,10 @@ class Node:
                 self.counters["catch_up_suppressed"],
             )
             return
-        cu.start = nxt
-        for frames in records:
-            try:
-                env = msgs.decode(frames, max_bytes=self.bus.max_message_bytes)
-            except MogsError as err:
-                self.log.warning("journal record rejected: %s", err)
-                continue
+        envelopes, rejected = batch
+        for reason in rejected:
+            self.log.warning("journal record rejected: %s", reason)
+        for env in envelopes:
             sub = self._subs.get(env.topic)
             if sub is None or (sub.msg_type is not None and not isinstance(env.msg, sub.msg_type)):
                 continue
@@ -476,39 +388,13 @@ class Node:
     # ------------------------------------------------------------------ diagnostics
 
     def topic_stats(self) -> dict[str, dict[str, int]]:
-        out: dict[str, dict[str, int]] = {}
-        if self._sub is not None:
-            for topic, st in self._sub.stats.items():
-                out[topic] = st.as_dict()
-        for topic, n in self._pub.published.items():
-            out.setdefault(topic, {})["published"] = n
-        for topic, counters in self._pub.shm_counters().items():
-            out.setdefault(topic, {}).update(counters)
-        return out
+        return topic_stats(self._sub, self._pub)
 
     def diagnostics(self, status: str | None = None) -> msgs.Diagnostics:
-        stats = self.topic_stats()
-        c = self.counters
-        if self._sub is not None:
-            c["lost"] = sum(s.lost for s in self._sub.stats.values())
-            c["malformed"] = (
-                sum(s.malformed for s in self._sub.stats.values()) + self._sub.malformed
-            )
-            c["received"] = sum(s.received for s in self._sub.stats.values())
-        c["dropped"] = sum(s.get("dropped", 0) for s in stats.values())
-        c["queue_depth"] = len(self._queue)
-        c["loop_latency_ms"] = round(self._latency_ewma_ms, 3)
-        if status is None:
-            status = "ok" if c["lost"] == 0 and c["handler_errors"] == 0 else "warn"
-        return msgs.Diagnostics(
-            stamp_ns=time.time_ns(),
-            frame_id="",
-            node=self.name,
-            pid=os.getpid(),
-            uptime_s=time.monotonic() - self._t0,
-            status=status,
-            counters=dict(c),
-            topics=stats,
+        self.counters["queue_depth"] = len(self._queue)
+        self.counters["loop_latency_ms"] = round(self._latency_ewma_ms, 3)
+        return diagnostics_message(
+            self.name, self.counters, self._sub, self._pub, time.monotonic() - self._t0, status
         )
 
     def publish_diagnostics(self) -> None:
@@ -544,9 +430,7 @@ class Node:
             if sub.msg_type is not None and not isinstance(env.msg, sub.msg_type):
                 st = self._sub.stats[env.topic]
                 st.malformed += 1
-                if (
-                    st.malformed & (st.malformed - 1) == 0
-                ):  # 1st, 2nd, 4th, ...: a flood is not a log flood
+                if st.malformed & (st.malformed - 1) == 0:  # 1st, 2nd, 4th, ...: no log flood
                     self.log.warning(
                         "%s: expected %s, got %s (%d such messages so far)",
                         env.topic,
@@ -591,12 +475,17 @@ class Node:
                 name = getattr(timer[2], "__name__", str(timer[2]))
                 self.liveness.start(f"timer {name}")
                 try:
-                    timer[2]()
-                except Exception as err:
-                    self.counters["handler_errors"] += 1
-                    self.failures.failed(f"timer {name}", err, "failed")
+                    self._call_counted(f"timer {name}", timer[2])
                 finally:
                     self.liveness.done()
+
+    def _call_counted(self, what: str, callback: Callable[[], None]) -> None:
+        """Call ``callback``; an error is counted and logged (once per repeat), never raised."""
+        try:
+            callback()
+        except Exception as err:
+            self.counters["handler_errors"] += 1
+            self.failures.failed(what, err, "failed")
 
     def spin_once(self, timeout_ms: int = 100) -> None:
         """Wait up to ``timeout_ms`` for input, then handle everything queued and due timers."""
@@ -624,11 +513,7 @@ class Node:
                 # zmq reports its own sockets as themselves and anything else by file descriptor
                 key = sock if isinstance(sock, zmq.Socket | int) else sock.fileno()
                 if key in ready:
-                    try:
-                        callback()
-                    except Exception as err:
-                        self.counters["handler_errors"] += 1
-                        self.failures.failed(f"reader of {sock}", err, "failed")
+                    self._call_counted(f"reader of {sock}", callback)
             if self._sub is not None and (self._queue or self._sub.socket in ready):
                 self._read_available()
                 self._handle_queue()

@@ -25,7 +25,7 @@ from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber, generate_keys
 from mogs_node.cli import SUBCOMMANDS
 from mogs_node.commands.node import load_node_class
-from mogs_node.node import parse_params
+from mogs_node.params import parse_params
 
 REPO = Path(__file__).resolve().parents[1]
 DOCKER = REPO / "docker"

@@ -13,7 +13,7 @@ import pytest
 from bridges.sources import camera_info_of, open_sequence
 from mogs_node.commands.node import load_node_class
 from mogs_node.launch import LaunchFile, NodeSpec, load_launch_file
-from mogs_node.node import parse_params
+from mogs_node.params import parse_params
 
 REPO = Path(__file__).resolve().parents[1]
 _SIM_INFO = camera_info_of(open_sequence("sim", sim={"n_frames": 1, "width": 64, "height": 32}))

@@ -19,7 +19,7 @@ from mogs_node.commands.launch import parse_overrides
 from mogs_node.commands.node import load_node_class
 from mogs_node.errors import ConfigError
 from mogs_node.launch import load_launch_file, parse_launch
-from mogs_node.node import parse_params
+from mogs_node.params import parse_params
 from mogs_node.presets import PRESETS, ROLES, apply_preset, deep_merge, help_text, role_of
 
 REPO = Path(__file__).resolve().parents[1]

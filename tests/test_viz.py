@@ -301,7 +301,7 @@ def _dropped(node) -> int:
 
 def test_viz_params_are_checked() -> None:
     from mogs_node.errors import ConfigError
-    from mogs_node.node import parse_params
+    from mogs_node.params import parse_params
     from mogs_node.viz.node import VizParams
 
     with pytest.raises(ConfigError, match="mode"):
@@ -327,7 +327,7 @@ def test_demo_viz_launch_file_is_the_demo_plus_a_viz_node() -> None:
     }
     launch = load_launch_file(repo / "launch/demo_viz.yaml")  # parses, params included
     node = next(n for n in launch.nodes if n.name == "viz")
-    from mogs_node.node import parse_params
+    from mogs_node.params import parse_params
 
     parse_params(VizNode.Params, node.params)
 

@@ -25,7 +25,7 @@ from mogs_node.depth_prior.dense_prior import SOURCES, DensePrior, FusionParams
 from mogs_node.depth_prior.flow_prior import FlowPriorParams
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
-from mogs_node.node import parse_params
+from mogs_node.params import parse_params
 
 __all__ = [
     "CONFIDENCE_EDGES",

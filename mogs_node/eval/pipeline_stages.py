@@ -89,7 +89,7 @@ def prepare_keyframes(
     from mogs_node.eval.frontend_runs import run_frontend
     from mogs_node.frontend.frontend import Frontend
     from mogs_node.frontend.node import FrontendNodeParams, keyframe_message
-    from mogs_node.node import parse_params
+    from mogs_node.params import parse_params
     from mogs_node.sim import SimConfig, make_sequence
 
     sim = dict(params["player"].get("sim", {}))
@@ -140,7 +140,7 @@ def prepare_keyframes(
 
 def graph_masks(kfs: list[StageKeyframe], params: dict[str, dict[str, Any]]) -> list[msgs.Masks]:
     """The demo segmentation node's masks of each keyframe (its launch parameters)."""
-    from mogs_node.node import parse_params
+    from mogs_node.params import parse_params
     from mogs_node.segmentation.graph import GraphSegParams, segment_graph
     from mogs_node.segmentation.node import SegmentationParams
 
@@ -197,7 +197,7 @@ def stage_inputs(
     """Per input kind and variant, one message per keyframe (``Keyframe``, ``DepthMap``,
     ``Masks``) in the form the metrizer node receives."""
     from mogs_node.eval.depth_sim import _depth_edge_free
-    from mogs_node.node import parse_params
+    from mogs_node.params import parse_params
     from mogs_node.segmentation.graph import GraphSegParams, segment_graph
     from mogs_node.segmentation.node import SegmentationParams
     from mogs_node.sim import LfmParams, simulated_lfm
@@ -300,7 +300,7 @@ def evaluate_stages(
     from mogs_node.metrizer.node import MatchedKeyframe, MetrizerNodeParams, metrizer_inputs
     from mogs_node.metrizer.pipeline import MetrizerParams, metrize
     from mogs_node.metrizer.refinement import CdrParams
-    from mogs_node.node import parse_params
+    from mogs_node.params import parse_params
     from mogs_node.report.collect import score_depth
 
     mp = parse_params(MetrizerNodeParams, params.get("metrizer", {}), where="metrizer")
