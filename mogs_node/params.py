@@ -11,7 +11,7 @@ import dataclasses
 import difflib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,6 +54,16 @@ def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "p
         raise ConfigError(f"{where}: {err}") from err
 
 
+#: scalar field types: what the error calls them, and which YAML values fit (ints fit floats,
+#: bools fit nothing but bools)
+_SCALARS: dict[type, tuple[str, Callable[[Any], bool]]] = {
+    bool: ("a bool", lambda v: isinstance(v, bool)),
+    int: ("an int", lambda v: isinstance(v, int) and not isinstance(v, bool)),
+    float: ("a number", lambda v: isinstance(v, int | float) and not isinstance(v, bool)),
+    str: ("a string", lambda v: isinstance(v, str)),
+}
+
+
 def _coerce(tp: Any, value: Any, where: str) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
@@ -74,22 +84,11 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
         if value in args:
             return value
         raise ConfigError(f"{where}: {value!r} is not one of {list(args)}")
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected a bool, got {value!r}")
-    if tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected an int, got {value!r}")
-    if tp is float:
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            return float(value)
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
-    if tp is str:
-        if isinstance(value, str):
-            return value
-        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    if tp in _SCALARS:
+        what, fits = _SCALARS[tp]
+        if fits(value):
+            return float(value) if tp is float else value
+        raise ConfigError(f"{where}: expected {what}, got {value!r}")
     if origin is tuple:
         if not isinstance(value, list | tuple):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
