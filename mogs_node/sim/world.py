@@ -394,6 +394,122 @@ class World:
 # ------------------------------------------------------------------------------------ generation
 
 
+_CAR_COLORS = (
+    (0.7, 0.1, 0.1),
+    (0.15, 0.2, 0.5),
+    (0.85, 0.85, 0.85),
+    (0.2, 0.2, 0.22),
+    (0.5, 0.5, 0.55),
+    (0.8, 0.6, 0.1),
+)
+
+
+@dataclass
+class _Placer:
+    """Places one kind of roadside object at a time along the centreline. Every draw comes from
+    one generator in a fixed order (side, then kind), so a seed gives the same world."""
+
+    cl: Centerline
+    p: WorldParams
+    rng: np.random.Generator
+    last_id: int
+
+    @property
+    def length_m(self) -> float:
+        return float(self.cl.s[-1])
+
+    def next_id(self) -> int:
+        self.last_id += 1
+        return self.last_id
+
+    def at(self, s: float, lat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        c, t, n = self.cl.frame_at(s)
+        return c + lat * n, t, n
+
+    def facades(self, side: float) -> list[Primitive]:
+        rng, p, L, out = self.rng, self.p, self.length_m, []
+        s = rng.uniform(0, 10)
+        while s < L - 5:
+            length = rng.uniform(8.0, 24.0)
+            if s + length > L:
+                break
+            lat = side * rng.uniform(p.sidewalk_outer_m + 0.5, p.sidewalk_outer_m + 3.5)
+            xy, t, _ = self.at(s + length / 2, lat)
+            h = rng.uniform(6.0, 16.0)
+            u = np.array([t[0], t[1], 0.0])
+            centre = np.array([xy[0], xy[1], h / 2])
+            up = np.array([0.0, 0.0, 1.0])
+            out.append(PlaneRect(centre, u, up, length / 2, h / 2, "facade", self.next_id()))
+            gap = rng.uniform(0.0, 4.0) if rng.random() < 0.6 else rng.uniform(8.0, 20.0)
+            s += length + gap / p.density
+        return out
+
+    def poles(self, side: float) -> list[Primitive]:
+        """Poles near the kerb."""
+        rng, out = self.rng, []
+        s = rng.uniform(0, 15)
+        while s < self.length_m:
+            xy, _, _ = self.at(s, side * (self.p.road_half_width_m + 0.4))
+            r, h = float(rng.uniform(0.08, 0.14)), float(rng.uniform(5.0, 8.0))
+            out.append(Cylinder(xy, r, 0.0, h, "pole", self.next_id()))
+            s += rng.uniform(18.0, 35.0) / self.p.density
+        return out
+
+    def trees(self, side: float) -> list[Primitive]:
+        """A trunk and an ellipsoid crown each."""
+        rng, out = self.rng, []
+        s = rng.uniform(0, 12)
+        while s < self.length_m:
+            xy, _, _ = self.at(s, side * rng.uniform(6.8, 7.6))
+            h = float(rng.uniform(2.2, 3.2))
+            out.append(
+                Cylinder(xy, float(rng.uniform(0.14, 0.28)), 0.0, h, "trunk", self.next_id())
+            )
+            r = rng.uniform(1.3, 2.3, 3)
+            r[2] = rng.uniform(1.4, 2.6)
+            centre = np.array([xy[0], xy[1], h + 0.7 * r[2]])
+            yaw = float(rng.uniform(0, np.pi))
+            color = (0.24 + 0.1 * rng.random(), 0.42 + 0.1 * rng.random(), 0.15)
+            out.append(Ellipsoid(centre, r, yaw, "crown", self.next_id(), color=color))
+            s += rng.uniform(10.0, 26.0) / self.p.density
+        return out
+
+    def parked_cars(self, side: float) -> list[Primitive]:
+        """Cars in the parking lane, either way round."""
+        rng, out = self.rng, []
+        s = rng.uniform(0, 20)
+        while s < self.length_m:
+            xy, t, _ = self.at(s, side * 4.5)
+            yaw = float(np.arctan2(t[1], t[0]) + (np.pi if rng.random() < 0.5 else 0.0))
+            color = _CAR_COLORS[int(rng.integers(len(_CAR_COLORS)))]
+            centre, radii = np.array([xy[0], xy[1], 0.78]), np.array([2.1, 0.88, 0.74])
+            out.append(Ellipsoid(centre, radii, yaw, "car", self.next_id(), color=color))
+            s += rng.uniform(9.0, 35.0) / self.p.density
+        return out
+
+    def bushes_and_boxes(self, side: float) -> list[Primitive]:
+        """Bushes (60 %) and boxes by the facades."""
+        rng, out = self.rng, []
+        s = rng.uniform(0, 20)
+        while s < self.length_m:
+            xy, t, _ = self.at(s, side * rng.uniform(8.0, 8.6))
+            yaw = float(np.arctan2(t[1], t[0]))
+            if rng.random() < 0.6:
+                r = np.array([rng.uniform(0.7, 1.3), rng.uniform(0.5, 0.9), rng.uniform(0.4, 0.7)])
+                centre = np.array([xy[0], xy[1], 0.8 * r[2]])
+                color = (0.2, 0.34, 0.13)
+                out.append(Ellipsoid(centre, r, yaw, "bush", self.next_id(), color=color))
+            else:
+                half = np.array(
+                    [rng.uniform(0.3, 1.2), rng.uniform(0.25, 0.8), rng.uniform(0.5, 1.1)]
+                )
+                centre = np.array([xy[0], xy[1], half[2]])
+                color = (0.45 + 0.3 * rng.random(), 0.45 + 0.2 * rng.random(), 0.4)
+                out.append(Box(centre, half, yaw, "box", self.next_id(), color=color))
+            s += rng.uniform(12.0, 30.0) / self.p.density
+        return out
+
+
 def generate_world(
     centerline_xy: np.ndarray, seed: int, params: WorldParams | None = None
 ) -> World:
@@ -407,134 +523,15 @@ def generate_world(
         raise ConfigError(f"density: must be positive, got {p.density}")
     cl = Centerline.from_points(centerline_xy)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7]))
-    L = float(cl.s[-1])
+    placer = _Placer(cl, p, rng, last_id=int(rng.integers(1, 2**30)))
     prims: list[Primitive] = []
-    sd = int(rng.integers(1, 2**30))
-
-    def nxt() -> int:
-        nonlocal sd
-        sd += 1
-        return sd
-
-    def place(s: float, lat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        c, t, n = cl.frame_at(s)
-        return c + lat * n, t, n
-
-    dens = p.density
-    car_colors = [
-        (0.7, 0.1, 0.1),
-        (0.15, 0.2, 0.5),
-        (0.85, 0.85, 0.85),
-        (0.2, 0.2, 0.22),
-        (0.5, 0.5, 0.55),
-        (0.8, 0.6, 0.1),
-    ]
     for side in (1.0, -1.0):
-        # facades
-        s = rng.uniform(0, 10)
-        while s < L - 5:
-            length = rng.uniform(8.0, 24.0)
-            if s + length > L:
-                break
-            lat = side * rng.uniform(p.sidewalk_outer_m + 0.5, p.sidewalk_outer_m + 3.5)
-            xy, t, _ = place(s + length / 2, lat)
-            h = rng.uniform(6.0, 16.0)
-            u = np.array([t[0], t[1], 0.0])
-            prims.append(
-                PlaneRect(
-                    np.array([xy[0], xy[1], h / 2]),
-                    u,
-                    np.array([0.0, 0.0, 1.0]),
-                    length / 2,
-                    h / 2,
-                    "facade",
-                    nxt(),
-                )
-            )
-            s += (
-                length
-                + (rng.uniform(0.0, 4.0) if rng.random() < 0.6 else rng.uniform(8.0, 20.0)) / dens
-            )
-        # poles near the kerb
-        s = rng.uniform(0, 15)
-        while s < L:
-            xy, _, _ = place(s, side * (p.road_half_width_m + 0.4))
-            prims.append(
-                Cylinder(
-                    xy,
-                    float(rng.uniform(0.08, 0.14)),
-                    0.0,
-                    float(rng.uniform(5.0, 8.0)),
-                    "pole",
-                    nxt(),
-                )
-            )
-            s += rng.uniform(18.0, 35.0) / dens
-        # trees: trunk + crown
-        s = rng.uniform(0, 12)
-        while s < L:
-            xy, _, _ = place(s, side * rng.uniform(6.8, 7.6))
-            h = float(rng.uniform(2.2, 3.2))
-            prims.append(Cylinder(xy, float(rng.uniform(0.14, 0.28)), 0.0, h, "trunk", nxt()))
-            r = rng.uniform(1.3, 2.3, 3)
-            r[2] = rng.uniform(1.4, 2.6)
-            prims.append(
-                Ellipsoid(
-                    np.array([xy[0], xy[1], h + 0.7 * r[2]]),
-                    r,
-                    float(rng.uniform(0, np.pi)),
-                    "crown",
-                    nxt(),
-                    color=(0.24 + 0.1 * rng.random(), 0.42 + 0.1 * rng.random(), 0.15),
-                )
-            )
-            s += rng.uniform(10.0, 26.0) / dens
-        # parked cars in the parking lane
-        s = rng.uniform(0, 20)
-        while s < L:
-            xy, t, _ = place(s, side * 4.5)
-            yaw = float(np.arctan2(t[1], t[0]) + (np.pi if rng.random() < 0.5 else 0.0))
-            col = car_colors[int(rng.integers(len(car_colors)))]
-            prims.append(
-                Ellipsoid(
-                    np.array([xy[0], xy[1], 0.78]),
-                    np.array([2.1, 0.88, 0.74]),
-                    yaw,
-                    "car",
-                    nxt(),
-                    color=col,
-                )
-            )
-            s += rng.uniform(9.0, 35.0) / dens
-        # bushes and boxes by the facades
-        s = rng.uniform(0, 20)
-        while s < L:
-            xy, t, _ = place(s, side * rng.uniform(8.0, 8.6))
-            if rng.random() < 0.6:
-                r = np.array([rng.uniform(0.7, 1.3), rng.uniform(0.5, 0.9), rng.uniform(0.4, 0.7)])
-                prims.append(
-                    Ellipsoid(
-                        np.array([xy[0], xy[1], 0.8 * r[2]]),
-                        r,
-                        float(np.arctan2(t[1], t[0])),
-                        "bush",
-                        nxt(),
-                        color=(0.2, 0.34, 0.13),
-                    )
-                )
-            else:
-                half = np.array(
-                    [rng.uniform(0.3, 1.2), rng.uniform(0.25, 0.8), rng.uniform(0.5, 1.1)]
-                )
-                prims.append(
-                    Box(
-                        np.array([xy[0], xy[1], half[2]]),
-                        half,
-                        float(np.arctan2(t[1], t[0])),
-                        "box",
-                        nxt(),
-                        color=(0.45 + 0.3 * rng.random(), 0.45 + 0.2 * rng.random(), 0.4),
-                    )
-                )
-            s += rng.uniform(12.0, 30.0) / dens
+        for kind in (
+            placer.facades,
+            placer.poles,
+            placer.trees,
+            placer.parked_cars,
+            placer.bushes_and_boxes,
+        ):
+            prims.extend(kind(side))
     return World(tuple(prims), cl, p, seed)
