@@ -13,6 +13,7 @@ frame pair). Pure: images and geometry in, one measurement out.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -143,6 +144,63 @@ def _road_pixels(
     return np.stack([xn[ix], yn[iy], np.ones(len(ix))])
 
 
+Warp = Callable[[NDArray], tuple[NDArray, NDArray]]
+
+
+def _search_log_tau(warp: Warp, I1: NDArray, ref: NDArray, p: NDArray, span: float) -> float:
+    """The ``log tau`` of 25 on a grid over ``p[0] +- log(span)`` with the least photometric error."""
+    best = (np.inf, p[0])
+    for lt in p[0] + np.linspace(-np.log(span), np.log(span), 25):
+        qx, qy = warp(np.array([lt, p[1]]))
+        v = sample_at(I1, qx, qy)
+        ok = v >= 0
+        if ok.sum() > 0.3 * len(v):
+            c = float(np.mean(np.abs(v[ok] - ref[ok])))
+            if c < best[0]:
+                best = (c, lt)
+    return best[1]
+
+
+def _align_level(
+    warp: Warp, I1: NDArray, ref: NDArray, p: NDArray, iterations: int, max_roll: float
+) -> tuple[NDArray, float, int, float] | None:
+    """Robust (Huber) Gauss-Newton on ``(log tau, roll)`` at one pyramid level: the parameters,
+    the mean absolute residual, the pixels used and the 1-sigma of ``log tau``; None with fewer
+    than 50 pixels in view."""
+    gx = cv2.Sobel(I1, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(I1, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    res_mean, n_valid, sigma_rel = np.inf, 0, np.inf
+    for _ in range(iterations):
+        qx, qy = warp(p)
+        v = sample_at(I1, qx, qy)
+        ok = (v >= 0) & (qx >= 0) & (qy >= 0)
+        n_valid = int(ok.sum())
+        if n_valid < 50:
+            return None
+        res = (v - ref)[ok]
+        J = np.empty((n_valid, 2))
+        gxs, gys = sample_at(gx, qx, qy)[ok], sample_at(gy, qx, qy)[ok]
+        for k, eps in ((0, 1e-4), (1, 1e-4)):
+            dp = np.zeros(2)
+            dp[k] = eps
+            ax, ay = warp(p + dp)
+            J[:, k] = (gxs * (ax[ok] - qx[ok]) + gys * (ay[ok] - qy[ok])) / eps
+        scale = 1.4826 * float(np.median(np.abs(res))) + 1e-3
+        w = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(res), 1e-9))
+        A = J.T @ (J * w[:, None]) + np.diag([1e-9, 1e-3 * n_valid])
+        step = -np.linalg.solve(A, J.T @ (w * res))
+        step[0] = np.clip(step[0], -0.3, 0.3)
+        step[1] = np.clip(step[1], -0.02, 0.02)
+        p = p + step
+        p[1] = np.clip(p[1], -max_roll, max_roll)
+        res_mean = float(np.mean(np.abs(res)))
+        # 1-sigma of log(tau) from the robust residual scale and the information of tau
+        sigma_rel = scale / np.sqrt(max(float(A[0, 0]), 1e-30))
+        if np.max(np.abs(step)) < 1e-4:
+            break
+    return p, res_mean, n_valid, sigma_rel
+
+
 def estimate_ground_translation(
     gray_prev: NDArray,
     gray_cur: NDArray,
@@ -211,8 +269,6 @@ def estimate_ground_translation(
             px0[1].astype(np.float32)[None],
             cv2.INTER_LINEAR,
         )[0]
-        gx = cv2.Sobel(I1, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-        gy = cv2.Sobel(I1, cv2.CV_32F, 0, 1, ksize=3) / 8.0
         q_rot = Kl @ (R @ r)
         static = sample_at(I1, q_rot[0] / q_rot[2], q_rot[1] / q_rot[2])
         moving = np.abs(static - ref) > params.min_change
@@ -226,46 +282,11 @@ def estimate_ground_translation(
             return q[0] / w, q[1] / w
 
         if search and lev == params.levels - 1:
-            best = (np.inf, p[0])
-            for lt in p[0] + np.linspace(
-                -np.log(params.search_span), np.log(params.search_span), 25
-            ):
-                qx, qy = warp(np.array([lt, p[1]]))
-                v = sample_at(I1, qx, qy)
-                ok = v >= 0
-                if ok.sum() > 0.3 * len(v):
-                    c = float(np.mean(np.abs(v[ok] - ref[ok])))
-                    if c < best[0]:
-                        best = (c, lt)
-            p[0] = best[1]
-        for _ in range(params.iterations):
-            qx, qy = warp(p)
-            v = sample_at(I1, qx, qy)
-            ok = (v >= 0) & (qx >= 0) & (qy >= 0)
-            n_valid = int(ok.sum())
-            if n_valid < 50:
-                return None
-            res = (v - ref)[ok]
-            J = np.empty((n_valid, 2))
-            gxs, gys = sample_at(gx, qx, qy)[ok], sample_at(gy, qx, qy)[ok]
-            for k, eps in ((0, 1e-4), (1, 1e-4)):
-                dp = np.zeros(2)
-                dp[k] = eps
-                ax, ay = warp(p + dp)
-                J[:, k] = (gxs * (ax[ok] - qx[ok]) + gys * (ay[ok] - qy[ok])) / eps
-            scale = 1.4826 * float(np.median(np.abs(res))) + 1e-3
-            w = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(res), 1e-9))
-            A = J.T @ (J * w[:, None]) + np.diag([1e-9, 1e-3 * n_valid])
-            step = -np.linalg.solve(A, J.T @ (w * res))
-            step[0] = np.clip(step[0], -0.3, 0.3)
-            step[1] = np.clip(step[1], -0.02, 0.02)
-            p = p + step
-            p[1] = np.clip(p[1], -max_roll, max_roll)
-            res_mean = float(np.mean(np.abs(res)))
-            # 1-sigma of log(tau) from the robust residual scale and the information of tau
-            sigma_rel = scale / np.sqrt(max(float(A[0, 0]), 1e-30))
-            if np.max(np.abs(step)) < 1e-4:
-                break
+            p[0] = _search_log_tau(warp, I1, ref, p, params.search_span)
+        fit = _align_level(warp, I1, ref, p, params.iterations, max_roll)
+        if fit is None:
+            return None
+        p, res_mean, n_valid, sigma_rel = fit
     if (
         not np.all(np.isfinite(p))
         or n_valid < params.min_pixels
