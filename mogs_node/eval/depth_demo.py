@@ -98,7 +98,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from mogs_node import msgs
     from mogs_node.eval.depth_prior_eval import metrizer_params, prior_params, run_priors
     from mogs_node.eval.pipeline_stages import demo_params, graph_masks, prepare_keyframes
-    from mogs_node.metrizer.node import MatchedKeyframe, metrizer_inputs
+    from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
     from mogs_node.metrizer.pipeline import metrize
     from mogs_node.report.collect import score_depth
 

@@ -66,7 +66,7 @@ def prior_params(
 def metrizer_params(params: dict[str, dict[str, Any]]):
     """The metrizer node's ``(MetrizerParams, mode)`` from a launch file's ``metrizer`` section."""
     from mogs_node.metrizer.consensus import ConsensusParams
-    from mogs_node.metrizer.node import MetrizerNodeParams
+    from mogs_node.metrizer.params import MetrizerNodeParams
     from mogs_node.metrizer.pipeline import MetrizerParams
     from mogs_node.metrizer.refinement import CdrParams
 
@@ -89,7 +89,7 @@ def run_priors(
 ) -> PriorRun:
     """Priors of ``keyframes`` in order; with ``masks`` and ``params`` the metrizer runs in the
     loop (module docstring), else the prior has no metrized depth to warp."""
-    from mogs_node.metrizer.node import MatchedKeyframe, metrizer_inputs
+    from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
     from mogs_node.metrizer.pipeline import metrize_depth
 
     if lag < 1:

@@ -297,7 +297,8 @@ def evaluate_stages(
     """
     from mogs_node.eval.depth_sim import _depth_edge_free
     from mogs_node.metrizer.consensus import ConsensusParams
-    from mogs_node.metrizer.node import MatchedKeyframe, MetrizerNodeParams, metrizer_inputs
+    from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
+    from mogs_node.metrizer.params import MetrizerNodeParams
     from mogs_node.metrizer.pipeline import MetrizerParams, metrize
     from mogs_node.metrizer.refinement import CdrParams
     from mogs_node.params import parse_params

@@ -12,7 +12,7 @@ from mogs_node.errors import ConfigError
 from mogs_node.metrizer.consensus import ConsensusParams
 from mogs_node.metrizer.refinement import CdrParams
 
-__all__ = ["MODES", "MetrizedDepth", "MetrizerParams"]
+__all__ = ["MODES", "MetrizedDepth", "MetrizerNodeParams", "MetrizerParams"]
 
 F64 = NDArray[np.float64]
 
@@ -113,3 +113,34 @@ class MetrizedDepth:
     object_affine: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))  # [M, 2]
     object_confidence: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))  # [M] eq. 5
     stats: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MetrizerNodeParams:
+    """Parameters of the metrizer node."""
+
+    mode: str = "full"  # "full" | "no_msc" | "no_msc_cdr" (ablations)
+    max_wait_s: float = 2.0  # silence of a worker beyond its backlog that gives it up [s]
+    stall_factor: float = 2.0  # times the worker's output interval per keyframe queued at it
+    first_wait_s: float = 60.0  # least wait before a worker's first output (start-up) [s]
+    max_pending: int = 32  # keyframes waiting at most; beyond, the oldest is processed early
+    poll_period_s: float = 0.05  # how often timed-out keyframes are checked [s]
+    metrizer: dict[str, Any] = field(default_factory=dict)  # MetrizerParams fields (flat ones)
+    consensus: dict[str, Any] = field(default_factory=dict)  # ConsensusParams fields
+    cdr: dict[str, Any] = field(default_factory=dict)  # CdrParams fields
+    keyframe_topic: str = "/frontend/keyframe"  # input keyframes
+    masks_topic: str = "/seg/masks"  # input instance masks
+    prior_topic: str = "/prior/depth"  # input dense prior
+    out_topic: str = "/metrizer/depth"  # output metric depth
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"metrizer.mode: expected one of {MODES}, got {self.mode!r}")
+        waits = (self.max_wait_s, self.stall_factor, self.first_wait_s)
+        if not all(0 <= w < float("inf") for w in waits):
+            raise ConfigError(
+                "metrizer: max_wait_s, stall_factor and first_wait_s must be finite and >= 0, "
+                f"got {waits}"
+            )
+        if self.max_pending < 1 or self.poll_period_s <= 0:
+            raise ConfigError("metrizer: max_pending >= 1, poll_period_s > 0")
