@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from mogs_node.errors import GeometryError, ShapeError
 
@@ -27,6 +27,7 @@ __all__ = [
     "intersect_rays_quadric",
     "make_T",
     "nearest_rotation",
+    "pixel_to_normalized",
     "rigid_transform",
     "rotation_defect",
     "quat_wxyz_from_rotmat",
@@ -347,6 +348,13 @@ def transform_points(T_dst_src: FloatArray, points_src: FloatArray) -> FloatArra
 
 
 # ----------------------------------------------------------------------------------------- camera
+
+
+def pixel_to_normalized(K: FloatArray, u: ArrayLike, v: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Normalised image coordinates ``x, y`` (the ray ``(x, y, 1)``) of pixels ``u, v`` (any
+    shapes that broadcast) for a ``[3, 3]`` intrinsic matrix without skew; times a z-depth they
+    give the camera-frame point. The one back-projection formula for callers that hold ``K``."""
+    return (np.asarray(u) - K[0, 2]) / K[0, 0], (np.asarray(v) - K[1, 2]) / K[1, 1]
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from mogs_node.geometry import (
     intersect_rays_plane,
     intersect_rays_quadric,
     make_T,
+    pixel_to_normalized,
     quat_wxyz_from_rotmat,
     quat_wxyz_to_rotmat,
     rotmat_from_rpy,
@@ -263,3 +264,16 @@ def test_check_array_names_what_is_wrong() -> None:
         check_array("ids", np.zeros(3), dtype=np.integer)
     with pytest.raises(ShapeError, match="T_dst_src"):
         transform_points(np.eye(3), np.zeros((2, 3)))
+
+
+@given(cameras, st.floats(1e-2, 1e3))
+@settings(max_examples=40)
+def test_pixel_to_normalized_is_the_cameras_ray_and_broadcasts(cam, depth_m) -> None:
+    rng = np.random.default_rng(2)
+    uv = rng.uniform([0, 0], [cam.width - 1, cam.height - 1], size=(32, 2))
+    x, y = pixel_to_normalized(cam.K, uv[:, 0], uv[:, 1])
+    np.testing.assert_array_equal(np.stack([x, y, np.ones(32)], -1), cam.rays(uv))
+    P = np.stack([x * depth_m, y * depth_m, np.full(32, depth_m)], -1)
+    np.testing.assert_allclose(cam.project(P)[0], uv, atol=1e-9 * max(1.0, depth_m))
+    xg, yg = pixel_to_normalized(cam.K, np.arange(5)[None, :], np.arange(3)[:, None])
+    assert xg.shape == (1, 5) and yg.shape == (3, 1)
