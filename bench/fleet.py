@@ -5,7 +5,8 @@ Writes N tiny sim drives (different seeds, ground truth in the bag), runs each a
 loop costs), then the same drives as one batch on a local Ray, once per ``--cpus-per-drive``
 value. Prints and writes (``--json``): ``sequential_s``, per value C ``batch_s_cpd<C>``,
 ``batch_over_sequential_cpd<C>`` and ``drives_complete_cpd<C>``, ``figures_equal_cpd<C>`` (drives
-whose summary figures equal their single run's), and ``batch_over_sequential`` (C = 1, the
+whose summary figures equal their single run's), ``prior_wait_timeouts_cpd<C>`` (keyframes whose
+prior went without the previous keyframe's metrized depth), and ``batch_over_sequential`` (C = 1, the
 default). The machine's load at start and end goes beside them: on a shared machine the times
 are upper bounds. Section ``fleet`` of docs/benchmarks.md.
 
@@ -102,6 +103,11 @@ def measure(args: argparse.Namespace) -> dict[str, float]:
         fig[f"batch_over_sequential_{key}"] = wall / fig["sequential_s"]
         fig[f"drives_complete_{key}"] = sum(r["status"] == "complete" for r in res.rows)
         fig[f"figures_equal_{key}"] = equal
+        fig[f"prior_wait_timeouts_{key}"] = sum(  # 0: no prior went without the metrized depth
+            _summary(out / drive_id(str(d)))["nodes"]["prior"].get("metrized_wait_timeouts", 0)
+            for d, r in zip(drives, res.rows)
+            if r["status"] == "complete"
+        )
         print(f"batch --cpus-per-drive {cpd:g}: {wall:.1f} s, {equal} drives equal", flush=True)
         write_json(args.json, fig)  # what is measured so far
     first = f"cpd{args.cpus_per_drive[0]:g}"

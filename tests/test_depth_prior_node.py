@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -193,6 +194,53 @@ def test_a_keyframe_waits_for_the_previous_keyframes_metrized_depth(
         got = w.collect(2, 20)
         assert [m.keyframe_id for m in got] == [8, 9]
         assert node.counters["metrized_wait_timeouts"] == 2
+    assert node.counters["handler_errors"] == 0
+
+
+def _heartbeat(node: str, busy_s: float) -> msgs.Diagnostics:
+    return msgs.Diagnostics(
+        stamp_ns=time.time_ns(),
+        frame_id="",
+        node=node,
+        pid=1,
+        uptime_s=1.0,
+        status="busy: handler /seg/masks" if busy_s else "ok",
+        counters={"busy_s": busy_s},
+        topics={},
+    )
+
+
+def test_the_wait_for_metrized_depth_goes_on_while_another_node_is_busy(
+    inproc_bus, wired_node
+) -> None:
+    """A loaded pipeline that works is waited for: while another node's heartbeat says it is
+    busy, keyframe 8 stays held back however long past ``metrized_wait_s``; once no node has
+    said so for ``metrized_wait_s`` (its own heartbeats do not count), 8 goes without 7's depth
+    and the wait is counted. So under any load the prior is the one of an idle machine."""
+    bus, ctx = inproc_bus
+    wait_s = 0.6
+    node = DepthPriorNode(
+        "prior",
+        {"flow": {"far_baseline_m": 0.0}, "metrized_wait_s": wait_s},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
+    w = wired_node(node, ("/frontend/keyframe", "/diagnostics"), "/prior/depth")
+    w.pub.publish("/frontend/keyframe", keyframe(7, np.eye(4))[0])
+    assert [m.keyframe_id for m in w.collect(1, 20)] == [7]
+    w.pub.publish("/frontend/keyframe", keyframe(8, np.eye(4))[0])
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 6 * wait_s:  # the segmentation computes for a long time
+        w.pub.publish("/diagnostics", _heartbeat("segmentation", busy_s=3.0))
+        w.pub.publish("/diagnostics", _heartbeat("prior", busy_s=3.0))
+        assert w.collect(1, wait_s / 3) == []
+    for _ in range(3):  # the pipeline idle (and the prior's own busy heartbeats): it gives up
+        w.pub.publish("/diagnostics", _heartbeat("segmentation", busy_s=0.0))
+        w.pub.publish("/diagnostics", _heartbeat("prior", busy_s=3.0))
+    (eight,) = w.collect(1, 20)
+    assert eight.keyframe_id == 8
+    assert node.counters["metrized_wait_timeouts"] == 1
     assert node.counters["handler_errors"] == 0
 
 

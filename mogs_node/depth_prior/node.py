@@ -4,8 +4,9 @@ Backends: ``flow`` (weight-free default: the dense prior of
 :mod:`mogs_node.depth_prior.dense_prior`: DIS flow depth against earlier keyframes, the road
 plane at the camera height, and earlier keyframes' metrized depth from ``/metrizer/depth``
 warped in, fused by confidence; the node keeps the last ``history`` keyframes and their metrized
-depth in a :class:`~mogs_node.depth_prior.sequence.PriorSequence`; a keyframe's prior never waits
-for the metrizer: it uses what has arrived) or ``depth_anything`` (ONNX monocular depth,
+depth in a :class:`~mogs_node.depth_prior.sequence.PriorSequence`; a keyframe waits for the
+previous keyframe's metrized depth, so that its prior does not depend on timing: see
+``metrized_wait_s``) or ``depth_anything`` (ONNX monocular depth,
 :mod:`mogs_node.depth_prior.depth_anything_onnx`). The ONNX model is loaded in ``setup``: a
 missing or malformed model stops the node at start-up with a ModelError, never a silent fallback.
 
@@ -30,6 +31,7 @@ from mogs_node.depth_prior.flow_prior import FlowPriorParams, fit_scale_huber
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
 from mogs_node.errors import ConfigError
+from mogs_node.heartbeat import DIAGNOSTICS_TOPIC
 from mogs_node.keyframe_chain import failed_prior
 from mogs_node.node import Node, parse_params
 
@@ -57,9 +59,10 @@ class DepthPriorParams:
     metrized_topic: str = "/metrizer/depth"  # metrized depth of earlier keyframes ("" = off)
     camera_info_topic: str = "/camera/info"  # the source's camera height above the road, used
     # for flow.camera_height_m unless the launch file sets it ("" = off)
-    metrized_wait_s: float = 5.0  # a keyframe waits at most this long for the previous one's
-    # metrized depth (0: never): the prior then does not depend on which arrived first, so the
-    # same drive gives the same prior on every run whenever the pipeline keeps up
+    metrized_wait_s: float = 5.0  # a keyframe waits for the previous one's metrized depth
+    # (0: never) until no other node has said it is busy for this long: the prior then does not
+    # depend on which arrived first or on the machine's load, so the same drive gives the same
+    # prior on every run; a metrizer that will not answer (dead, failed) is given up on
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.metrized_wait_s) or self.metrized_wait_s < 0:
@@ -111,8 +114,13 @@ class DepthPriorNode(Node):
         # keyframes held back (in order) until the previous keyframe's metrized depth is in
         self._waiting: deque[tuple[msgs.Keyframe, float]] = deque()
         self._waits_timed_out = 0
+        self._busy_seen_s = -math.inf  # when another node last said it is busy
         if p.metrized_topic and self.net is None and p.metrized_wait_s > 0:
-            self.every(0.05, self._release_waiting)
+            self.counters["metrized_wait_timeouts"] = 0
+            self.every(0.05, self._on_wait_timer)
+            # the wait runs only while no other node says it is busy: a loaded pipeline that
+            # works is waited for (as the player's acknowledgement timeout, bridges/player.py)
+            self.subscribe(DIAGNOSTICS_TOPIC, self.on_heartbeat, reliable=False, queue_size=64)
         self.catch_up(inputs, (p.out_topic,))  # after a restart: the keyframes missed
 
     def _setup_sim_lfm(self) -> None:
@@ -182,14 +190,28 @@ class DepthPriorNode(Node):
         else:
             self._process(kf)
 
+    def on_heartbeat(self, msg: msgs.Message) -> None:
+        """Another node busy in a handler (``busy_s`` > 0, mogs_node/heartbeat.py): the
+        pipeline works, so a keyframe's wait for the metrized depth goes on."""
+        if getattr(msg, "node", self.name) == self.name or getattr(msg, "status", "") == "stopped":
+            return
+        if (getattr(msg, "counters", None) or {}).get("busy_s", 0.0) > 0:
+            self._busy_seen_s = time.monotonic()
+
+    def _on_wait_timer(self) -> None:
+        if self.queue_depth == 0:  # heartbeats read but not handled yet may extend the wait
+            self._release_waiting()
+
     def _release_waiting(self) -> None:
         """Compute the held-back keyframes, in order, whose predecessor's metrized depth is in
-        (or whose wait is over: the prior then goes without it, and the wait is counted)."""
+        (or whose wait is over: no other node said it was busy for ``metrized_wait_s`` since the
+        keyframe came; the prior then goes without it, and the wait is counted)."""
         while self._waiting:
             kf, t_in = self._waiting[0]
             last = self.sequence.history[-1] if self.sequence.history else None
             if last is not None and last.metrized is None:
-                if time.monotonic() - t_in < self.params.metrized_wait_s:
+                since = max(t_in, self._busy_seen_s)
+                if time.monotonic() - since < self.params.metrized_wait_s:
                     return
                 self._waits_timed_out += 1
                 self.counters["metrized_wait_timeouts"] = self._waits_timed_out

@@ -17,7 +17,6 @@ from typing import Any
 __all__ = [
     "COLUMNS",
     "comparable_figures",
-    "frontend_figures",
     "make_row",
     "write_csv",
     "write_markdown",
@@ -84,7 +83,8 @@ def make_row(outcome: dict[str, Any], *, resumed: bool = False) -> dict[str, Any
 
 def comparable_figures(summary: dict[str, Any]) -> dict[str, Any]:
     """The figures of a run's summary.json that must not depend on how the run was started
-    (``mogs launch`` or a batch, which worker, which bus): what the mapping produced."""
+    (``mogs launch`` or a batch, which worker, which bus, how loaded the machine): what the
+    mapping produced. A drive reproduces them bit for bit (tests/test_fleet_drives.py)."""
     m = summary.get("map", {})
     return {
         "keyframes": summary.get("keyframes"),
@@ -99,19 +99,6 @@ def comparable_figures(summary: dict[str, Any]) -> dict[str, Any]:
         "heldout_psnr_db": m.get("heldout_psnr_db"),
         "keyframe_psnr_db": m.get("keyframe_psnr_db"),
     }
-
-
-def frontend_figures(summary: dict[str, Any]) -> dict[str, Any]:
-    """The part of :func:`comparable_figures` that a drive reproduces bit for bit however loaded
-    the machine: frames, keyframes (and that each got depth and was mapped), the trajectory and
-    which keyframes were scored. The depth and map figures are not in it: the depth prior
-    warps in the metrized depth of earlier keyframes that has arrived by then, so they depend on
-    timing (measured: AbsRel 0.0995 in a batch against 0.1085 alone for one drive; docs/fleet.md)."""
-    fig = comparable_figures(summary)
-    out = {k: fig[k] for k in fig if k not in ("depth", "gaussians", "map_digest")}
-    out = {k: v for k, v in out.items() if not k.endswith("psnr_db")}
-    out["depth_keyframes_scored"] = (fig["depth"] or {}).get("keyframes_scored")
-    return out
 
 
 def _cell(v: Any, digits: int = 3) -> str:

@@ -71,6 +71,8 @@ NODE_COUNTERS = (
     "metrized_without_inputs",
     "match_failed_inputs",
     "match_stalled_inputs",
+    # the prior node: keyframes whose wait for the previous one's metrized depth ran out
+    "metrized_wait_timeouts",
 )
 
 
