@@ -107,6 +107,7 @@ def _state(mapper: GaussianMapper, extra: dict[str, Any] | None = None) -> dict[
                 "exposure_adam_t": kf.exposure_adam.t,
                 "pose_adam_t": kf.pose_adam.t,
                 "weights_next_id": kf.weights_next_id,
+                "iterations": kf.iterations,
             }
         )
     meta = {
@@ -290,6 +291,7 @@ def load_checkpoint_with_extra(
                     .copy()
                 )
                 kf.weights_next_id = int(rec.get("weights_next_id", 0))
+            kf.iterations = int(rec.get("iterations", 0))  # older files: none recorded
             for an, size in (("exposure_adam", 2), ("pose_adam", 6)):
                 a = _SmallAdam(size)
                 a.m = _tensor(t, f"kf{i}.{an}.m", path, (size,))

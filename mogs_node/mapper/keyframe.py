@@ -56,6 +56,7 @@ class KeyframeState:
     visible_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     visible_weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     weights_next_id: int = 0
+    iterations: int = 0  # training iterations on this keyframe so far (owed ones go to the least)
     train_targets: tuple[torch.Tensor, ...] | None = None  # (image, depth, conf) when downsampled
 
     @property

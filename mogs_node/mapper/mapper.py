@@ -101,6 +101,8 @@ class MapperParams:
     # 1 here: under forward motion image borders are seen by one keyframe only)
     prune_contrib_px: float = 1.0  # redundant below this summed blending weight (pixels) over
     # the window views; applies to Gaussians the window sees, born before the newest keyframe
+    prune_min_steps: int = 1  # support and redundancy are judged only for Gaussians optimised
+    # (drawn by a training iteration) at least this many times; opacity and size always
     densify: bool = False  # clone Gaussians with large view-space positional gradient
     densify_grad_px: float = 0.0005  # mean |d loss / d mean| * depth / f threshold for cloning
     seed: int = 0  # random past keyframe choice
@@ -294,6 +296,9 @@ class GaussianMapper:
             self.params.window_size,
             self.params.overlap_min,
         )
+        # observations are recorded when they are made, not when pruning next runs: a keyframe
+        # mapped while behind (no iterations, no pruning) may have left the window by then
+        self._record_support()
         log.debug(
             "keyframe %d: +%d Gaussians (map %d), window %s, dropped %s",
             keyframe_id,
@@ -348,6 +353,28 @@ class GaussianMapper:
             prev_err = err
         if p.densify:
             self._densify()
+        self._prune()
+        return self.stats()
+
+    def catch_up(
+        self, n_iters: int, should_stop: Callable[[], bool] | None = None
+    ) -> dict[str, float]:
+        """Owed iterations (a node that mapped keyframes while behind runs them when idle):
+        each trains the in-RAM keyframe with the fewest iterations so far (ties: the newest), so
+        the keyframes that got none while behind get theirs, then pruning as after a round.
+        Same loss and schedule as :meth:`optimize`; deterministic."""
+        if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
+            return self.stats()
+        lrs = self._lrs()
+        fixed_pose = max(self.window) if len(self.window) == 1 else min(self.window)
+        for _ in range(n_iters):
+            if should_stop is not None and should_stop():
+                break
+            live = [k for k in self.keyframes if k.index not in self.offloaded_kfs]
+            if not live:
+                break
+            kf = min(live, key=lambda k: (k.iterations, -k.index))
+            self._train_step(kf.index, fixed_pose, lrs)
         self._prune()
         return self.stats()
 
@@ -520,6 +547,7 @@ class GaussianMapper:
         scale = float(f**2)
         kf.visible_weights = (weights[vis].float() * scale).cpu().numpy()
         kf.weights_next_id = self.map.next_id
+        kf.iterations += 1
         self.iterations += 1
         self.last_loss = float(total.detach())
         mse = float(((color.detach().clamp(0, 1) - image) ** 2).mean())
@@ -592,16 +620,26 @@ class GaussianMapper:
             judged |= in_view & (self.map.ids < kf.weights_next_id)
         return contrib, judged
 
-    def _prune(self) -> None:
-        p = self.params
-        if len(self.map) == 0:
-            return
-        prm = self.map.params
+    def _record_support(self) -> None:
+        """``n_obs``: the most window keyframes that have seen each Gaussian at once (their
+        latest renders' records), kept as a running maximum."""
         obs = torch.zeros(len(self.map), dtype=torch.long, device=self.device)
         for i in self.window:
             rows, _ = self._rows_of(self.keyframes[i].visible_ids)
             obs[rows] += 1
         self.map.n_obs = torch.maximum(self.map.n_obs, obs)
+
+    def _prune(self) -> None:
+        """Remove transparent and oversized Gaussians (any), and unsupported and redundant ones
+        among those optimised at least ``prune_min_steps`` times: a Gaussian no iteration has
+        drawn yet (its keyframe was mapped while the mapper was behind) has its inserted values,
+        and its support and blending weight say nothing about the optimised map."""
+        p = self.params
+        if len(self.map) == 0:
+            return
+        prm = self.map.params
+        self._record_support()
+        optimised = self.map.steps >= p.prune_min_steps
         opacity = torch.sigmoid(prm["opacity_logit"])
         newest = self.keyframes[self.window[0]]
         cam_center = torch.as_tensor(
@@ -610,12 +648,12 @@ class GaussianMapper:
         dist = (prm["means"] - cam_center).norm(dim=1)
         too_big = torch.exp(prm["log_scales"]).amax(1) > p.prune_size_ratio * dist
         old = self.map.birth_kf <= len(self.keyframes) - 1 - p.support_kfs
-        unsupported = old & (self.map.n_obs < p.support_min_obs)
+        unsupported = old & optimised & (self.map.n_obs < p.support_min_obs)
         mask = (opacity < p.prune_opacity) | too_big | unsupported
         if p.prune_contrib_px > 0:
             contrib, judged = self._contribution(self.window)
             settled = self.map.birth_kf < newest.index
-            mask |= judged & settled & (contrib < p.prune_contrib_px)
+            mask |= judged & settled & optimised & (contrib < p.prune_contrib_px)
         self.n_pruned += self.map.remove(mask)
 
     # ------------------------------------------------------------------------------ outputs

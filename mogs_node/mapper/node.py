@@ -277,7 +277,9 @@ class MapperNode(Node):
         A live drive does not wait for the mapper: keyframes it cannot map at full effort pile up
         in the reliable input queue (memory grows, the map lags behind). Behind, every keyframe is
         still inserted, with fewer iterations; the saved ones are owed and run when the queue is
-        empty (:meth:`_idle_optimize`), so the total optimisation is the same once it catches up.
+        empty (:meth:`_idle_optimize`, to the keyframes trained least:
+        :meth:`GaussianMapper.catch_up`), so the total optimisation is the same once it catches
+        up; the final map waits for them.
         """
         p: MapperNodeParams = self.params
         if p.iters_when_behind < 0 or self.queue_depth == 0:
@@ -288,7 +290,7 @@ class MapperNode(Node):
         if self.mapper is None or self.queue_depth or self.counters["owed_iters"] <= 0:
             return
         n = min(self.params.idle_iters_per_tick, self.counters["owed_iters"])
-        self.mapper.optimize(n, should_stop=self._should_stop)
+        self.mapper.catch_up(n, should_stop=self._should_stop)
         self.counters["owed_iters"] -= n
 
     def on_diagnostics(self, m: msgs.Diagnostics) -> None:
@@ -296,7 +298,8 @@ class MapperNode(Node):
             self.source_done = True
 
     def _final_refine(self) -> None:
-        """After the drive (the source stopped, every keyframe seen is mapped, nothing queued):
+        """After the drive (the source stopped, every keyframe seen is mapped, nothing queued,
+        the iterations owed from keyframes mapped while behind paid by :meth:`_idle_optimize`):
         ``final_refine_iters`` over every keyframe (:meth:`GaussianMapper.refine`), a chunk per
         tick; then the map update and a ``/mapper/stats`` marked ``final`` (the run report
         waits for it)."""
@@ -308,6 +311,7 @@ class MapperNode(Node):
             or not self.source_done
             or self.queue_depth
             or len(self.pairs)
+            or (self.counters["owed_iters"] > 0 and self.params.idle_iters_per_tick > 0)
         ):
             return
         if self.refine_left < 0:
