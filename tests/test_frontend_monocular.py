@@ -98,6 +98,25 @@ def test_camera_only_needs_the_camera_height_and_rectified_images(drive):
         )
 
 
+def test_the_speed_gate_rejects_an_outlier_but_follows_a_change_of_speed(drive):
+    """One road measurement far from the recent ones is gated; ``relock_after`` of them in a row
+    on one side are a car speeding up (the KITTI excerpt: 0.8 -> ~1.5 m/s) and are taken (before,
+    the first median held for the rest of the drive and the scale was a third of the LiDAR's)."""
+    seq, _ = drive
+    fe = MonocularFrontend(
+        MonocularParams(ground=GroundParams(camera_height_m=1.6), relock_after=3),
+        CameraModel(seq.camera),
+    )
+    got = [fe._gate(s) for s in (1.0, 1.1, 0.9, 3.0, 1.0, 2.0, 2.1, 0.5, 2.0, 2.2, 1.9)]
+    # the outlier 3.0 and the 0.5 among the faster ones are gated; the run 2.0, 2.1 is broken by
+    # the 0.5; 2.0, 2.2, 1.9 (3 in a row above the median) become the recent speeds
+    assert got == [1.0, 1.1, 0.9, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.9]
+    assert fe.counters["ground_gated"] == 6 and fe.counters["ground_relocked"] == 1
+    assert fe._gate(2.05) == 2.05  # the new speed is the reference now
+    with pytest.raises(ConfigError, match="relock_after"):
+        MonocularParams(relock_after=1)
+
+
 def test_road_aligned_start_puts_the_camera_above_the_road():
     T = road_aligned_start(np.array([0.0, 1.0, 0.0]), 1.65)
     np.testing.assert_allclose(T[:3, :3] @ [0.0, 1.0, 0.0], [0.0, 0.0, -1.0], atol=1e-12)

@@ -65,6 +65,9 @@ class MonocularParams:
     max_speed_m_s: float = 60.0  # a road measurement implying more is rejected
     gate_rel: float = 0.3  # a road speed this far from the median of the recent ones is gated
     gate_window: int = 9  # recent accepted road speeds kept
+    relock_after: int = 5  # this many gated road speeds in a row, all on one side of the median:
+    # the speed has changed (the car sped up or braked), not an outlier: they replace the recent
+    # ones (without it one early median held the speed for the rest of the drive: issue 18)
     road_normal_cam: tuple[float, float, float] | None = None  # road normal (towards the road) in
     # the camera; None: from T_imu_cam (IMU mounted level) or +y (a level rectified camera)
     ground_max_residual: float = 20.0  # the road measurement's residual bound (grey levels):
@@ -81,6 +84,8 @@ class MonocularParams:
             raise ConfigError("camera-only: 0 < min_pose_parallax_px < min_parallax_px")
         if self.min_tracks < 8 or not 0 < self.min_inlier_share <= 1:
             raise ConfigError("camera-only: min_tracks >= 8, 0 < min_inlier_share <= 1")
+        if self.relock_after < 2:
+            raise ConfigError(f"camera-only: relock_after >= 2, got {self.relock_after}")
 
 
 def road_aligned_start(normal_cam: NDArray, height_m: float) -> NDArray[np.float64]:
@@ -148,6 +153,7 @@ class MonocularFrontend:
         self._last_pose: tuple[int, NDArray] | None = None  # (t_ns, T_world_cam)
         self._speed_m_s: float | None = None
         self._speeds: list[float] = []
+        self._gated_run: list[float] = []  # consecutive gated road speeds, one side of the median
         # the previous frame with a pose: (t_ns, grey, R_cam_kf, T_world_cam)
         self._prev: tuple[int, NDArray, NDArray, NDArray] | None = None
         self._prev_R_kf = np.eye(3)
@@ -166,6 +172,7 @@ class MonocularFrontend:
             "ground_measurements": 0,
             "ground_failed": 0,
             "ground_gated": 0,
+            "ground_relocked": 0,
         }
 
     @property
@@ -325,15 +332,25 @@ class MonocularFrontend:
 
     def _gate(self, speed_m_s: float) -> float:
         """A road measurement far from the recent ones (a vehicle ahead, a shadow) is replaced by
-        their median; accepted ones are remembered."""
+        their median; accepted ones are remembered. ``relock_after`` gated ones in a row on the
+        same side of the median are a change of speed: they become the recent ones."""
         p = self.params
         recent = self._speeds
         if len(recent) >= 3:
             med = float(np.median(recent))
             if abs(speed_m_s / max(med, 1e-6) - 1) > p.gate_rel:
-                self.counters["ground_gated"] += 1
-                self._speed_m_s = med
-                return med
+                run = self._gated_run
+                if run and (run[-1] > med) != (speed_m_s > med):
+                    run.clear()
+                run.append(speed_m_s)
+                if len(run) < p.relock_after:
+                    self.counters["ground_gated"] += 1
+                    self._speed_m_s = med
+                    return med
+                self.counters["ground_relocked"] += 1
+                recent[:] = run[:-1]
+                run.clear()
+        self._gated_run.clear()
         recent.append(speed_m_s)
         del recent[: -p.gate_window]
         self.counters["ground_measurements"] += 1
