@@ -35,6 +35,7 @@ from mogs_node.frontend.ground import (
     estimate_ground_translation,
     road_normal_from_mount,
 )
+from mogs_node.frontend.keyframes import KeyframeParams, StandstillKeyframes, is_keyframe
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
@@ -78,6 +79,11 @@ class MonocularParams:
     )  # each frame's pose has its own essential matrix: a looser reprojection gate than the
     # window-optimised poses of the visual-inertial frontend (0.6 px)
     ground: GroundParams = field(default_factory=GroundParams)
+    # with given poses nothing is estimated from the keyframes' spacing: they are taken as the
+    # visual-inertial frontend takes them (frontend.keyframes: parallax, tracks kept, interval,
+    # none while parked), so a run with the user's poses maps the same keyframes as one with the IMU
+    keyframes: KeyframeParams = field(default_factory=KeyframeParams)
+    still_step_m: float = 0.01  # given poses: a frame that moved less is parked
 
     def __post_init__(self) -> None:
         if self.min_parallax_px <= self.min_pose_parallax_px or self.min_pose_parallax_px <= 0:
@@ -153,6 +159,7 @@ class MonocularFrontend:
         self._last_pose: tuple[int, NDArray] | None = None  # (t_ns, T_world_cam)
         self._speed_m_s: float | None = None
         self._speeds: list[float] = []
+        self._standstill = StandstillKeyframes(params.keyframes)  # given poses: none while parked
         self._gated_run: list[float] = []  # consecutive gated road speeds, one side of the median
         # the previous frame with a pose: (t_ns, grey, R_cam_kf, T_world_cam)
         self._prev: tuple[int, NDArray, NDArray, NDArray] | None = None
@@ -219,6 +226,7 @@ class MonocularFrontend:
             self._prev = (int(stamp_ns), gray, np.eye(3), T0)
             return [self._output(stamp_ns, idx, T0, "tracking")]
         parallax, shared = self._parallax(uv)
+        prev_position_m = self._prev[3][:3, 3] if self._prev is not None else None
         if T_world_cam is not None:
             T = np.asarray(T_world_cam, np.float64)
             self.counters["poses_given"] += 1
@@ -233,11 +241,45 @@ class MonocularFrontend:
         out = self._output(stamp_ns, idx, T, "tracking")
         p = self.params
         interval = (stamp_ns - self.kf.t_ns) * 1e-9
-        if parallax >= p.min_parallax_px or (
-            interval >= p.max_interval_s and parallax >= p.min_pose_parallax_px
-        ):
+        if self.given_poses:
+            take = self._given_pose_keyframe(stamp_ns, uv, T, prev_position_m, interval)
+        else:
+            take = parallax >= p.min_parallax_px or (
+                interval >= p.max_interval_s and parallax >= p.min_pose_parallax_px
+            )
+        if take:
             out.keyframe = self._make_keyframe(stamp_ns, image, gray, uv, T)
         return [out]
+
+    def _given_pose_keyframe(
+        self,
+        stamp_ns: int,
+        uv: dict[int, NDArray],
+        T: NDArray,
+        prev_position_m: NDArray | None,
+        interval_s: float,
+    ) -> bool:
+        """With given poses: the visual-inertial frontend's keyframe policy (``keyframes``)."""
+        assert self.kf is not None
+        kf_ids = np.fromiter(self.kf.uv, np.int64, len(self.kf.uv))
+        ids = np.fromiter(uv, np.int64, len(uv))
+        wanted, _ = is_keyframe(
+            self.params.keyframes,
+            kf_ids,
+            np.array([self.kf.uv[i] for i in kf_ids.tolist()], np.float64).reshape(-1, 2),
+            ids,
+            np.array([uv[i] for i in ids.tolist()], np.float64).reshape(-1, 2),
+            interval_s,
+        )
+        step = np.inf if prev_position_m is None else np.linalg.norm(T[:3, 3] - prev_position_m)
+        take, _ = self._standstill.decide(
+            wanted,
+            bool(step < self.params.still_step_m),
+            stamp_ns,
+            T[:3, 3],
+            lambda: len(keyframe_points(self.history, self.camera.pinhole, self.params.points).ids),
+        )
+        return take
 
     def _parallax(self, uv: dict[int, NDArray]) -> tuple[float, list[int]]:
         assert self.kf is not None
