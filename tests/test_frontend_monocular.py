@@ -142,3 +142,26 @@ def test_user_poses_tum_and_kitti(tmp_path, drive):
     (tmp_path / "bad.txt").write_text("1 2 3\n")
     with pytest.raises(DatasetError, match="got 3 columns"):
         read_user_poses(tmp_path / "bad.txt", seq.stamps_ns)
+
+
+def test_given_poses_take_no_keyframe_while_parked():
+    """With given poses the keyframes follow ``frontend.keyframes`` (the visual-inertial policy):
+    none while the car stands still at the start, then the first once it carries points."""
+    from mogs_node.frontend.keyframes import KeyframeParams
+
+    seq = make_sequence(SimConfig(seed=0, n_frames=24, width=621, height=188, static_start_s=1.0))
+    kp = KeyframeParams(min_parallax_px=20.0, max_interval_s=0.5)
+    fe = MonocularFrontend(
+        MonocularParams(keyframes=kp), CameraModel(seq.camera), seq.T_imu_cam, given_poses=True
+    )
+    taken = []
+    for i in range(len(seq)):
+        for o in fe.add_image(int(seq.stamps_ns[i]), seq.render(i).rgb, seq.T_world_cam[i]):
+            if o.keyframe is not None:
+                taken.append((i, len(o.keyframe.feature_ids)))
+    moving = np.linalg.norm(np.diff(seq.T_world_cam[:, :3, 3], axis=0), axis=1) >= 0.01
+    first_move = int(np.argmax(moving)) + 1
+    assert first_move >= 9 and taken, taken  # parked for ~1 s
+    assert taken[0][0] > first_move  # none while parked (max_interval_s alone would take 2)
+    moved_m = np.linalg.norm(seq.T_world_cam[taken[0][0], :3, 3] - seq.T_world_cam[0, :3, 3])
+    assert taken[0][1] >= 100 or moved_m >= 2.0, (taken, moved_m)  # waits for its points
