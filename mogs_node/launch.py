@@ -146,6 +146,7 @@ class _Child:
     started_at: float = 0.0
     tail: deque[str] = field(default_factory=lambda: deque(maxlen=TAIL_LINES))
     killed_pid: int | None = None  # the process the heartbeat watchdog killed
+    stopped_when_killed: bool = False  # ... after it had said it stopped: a clean end
 
 
 class Launcher:
@@ -373,7 +374,7 @@ class Launcher:
             if prev is not None and prev.pid == msg.pid and msg.status != "stopped":
                 gap = now - prev.t
                 self._gap_max_s[msg.node] = max(self._gap_max_s.get(msg.node, 0.0), gap)
-            self._heartbeats[msg.node] = Beat(now, msg.pid, busy, what)
+            self._heartbeats[msg.node] = Beat(now, msg.pid, busy, what, msg.status == "stopped")
 
     def _check_heartbeat(self, child: _Child, now: float) -> None:
         """Kill a running node that is hung (no heartbeat) or stuck (busy without progress);
@@ -401,6 +402,7 @@ class Launcher:
         self.kills[cause] += 1
         self._print(f"[launch] {child.name} {text}: killing it")
         child.killed_pid = child.proc.pid
+        child.stopped_when_killed = bool(seen is not None and seen.stopped)
         child.proc.kill()
 
     def figures(self) -> dict[str, Any]:
@@ -428,6 +430,9 @@ class Launcher:
                 rc = child.proc.poll()
                 if rc is None:
                     continue
+                if rc < 0 and child.stopped_when_killed and child.killed_pid == child.proc.pid:
+                    self._print(f"[launch] {child.name} had stopped; its exit was cut short")
+                    rc = 0  # its work was done: not a failure
                 child.exited = rc
                 self._print(f"[launch] {child.name} exited with code {rc}")
                 if self._on_exit(child, rc, now):

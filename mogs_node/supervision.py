@@ -120,6 +120,12 @@ class Beat:
     pid: int
     busy_s: float  # seconds its run loop had then been busy without progress (0: idle)
     busy_with: str = ""  # what it was busy with ("handler of /topic", "timer name")
+    stopped: bool = False  # its last heartbeat said "stopped": it is exiting
+
+
+#: a node that said it stopped has this many heartbeat timeouts to exit (its teardown and the
+#: interpreter's exit send no heartbeat; on a machine at load ~100 they took over 30 s)
+STOPPED_EXIT_TIMEOUTS = 4
 
 
 def kill_reason(
@@ -137,7 +143,8 @@ def kill_reason(
     ``"heartbeat"``, silent for ``heartbeat_timeout_s`` (before its first heartbeat: for the
     larger of that and ``startup_timeout_s``); ``"progress"``, busy without progress for
     ``progress_timeout_s`` (its reported ``busy_s`` plus the time since that heartbeat). A timeout
-    of 0 turns that check off.
+    of 0 turns that check off. A node whose last heartbeat said "stopped" is exiting: it is killed
+    only after :data:`STOPPED_EXIT_TIMEOUTS` heartbeat timeouts.
     """
     if beat is None:
         silent = now - started_at
@@ -146,6 +153,10 @@ def kill_reason(
             return "heartbeat", f"sent no heartbeat for {silent:.1f} s since it started"
         return None
     silent = now - beat.t
+    if beat.stopped:  # exiting: only an exit that never ends is killed
+        if heartbeat_timeout_s > 0 and silent > STOPPED_EXIT_TIMEOUTS * heartbeat_timeout_s:
+            return "heartbeat", f"stopped but did not exit in {silent:.1f} s"
+        return None
     if heartbeat_timeout_s > 0 and silent > heartbeat_timeout_s:
         return "heartbeat", f"sent no heartbeat for {silent:.1f} s"
     if progress_timeout_s > 0 and beat.busy_s > 0:

@@ -15,7 +15,12 @@ from test_launcher import _diag_until, _launched, _source
 from mogs_node import msgs
 from mogs_node.heartbeat import Heartbeat, Progress
 from mogs_node.launch import Launcher, parse_launch, respawns_without_journal
-from mogs_node.supervision import Beat, kill_reason, merge_launch_figures
+from mogs_node.supervision import (
+    STOPPED_EXIT_TIMEOUTS,
+    Beat,
+    kill_reason,
+    merge_launch_figures,
+)
 
 
 def test_a_step_three_times_the_heartbeat_timeout_is_not_killed(
@@ -67,6 +72,23 @@ def test_kill_reason_tells_hung_from_stuck_from_working() -> None:
     assert kill_reason(Beat(100.0, 1, 0.0), 101.0, started_at=0.0, **kw) is None
     off = {**kw, "progress_timeout_s": 0.0}
     assert kill_reason(Beat(100.0, 1, 1e6), 100.1, started_at=0.0, **off) is None
+
+
+def test_a_node_that_said_it_stopped_is_left_to_exit() -> None:
+    """Issue 18: the player said "stopped" and its interpreter then took over 30 s to exit at load
+    ~100; the launcher killed it for a missing heartbeat and failed a finished run. A stopped
+    node is killed only after STOPPED_EXIT_TIMEOUTS heartbeat timeouts of silence."""
+    kw = {"heartbeat_timeout_s": 2.0, "progress_timeout_s": 10.0, "startup_timeout_s": 30.0}
+    stopped = Beat(100.0, 1, 0.0, "", stopped=True)
+    assert (
+        kill_reason(stopped, 100.0 + 2.0 * STOPPED_EXIT_TIMEOUTS - 0.1, started_at=0.0, **kw)
+        is None
+    )
+    cause, text = kill_reason(
+        stopped, 100.0 + 2.0 * STOPPED_EXIT_TIMEOUTS + 0.1, started_at=0.0, **kw
+    )
+    assert cause == "heartbeat" and text.startswith("stopped but did not exit")
+    assert kill_reason(Beat(100.0, 1, 0.0), 102.5, started_at=0.0, **kw)[0] == "heartbeat"
 
 
 def test_launch_figures_reach_the_summary(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import numpy as np
 
 from mogs_node.cli import main
 from mogs_node.datasets import read_bag, read_kitti_raw
+from mogs_node.datasets.vi_folder import read_user_poses
 from mogs_node.sim import SimConfig, make_sequence
 from mogs_node.sim.preview import colorize_depth, colorize_instances, preview_strip
 
@@ -49,6 +50,18 @@ def test_mogs_sim_bag_and_explicit_preview(tmp_path: Path) -> None:
     assert rc == 0 and png.exists()
     b = read_bag(bag)
     assert len(b) == 2 and b.camera.width == 64
+
+
+def test_mogs_sim_poses_out_reads_back_as_the_player_poses(tmp_path: Path) -> None:
+    """``--poses-out`` writes the drive's camera poses (TUM) that ``player.poses`` reads back at
+    the frames' stamps: the ground truth a "poses = ground truth" run maps with (issue 18)."""
+    txt = tmp_path / "gt" / "poses.txt"
+    argv = ["sim", "--frames", "4", "--size", "64x32", "--seed", "3", "--static-start", "0.2"]
+    assert main([*argv, "--poses-out", str(txt)]) == 0
+    ref = make_sequence(SimConfig(seed=3, n_frames=4, width=64, height=32, static_start_s=0.2))
+    poses = read_user_poses(txt, ref.stamps_ns)
+    assert len(poses) == 4 and all(T is not None for T in poses)
+    np.testing.assert_allclose(np.stack(poses), ref.T_world_cam, atol=1e-7)
 
 
 def test_mogs_sim_errors(tmp_path: Path) -> None:

@@ -96,6 +96,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--compressed", action="store_true", help="bags: PNG CompressedImage instead of Image"
     )
     parser.add_argument(
+        "--poses-out",
+        default=None,
+        metavar="TXT",
+        help="also write the ground-truth camera poses T_world_cam at the frame stamps (TUM), "
+        "e.g. for `player.poses` (the sim's world: z up, origin on the road)",
+    )
+    parser.add_argument(
         "--preview",
         nargs="?",
         const="",
@@ -126,8 +133,8 @@ def command(args: argparse.Namespace) -> int:
     )
     if args.no_imu_noise:
         cfg = replace(cfg, imu_noise=ImuNoiseParams(enabled=False))
-    if args.out is None and args.preview is None:
-        raise ConfigError("mogs sim: give --out PATH and/or --preview [PNG]")
+    if args.out is None and args.preview is None and args.poses_out is None:
+        raise ConfigError("mogs sim: give --out PATH, --poses-out TXT and/or --preview [PNG]")
     seq = make_sequence(cfg)
     log.info(
         "sequence: %d frames %dx%d, %d primitives, %.1f m, %d IMU samples",
@@ -146,6 +153,12 @@ def command(args: argparse.Namespace) -> int:
         else:
             write_sim_bag(seq, args.out, fmt=args.format, compressed=args.compressed)
         print(f"wrote {len(seq)} frames ({args.format}) to {args.out}")
+    if args.poses_out is not None:
+        from mogs_node.frontend.trajectory_io import write_tum
+
+        Path(args.poses_out).parent.mkdir(parents=True, exist_ok=True)
+        write_tum(args.poses_out, seq.stamps_ns, seq.T_world_cam)
+        print(f"wrote {len(seq)} camera poses (TUM, T_world_cam) to {args.poses_out}")
     if args.preview is not None:
         if args.preview:
             path = Path(args.preview)

@@ -35,6 +35,7 @@ from mogs_node.frontend.ground import (
     estimate_ground_translation,
     road_normal_from_mount,
 )
+from mogs_node.frontend.keyframes import KeyframeParams, StandstillKeyframes, is_keyframe
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
@@ -65,6 +66,9 @@ class MonocularParams:
     max_speed_m_s: float = 60.0  # a road measurement implying more is rejected
     gate_rel: float = 0.3  # a road speed this far from the median of the recent ones is gated
     gate_window: int = 9  # recent accepted road speeds kept
+    relock_after: int = 5  # this many gated road speeds in a row, all on one side of the median:
+    # the speed has changed (the car sped up or braked), not an outlier: they replace the recent
+    # ones (without it one early median held the speed for the rest of the drive: issue 18)
     road_normal_cam: tuple[float, float, float] | None = None  # road normal (towards the road) in
     # the camera; None: from T_imu_cam (IMU mounted level) or +y (a level rectified camera)
     ground_max_residual: float = 20.0  # the road measurement's residual bound (grey levels):
@@ -75,12 +79,19 @@ class MonocularParams:
     )  # each frame's pose has its own essential matrix: a looser reprojection gate than the
     # window-optimised poses of the visual-inertial frontend (0.6 px)
     ground: GroundParams = field(default_factory=GroundParams)
+    # with given poses nothing is estimated from the keyframes' spacing: they are taken as the
+    # visual-inertial frontend takes them (frontend.keyframes: parallax, tracks kept, interval,
+    # none while parked), so a run with the user's poses maps the same keyframes as one with the IMU
+    keyframes: KeyframeParams = field(default_factory=KeyframeParams)
+    still_step_m: float = 0.01  # given poses: a frame that moved less is parked
 
     def __post_init__(self) -> None:
         if self.min_parallax_px <= self.min_pose_parallax_px or self.min_pose_parallax_px <= 0:
             raise ConfigError("camera-only: 0 < min_pose_parallax_px < min_parallax_px")
         if self.min_tracks < 8 or not 0 < self.min_inlier_share <= 1:
             raise ConfigError("camera-only: min_tracks >= 8, 0 < min_inlier_share <= 1")
+        if self.relock_after < 2:
+            raise ConfigError(f"camera-only: relock_after >= 2, got {self.relock_after}")
 
 
 def road_aligned_start(normal_cam: NDArray, height_m: float) -> NDArray[np.float64]:
@@ -148,6 +159,8 @@ class MonocularFrontend:
         self._last_pose: tuple[int, NDArray] | None = None  # (t_ns, T_world_cam)
         self._speed_m_s: float | None = None
         self._speeds: list[float] = []
+        self._standstill = StandstillKeyframes(params.keyframes)  # given poses: none while parked
+        self._gated_run: list[float] = []  # consecutive gated road speeds, one side of the median
         # the previous frame with a pose: (t_ns, grey, R_cam_kf, T_world_cam)
         self._prev: tuple[int, NDArray, NDArray, NDArray] | None = None
         self._prev_R_kf = np.eye(3)
@@ -166,6 +179,7 @@ class MonocularFrontend:
             "ground_measurements": 0,
             "ground_failed": 0,
             "ground_gated": 0,
+            "ground_relocked": 0,
         }
 
     @property
@@ -212,6 +226,7 @@ class MonocularFrontend:
             self._prev = (int(stamp_ns), gray, np.eye(3), T0)
             return [self._output(stamp_ns, idx, T0, "tracking")]
         parallax, shared = self._parallax(uv)
+        prev_position_m = self._prev[3][:3, 3] if self._prev is not None else None
         if T_world_cam is not None:
             T = np.asarray(T_world_cam, np.float64)
             self.counters["poses_given"] += 1
@@ -226,11 +241,45 @@ class MonocularFrontend:
         out = self._output(stamp_ns, idx, T, "tracking")
         p = self.params
         interval = (stamp_ns - self.kf.t_ns) * 1e-9
-        if parallax >= p.min_parallax_px or (
-            interval >= p.max_interval_s and parallax >= p.min_pose_parallax_px
-        ):
+        if self.given_poses:
+            take = self._given_pose_keyframe(stamp_ns, uv, T, prev_position_m, interval)
+        else:
+            take = parallax >= p.min_parallax_px or (
+                interval >= p.max_interval_s and parallax >= p.min_pose_parallax_px
+            )
+        if take:
             out.keyframe = self._make_keyframe(stamp_ns, image, gray, uv, T)
         return [out]
+
+    def _given_pose_keyframe(
+        self,
+        stamp_ns: int,
+        uv: dict[int, NDArray],
+        T: NDArray,
+        prev_position_m: NDArray | None,
+        interval_s: float,
+    ) -> bool:
+        """With given poses: the visual-inertial frontend's keyframe policy (``keyframes``)."""
+        assert self.kf is not None
+        kf_ids = np.fromiter(self.kf.uv, np.int64, len(self.kf.uv))
+        ids = np.fromiter(uv, np.int64, len(uv))
+        wanted, _ = is_keyframe(
+            self.params.keyframes,
+            kf_ids,
+            np.array([self.kf.uv[i] for i in kf_ids.tolist()], np.float64).reshape(-1, 2),
+            ids,
+            np.array([uv[i] for i in ids.tolist()], np.float64).reshape(-1, 2),
+            interval_s,
+        )
+        step = np.inf if prev_position_m is None else np.linalg.norm(T[:3, 3] - prev_position_m)
+        take, _ = self._standstill.decide(
+            wanted,
+            bool(step < self.params.still_step_m),
+            stamp_ns,
+            T[:3, 3],
+            lambda: len(keyframe_points(self.history, self.camera.pinhole, self.params.points).ids),
+        )
+        return take
 
     def _parallax(self, uv: dict[int, NDArray]) -> tuple[float, list[int]]:
         assert self.kf is not None
@@ -325,15 +374,25 @@ class MonocularFrontend:
 
     def _gate(self, speed_m_s: float) -> float:
         """A road measurement far from the recent ones (a vehicle ahead, a shadow) is replaced by
-        their median; accepted ones are remembered."""
+        their median; accepted ones are remembered. ``relock_after`` gated ones in a row on the
+        same side of the median are a change of speed: they become the recent ones."""
         p = self.params
         recent = self._speeds
         if len(recent) >= 3:
             med = float(np.median(recent))
             if abs(speed_m_s / max(med, 1e-6) - 1) > p.gate_rel:
-                self.counters["ground_gated"] += 1
-                self._speed_m_s = med
-                return med
+                run = self._gated_run
+                if run and (run[-1] > med) != (speed_m_s > med):
+                    run.clear()
+                run.append(speed_m_s)
+                if len(run) < p.relock_after:
+                    self.counters["ground_gated"] += 1
+                    self._speed_m_s = med
+                    return med
+                self.counters["ground_relocked"] += 1
+                recent[:] = run[:-1]
+                run.clear()
+        self._gated_run.clear()
         recent.append(speed_m_s)
         del recent[: -p.gate_window]
         self.counters["ground_measurements"] += 1

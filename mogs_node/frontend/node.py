@@ -186,13 +186,14 @@ class FrontendNodeParams:
         fp, cam, T = self.build(where, info, imu=False)
         mono = dict(self.camera_only)
         points = {"max_reproj_px": 1.5, **self.points, **mono.pop("points", {})}
-        for k in ("ground",):
+        for k in ("ground", "keyframes"):
             if k in mono:
                 raise ConfigError(f"{where}.camera_only.{k}: set it in {where}.{k}")
         params = replace(
             parse_params(MonocularParams, mono, where=f"{where}.camera_only"),
             points=parse_params(TrackPointsParams, points, where=f"{where}.points"),
             ground=fp.ground,
+            keyframes=fp.keyframes,
         )
         return MonocularFrontend(params, cam, T, given_poses=given_poses)
 
