@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import subprocess
 import sys
 import tempfile
 import threading
@@ -51,17 +52,19 @@ if not __package__:  # run as a script (python bench/front.py): the repo root ho
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.front_plot import ERRORS, front_markdown, plot_front  # noqa: E402
 
-# (role.param[.sub], values moved to): each alone from balanced. The costly knobs of issue 27.
+# (role.param[.sub], values moved to): each alone from balanced (= launch/demo.yaml's own values,
+# in brackets), the cheaper value first. The costly knobs of issue 27.
 KNOBS: tuple[tuple[str, tuple[Any, ...]], ...] = (
-    ("prior.flow.dis_preset", ("fast",)),
-    ("frontend.points.max_tracks", (500, 1500)),
-    ("metrizer.cdr.irls_iters", (1, 6)),
-    ("mapper.train_downsample", (4, 1)),
-    ("mapper.iters_per_keyframe", (8, 40)),
-    ("mapper.final_refine_iters", (0, 120)),
-    ("mapper.window_size", (4, 10)),
-    ("metrizer.consensus.max_iters", (64, 384)),
-    ("segmentation.graph.scale", (0.5,)),
+    ("frontend.points.max_tracks", (500, 1500)),  # sparse points per keyframe [900]
+    ("metrizer.cdr.irls_iters", (1, 6)),  # CDR IRLS iterations [3]
+    ("metrizer.consensus.max_iters", (64, 384)),  # MSC hypotheses per model [192]
+    ("metrizer.metrizer.sample_stride", (12, 3)),  # CDR data terms: every n-th pixel [6]
+    ("prior.flow.dis_preset", ("fast",)),  # the prior's flow [medium]
+    ("segmentation.graph.scale", (0.5,)),  # segmentation resolution [1.0]
+    ("mapper.iters_per_keyframe", (4, 20)),  # [8]
+    ("mapper.final_refine_iters", (0, 600)),  # after the drive, full resolution [300]
+    ("mapper.train_downsample", (4, 1)),  # mapping image scale [2]
+    ("mapper.window_size", (4, 10)),  # [6]
 )
 STANDSTILL_SPEED_M_S = 0.05  # ground-truth speed below this: standing still
 SAMPLE_PERIOD_S = 0.25
@@ -382,6 +385,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="default 60 (quick: 30)")
     ap.add_argument("--only", action="append", default=[], help="run only these names")
     ap.add_argument("--fresh", action="store_true", help="measure again what --json holds")
+    ap.add_argument(
+        "--merge",
+        action="append",
+        default=[],
+        help="also take the points of this JSON (e.g. a grid run in parts); --json's win",
+    )
     ap.add_argument("--redo", action="append", default=[], help="measure this name again")
     ap.add_argument(
         "--no-run", action="store_true", help="only the picture and docs from what --json holds"
@@ -395,9 +404,11 @@ def main(argv: list[str] | None = None) -> int:
     configs = [c for c in grid(args.quick) if not args.only or c.name in args.only]
 
     done: dict[str, dict[str, Any]] = {}
-    if args.json and Path(args.json).exists() and not args.fresh:
-        for p in json.loads(Path(args.json).read_text()).get("points", []):
-            done[p["name"]] = p
+    sources = [*args.merge, *([args.json] if args.json and not args.fresh else [])]
+    for src in sources:
+        if Path(src).exists():
+            for p in json.loads(Path(src).read_text()).get("points", []):
+                done[p["name"]] = p
     work = Path(tempfile.mkdtemp(prefix="mogs-front-"))
     for i, cfg in enumerate([] if args.no_run else configs):
         prev = done.get(cfg.name)
@@ -415,6 +426,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.process_time()
         point = run_config(Path(args.launch), cfg, frames, out, args.timeout)
         point["frames_requested"] = frames
+        point["commit"] = code_commit()
         point["bench_cpu_s"] = round(time.process_time() - t0, 1)
         done[cfg.name] = point
         print(
@@ -448,6 +460,20 @@ def main(argv: list[str] | None = None) -> int:
         body = front_markdown(results, cmd.strip(), machine_line(), args.load, png)
         update_markdown_section("front", body)
     return 0
+
+
+def code_commit() -> str:
+    """The commit the point was measured on, ``+dirty`` when the code differs from it."""
+
+    def git(*a: str) -> str:
+        r = subprocess.run(["git", *a], cwd=REPO_ROOT, capture_output=True, text=True)
+        return r.stdout.strip() if r.returncode == 0 else ""
+
+    head = git("rev-parse", "--short", "HEAD") or "unknown"
+    dirty = git(
+        "status", "--porcelain", "--", "mogs_node", "bridges", "launch", f":(exclude,glob)**/{FIGURES_PATH.name}"
+    )
+    return head + ("+dirty" if dirty else "")
 
 
 def results_point(results: dict[str, Any], name: str) -> dict[str, Any]:
