@@ -51,7 +51,7 @@ from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
-from mogs_node.presets import FIGURES_PATH, PRESETS, deep_merge, role_of
+from mogs_node.presets import FIGURES_PATH, PRESETS, balanced_value, deep_merge, role_of
 
 if not __package__:  # run as a script (python bench/front.py): the repo root holds bench/
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -231,6 +231,8 @@ def run_config(
     wall_s = time.monotonic() - t_start
     summary = json.loads((out / "summary.json").read_text())
     point = {"name": cfg.name, **cfg.key(), "launch_rc": result.get("rc"), "wall_s": wall_s}
+    if cfg.knob is not None:
+        point["knob_balanced"] = balanced_value(base, cfg.knob[0])
     point.update(cost_figures(sampler, image_t, stats_t, final_t, frame_rate_hz))
     point.update(scene_figures(sampler, image_t, gt_pos, stats_t))
     point.update(error_figures(summary))
@@ -361,6 +363,7 @@ def analyse(points: list[dict[str, Any]]) -> dict[str, Any]:
         out["knobs"] = [
             {
                 "knob": p["knob"][0],
+                "balanced": p.get("knob_balanced"),
                 "value": p["knob"][1],
                 "d_cpu_s_per_frame": p["cpu_s_per_frame"] - b["cpu_s_per_frame"],
                 **{f"d_{e}": p[e] - b[e] for e in ERRORS},
@@ -424,6 +427,10 @@ def main(argv: list[str] | None = None) -> int:
         if Path(src).exists():
             for p in json.loads(Path(src).read_text()).get("points", []):
                 done[p["name"]] = p
+    demo = load_launch_file(Path(args.launch))
+    for p in done.values():  # points measured before the bench recorded it
+        if p.get("knob") and "knob_balanced" not in p:
+            p["knob_balanced"] = balanced_value(demo, p["knob"][0])
     todo = [c for c in ([] if args.no_run else configs) if not measured(done, c, frames, args)]
     for c in configs:
         if c not in todo and not args.no_run:

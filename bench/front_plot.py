@@ -160,7 +160,7 @@ def front_markdown(results: dict[str, Any], cmd: str, machine: str, load: str, p
         for p in sorted(results["points"], key=lambda p: p.get("cpu_s_per_frame", np.inf))
     )
     knobs = "\n".join(
-        f"| {k['knob']} | {k['value']} | {_f(k['d_cpu_s_per_frame'], 2)} "
+        f"| {k['knob']} | {k.get('balanced', '')} | {k['value']} | {_f(k['d_cpu_s_per_frame'], 2)} "
         f"| {_f(k['d_depth_absrel'], 4)} | {_f(k['d_depth_coverage'], 4)} "
         f"| {_f(k['d_ate_pct'], 3)} | {_f(k['d_heldout_psnr_db'], 2)} "
         f"| {_f(k['d_heldout_ssim'], 4)} |"
@@ -198,8 +198,8 @@ Presets: {json.dumps(results.get("presets", {}))}. Checks: `{checks}`.
 Each knob moved alone from `balanced` (differences to `balanced`; negative AbsRel / ATE and
 positive coverage / PSNR / SSIM are better):
 
-| knob | value | d CPU s / frame | d AbsRel | d coverage | d ATE [% path] | d PSNR [dB] | d SSIM |
-| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
+| knob | balanced | moved to | d CPU s / frame | d AbsRel | d coverage | d ATE [% path] | d PSNR [dB] | d SSIM |
+| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
 {knobs}
 
 Work that follows the scene (`balanced`): CPU per frame while the ground truth stands still

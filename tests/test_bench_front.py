@@ -4,7 +4,7 @@ grid and one knob's overrides."""
 
 from __future__ import annotations
 
-from dataclasses import MISSING, fields
+from dataclasses import MISSING
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,7 @@ from bench.front_plot import ERRORS, pareto_2d
 from mogs_node.commands.node import load_node_class
 from mogs_node.launch import load_launch_file
 from mogs_node.node import parse_params
-from mogs_node.presets import role_of
+from mogs_node.presets import balanced_value
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -150,48 +150,13 @@ def test_grid_and_one_knobs_overrides_merge_nested_groups() -> None:
             _nested(spec, parse_params(load_node_class(spec.cls).Params, spec.params))
 
 
-def _group_defaults() -> dict[str, type]:
-    from mogs_node.depth_prior.flow_prior import FlowPriorParams
-    from mogs_node.frontend.track_points import TrackPointsParams
-    from mogs_node.metrizer.consensus import ConsensusParams
-    from mogs_node.metrizer.pipeline import MetrizerParams
-    from mogs_node.metrizer.refinement import CdrParams
-    from mogs_node.segmentation.graph import GraphSegParams
-
-    return {
-        "frontend.points": TrackPointsParams,
-        "metrizer.cdr": CdrParams,
-        "metrizer.consensus": ConsensusParams,
-        "metrizer.metrizer": MetrizerParams,
-        "prior.flow": FlowPriorParams,
-        "segmentation.graph": GraphSegParams,
-    }
-
-
-def _balanced_value(lf, path: str):
-    """The value a knob has in the demo as it runs (the file's, else the default)."""
-    role, *keys = path.split(".")
-    spec = next(s for s in lf.nodes if role_of(s.cls) == role)
-    value = spec.params
-    for k in keys:
-        value = value.get(k, MISSING) if isinstance(value, dict) else MISSING
-    if value is not MISSING:
-        return value
-    owner = (
-        _group_defaults()[".".join([role, *keys[:-1]])]
-        if len(keys) > 1
-        else load_node_class(spec.cls).Params
-    )
-    return next(f for f in fields(owner) if f.name == keys[-1]).default
-
-
 def test_every_knob_point_moves_its_knob_away_from_balanced() -> None:
     """The knobs are relative to balanced (the demo's own values): each point moves one."""
     lf = load_launch_file(REPO / "launch" / "demo.yaml")
-    assert _balanced_value(lf, "mapper.iters_per_keyframe") == 8  # the file's
-    assert _balanced_value(lf, "metrizer.cdr.irls_iters") == 3  # a default
+    assert balanced_value(lf, "mapper.iters_per_keyframe") == 8  # the file's
+    assert balanced_value(lf, "metrizer.cdr.irls_iters") == 3  # a default
     for path, values in KNOBS:
-        base = _balanced_value(lf, path)
+        base = balanced_value(lf, path)
         assert base is not MISSING, path
         assert all(v != base for v in values), (path, base, values)
 
