@@ -410,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--png", default=str(REPO_ROOT / "docs" / "front.png"))
     ap.add_argument("--no-docs", action="store_true")
     ap.add_argument("--load", default="", help="the machine's load, said in the docs")
+    ap.add_argument("--quick-json", default=None, help="a --quick run's JSON, said in the docs")
     ap.add_argument(
         "--jobs", type=int, default=None, help="configurations at a time (default 1; quick: 2)"
     )
@@ -426,7 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     for src in sources:
         if Path(src).exists():
             for p in json.loads(Path(src).read_text()).get("points", []):
-                done[p["name"]] = p
+                if p.get("frames_requested", frames) == frames:  # not a --quick point
+                    done[p["name"]] = p
     demo = load_launch_file(Path(args.launch))
     for p in done.values():  # points measured before the bench recorded it
         if p.get("knob") and "knob_balanced" not in p:
@@ -553,6 +555,10 @@ def write_results(
     results = {"frames": frames, "quick": args.quick, "points": points, **analyse(points)}
     if bench_wall_s is not None:  # this invocation's wall time (all its configurations)
         results["bench_wall_s"] = bench_wall_s
+    if getattr(args, "quick_json", None) and Path(args.quick_json).exists():
+        quick = json.loads(Path(args.quick_json).read_text())
+        results["quick_wall_s"] = quick.get("bench_wall_s")
+        results["quick_preset_checks"] = quick.get("preset_checks")
     write_json(args.json, results)
     return results
 

@@ -156,7 +156,7 @@ def front_markdown(results: dict[str, Any], cmd: str, machine: str, load: str, p
         f"| {p['name']} | {_f(p['cpu_s_per_frame'], 2)} | {_f(p.get('real_time_factor'), 3)} "
         f"| {_f(p.get('rss_peak_mib'), 0)} | {_f(p['depth_absrel'])} | {_f(p['depth_coverage'])} "
         f"| {_f(p['ate_pct'], 2)} | {_f(p['heldout_psnr_db'], 2)} | {_f(p['heldout_ssim'])} "
-        f"| {'yes' if p['name'] in joint else ''} |"
+        f"| {'yes' if p['name'] in joint else ''} | {p.get('commit', '-')} |"
         for p in sorted(results["points"], key=lambda p: p.get("cpu_s_per_frame", np.inf))
     )
     knobs = "\n".join(
@@ -185,12 +185,16 @@ still), with a preset (`mogs_node/presets.py`) or one knob moved alone from `bal
 seconds per frame of every process (broker and nodes, psutil user + system time) from the first
 image to the final map; wall-time figures (real-time factor) depend on the load, CPU seconds much
 less. Errors from the run's own report. Peers are figures published or measured elsewhere, on other
-hardware or another path, drawn for scale only.
+hardware or another path, drawn for scale only. Each point names the commit it was measured on
+(`+dirty`: with uncommitted changes); the same command re-measures only the points that are missing
+(`--redo NAME` one, `--fresh` all) after a stage changed, `--jobs 2` runs two at a time, and
+`--merge F` joins grids run in parts. Quick mode (`--quick`: the three presets on the first 40
+frames, two at a time) took {_f(results.get("quick_wall_s"), 0)} s wall.
 
 ![front]({rel})
 
-| point | CPU s / frame | real-time factor | peak RSS [MiB] | depth AbsRel | depth coverage | ATE [% path] | held-out PSNR [dB] | held-out SSIM | non-dominated |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |
+| point | CPU s / frame | real-time factor | peak RSS [MiB] | depth AbsRel | depth coverage | ATE [% path] | held-out PSNR [dB] | held-out SSIM | non-dominated | commit |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |
 {rows}
 
 Presets: {json.dumps(results.get("presets", {}))}. Checks: `{checks}`.
