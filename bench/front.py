@@ -204,6 +204,7 @@ def run_config(
     image_t: dict[int, float] = {}  # stamp -> arrival
     gt_pos: dict[int, np.ndarray] = {}  # stamp -> ground-truth camera position
     stats_t: list[float] = []
+    inserted: list[int] = []  # Gaussians each mapped keyframe inserted (-1: not said)
     final_t: float | None = None
     last_sample = 0.0
     while runner.is_alive():
@@ -220,6 +221,7 @@ def run_config(
                     final_t = now
                 else:
                     stats_t.append(now)
+                    inserted.append(int(m.extra.get("inserted", -1)))
         if now - last_sample >= SAMPLE_PERIOD_S:
             last_sample = now
             sampler.sample(now)
@@ -236,6 +238,7 @@ def run_config(
     point.update(cost_figures(sampler, image_t, stats_t, final_t, frame_rate_hz))
     point.update(scene_figures(sampler, image_t, gt_pos, stats_t))
     point.update(error_figures(summary))
+    point["inserted_per_keyframe"] = inserted
     return point
 
 
