@@ -34,6 +34,7 @@ import argparse
 import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -177,9 +178,11 @@ def run_config(
     overrides = run_dir_overrides(base, out, resume=False)
     overrides.setdefault("player", {})["sim"] = sim
     # the scorer renders only what the errors need: the held-out views (the same 12 as the
-    # demo's report), one keyframe view, no pictures (minutes of wall time on a loaded machine)
+    # demo's report), one keyframe view, no pictures (minutes of wall time on a loaded machine
+    # demo), and it waits for the final map as long as the configuration may take: the
+    # refinement after the drive sends nothing for many minutes on a loaded machine
     overrides.setdefault("report", {}).update(
-        max_keyframe_views=1, save_renders=False, save_snapshots=False
+        max_keyframe_views=1, save_renders=False, save_snapshots=False, idle_timeout_s=timeout_s
     )
     if cfg.knob is not None:
         for node, params in knob_overrides(base, *cfg.knob).items():
@@ -239,6 +242,8 @@ def run_config(
     point.update(scene_figures(sampler, image_t, gt_pos, stats_t))
     point.update(error_figures(summary))
     point["inserted_per_keyframe"] = inserted
+    # False: the report scored the map before the mapper's final one (a run cut short)
+    point["final_map"] = final_t is not None
     return point
 
 
@@ -483,6 +488,7 @@ def measured(done: dict[str, dict[str, Any]], cfg: Config, frames: int, args) ->
         prev
         and cfg.name not in args.redo
         and prev.get("frames_requested") == frames
+        and prev.get("final_map", True)
         and {k: prev.get(k) for k in ("preset", "knob")} == cfg.key()
     )
 
@@ -494,11 +500,19 @@ def run_parallel(args, todo: list[Config], frames: int, done: dict[str, dict[str
     work = Path(tempfile.mkdtemp(prefix="mogs-front-"))
     queue = list(todo)
     running: dict[str, tuple[subprocess.Popen, Path]] = {}
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # ends the children below too
+    try:
+        _run_queue(args, queue, running, work, frames, done)
+    finally:
+        for proc, _ in running.values():
+            proc.terminate()
+
+
+def _run_queue(args, queue, running, work: Path, frames: int, done) -> None:
     while queue or running:
         while queue and len(running) < args.jobs:
             cfg = queue.pop(0)
-            part = work / f"{len(done) + len(running):02d}"
-            part.mkdir()
+            part = Path(tempfile.mkdtemp(prefix="c", dir=work))
             (part / "bus").mkdir()
             cmd = [sys.executable, str(Path(__file__).resolve()), "--only", cfg.name]
             cmd += ["--json", str(part / "point.json"), "--no-docs", "--frames", str(frames)]

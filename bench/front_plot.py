@@ -149,6 +149,22 @@ def _f(v: Any, nd: int = 3) -> str:
     return f"{v:.{nd}f}" if isinstance(v, (int, float)) and np.isfinite(v) else "-"
 
 
+def insertion_text(results: dict[str, Any]) -> str:
+    """Item 4 of issue 27 as far as the bench sees it: the Gaussians each keyframe inserted."""
+    rows = [
+        f"| {p['name']} | {', '.join(str(n) for n in p['inserted_per_keyframe'])} |"
+        for p in results["points"]
+        if p.get("inserted_per_keyframe") and min(p["inserted_per_keyframe"]) >= 0
+    ]
+    if not rows:
+        return "Gaussians inserted per keyframe: not recorded by these runs."
+    return (
+        "Gaussians each keyframe inserted, in keyframe order (`/mapper/stats`; the first keyframe\n"
+        "seeds the map, later ones add only where the map does not explain their view):\n\n"
+        "| point | inserted per keyframe |\n| --- | --- |\n" + "\n".join(rows)
+    )
+
+
 def front_markdown(results: dict[str, Any], cmd: str, machine: str, load: str, png: Path) -> str:
     """docs/benchmarks.md section ``front``: the picture, the points, the knobs, standstill."""
     joint = set(results.get("front", []))
@@ -215,4 +231,6 @@ the player (the sensor: here a simulator rendering the images) and the report (t
 | process | standing still [CPU s / frame] | moving [CPU s / frame] |
 | --- | ---: | ---: |
 {scene}
+
+{insertion_text(results)}
 """
