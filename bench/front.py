@@ -244,6 +244,8 @@ def run_config(
     point["inserted_per_keyframe"] = inserted
     # False: the report scored the map before the mapper's final one (a run cut short)
     point["final_map"] = final_t is not None
+    # a respawned node (e.g. killed for memory) replays its inputs: CPU and errors not comparable
+    point["respawns"] = sum(c.respawns for c in launcher.children)
     return point
 
 
@@ -357,12 +359,13 @@ def analyse(points: list[dict[str, Any]]) -> dict[str, Any]:
         out["preset_checks"]["fast_over_quality_cpu"] = round(
             fast["cpu_s_per_frame"] / qual["cpu_s_per_frame"], 3
         )
-        three = [by_name[n] for n in PRESETS if n in by_name]
-        out["preset_checks"]["quality_best_absrel"] = qual["depth_absrel"] <= min(
-            p["depth_absrel"] for p in three
+        others = [by_name[n] for n in PRESETS if n in by_name and n != "quality"]
+        # strictly: a tie with balanced is not "best"
+        out["preset_checks"]["quality_best_absrel"] = qual["depth_absrel"] < min(
+            p["depth_absrel"] for p in others
         )
-        out["preset_checks"]["quality_best_heldout_psnr"] = qual["heldout_psnr_db"] >= max(
-            p["heldout_psnr_db"] for p in three
+        out["preset_checks"]["quality_best_heldout_psnr"] = qual["heldout_psnr_db"] > max(
+            p["heldout_psnr_db"] for p in others
         )
     if "balanced" in by_name:
         b = by_name["balanced"]
@@ -435,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     for src in sources:
         if Path(src).exists():
             for p in json.loads(Path(src).read_text()).get("points", []):
-                if p.get("frames_requested", frames) == frames:  # not a --quick point
+                if p.get("frames_requested", frames) == frames and valid(p):  # clean, not quick
                     done[p["name"]] = p
     demo = load_launch_file(Path(args.launch))
     for p in done.values():  # points measured before the bench recorded it
@@ -458,8 +461,11 @@ def main(argv: list[str] | None = None) -> int:
             point = run_config(Path(args.launch), cfg, frames, out, args.timeout)
             point.update(frames_requested=frames, commit=code_commit())
             point["bench_cpu_s"] = round(time.process_time() - t0, 1)
-            done[cfg.name] = point
             print("[front] " + json.dumps({k: point.get(k) for k in SHOWN}), flush=True)
+            if not valid(point):
+                print(f"[front] {cfg.name}: not a clean run, left out: {out}", flush=True)
+                continue
+            done[cfg.name] = point
             write_results(args, done, frames)
     bench_wall_s = round(time.monotonic() - t_bench, 1) if todo else None
     results = write_results(args, done, frames, bench_wall_s)
@@ -481,6 +487,15 @@ def main(argv: list[str] | None = None) -> int:
 SHOWN = ("name", "cpu_s_per_frame", "real_time_factor", *ERRORS, "standstill_over_moving_cpu")
 
 
+def valid(point: dict[str, Any]) -> bool:
+    """A clean run: it ended well, no node respawned, the report scored the final map."""
+    return (
+        point.get("launch_rc", 0) == 0
+        and not point.get("respawns")
+        and point.get("final_map", True)
+    )
+
+
 def measured(done: dict[str, dict[str, Any]], cfg: Config, frames: int, args) -> bool:
     """Whether ``done`` holds ``cfg`` measured with the same settings (resume)."""
     prev = done.get(cfg.name)
@@ -488,7 +503,7 @@ def measured(done: dict[str, dict[str, Any]], cfg: Config, frames: int, args) ->
         prev
         and cfg.name not in args.redo
         and prev.get("frames_requested") == frames
-        and prev.get("final_map", True)
+        and valid(prev)
         and {k: prev.get(k) for k in ("preset", "knob")} == cfg.key()
     )
 
@@ -535,8 +550,11 @@ def _run_queue(args, queue, running, work: Path, frames: int, done) -> None:
             if name not in pts:
                 print(f"[front] {name} failed (rc {proc.returncode}): {part}/bench.log", flush=True)
                 continue
-            done[name] = pts[name]
             print("[front] " + json.dumps({k: pts[name].get(k) for k in SHOWN}), flush=True)
+            if not valid(pts[name]):
+                print(f"[front] {name}: not a clean run, left out: {part}/bench.log", flush=True)
+                continue
+            done[name] = pts[name]
             write_results(args, done, frames)
 
 

@@ -149,6 +149,29 @@ def _f(v: Any, nd: int = 3) -> str:
     return f"{v:.{nd}f}" if isinstance(v, (int, float)) and np.isfinite(v) else "-"
 
 
+def must_show(results: dict[str, Any]) -> str:
+    """Issue 27's "Must show" points, each with its measured value."""
+    c = results.get("preset_checks", {})
+    undominated = all(not c.get(f"{n}_dominated_by", [1]) for n in ("fast", "balanced", "quality"))
+    ratio = c.get("fast_over_quality_cpu")
+    still = results.get("standstill_over_moving_cpu")
+    yes = {True: "met", False: "**not met**"}
+    return "\n".join(
+        [
+            f"- measured configurations: {len(results['points'])} "
+            f"({yes[len(results['points']) >= 12]}: >= 12)",
+            f"- no preset dominated by a measured point: {yes[undominated]}",
+            f"- fast over quality CPU per frame: {_f(ratio)} ({yes[bool(ratio and ratio <= 0.5)]}: "
+            "<= 0.5)",
+            "- quality best depth AbsRel of the three: "
+            f"{yes[bool(c.get('quality_best_absrel'))]}; best held-out PSNR: "
+            f"{yes[bool(c.get('quality_best_heldout_psnr'))]}",
+            f"- standstill over moving CPU per frame (balanced): {_f(still)} "
+            f"({yes[bool(still is not None and still <= 0.2)]}: <= 0.2)",
+        ]
+    )
+
+
 def insertion_text(results: dict[str, Any]) -> str:
     """Item 4 of issue 27 as far as the bench sees it: the Gaussians each keyframe inserted."""
     rows = [
@@ -214,6 +237,8 @@ frames, two at a time) took {_f(results.get("quick_wall_s"), 0)} s wall.
 {rows}
 
 Presets: {json.dumps(results.get("presets", {}))}. Checks: `{checks}`.
+
+{must_show(results)}
 
 Each knob moved alone from `balanced` (differences to `balanced`; negative AbsRel / ATE and
 positive coverage / PSNR / SSIM are better):

@@ -90,6 +90,8 @@ def test_preset_checks_and_knob_table() -> None:
     assert checks["balanced_dominated_by"] == [] and checks["quality_dominated_by"] == []
     assert checks["fast_over_quality_cpu"] == 0.2
     assert checks["quality_best_absrel"] and checks["quality_best_heldout_psnr"]
+    tie = analyse([points[0], points[1], _point("quality", 2.0, 0.15, 24.0)])["preset_checks"]
+    assert not tie["quality_best_absrel"] and tie["quality_best_heldout_psnr"]  # a tie is not best
     (knob,) = res["knobs"]
     assert knob["knob"] == "mapper.iters" and knob["value"] == 8
     assert np.isclose(knob["d_cpu_s_per_frame"], -0.3)
