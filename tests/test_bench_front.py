@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import MISSING
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from hypothesis import HealthCheck, given, settings
@@ -14,14 +15,17 @@ from test_launch_files import _nested
 
 from bench.front import (
     KNOBS,
+    Config,
     CpuSampler,
     analyse,
     cpu_between,
     dominates,
     grid,
     knob_overrides,
+    measured,
     pipeline_only_ratio,
     scene_figures,
+    valid,
 )
 from bench.front_plot import ERRORS, pareto_2d
 from mogs_node.commands.node import load_node_class
@@ -170,3 +174,15 @@ def test_standstill_ratio_without_the_sensor_and_the_scorer() -> None:
     }
     assert pipeline_only_ratio(point) == 0.1
     assert pipeline_only_ratio({}) is None
+
+
+def test_only_clean_runs_count_and_a_grid_resumes_the_rest() -> None:
+    args = SimpleNamespace(redo=[])
+    cfg = Config("mapper.window_size=4", knob=("mapper.window_size", 4))
+    clean = {"name": cfg.name, **cfg.key(), "frames_requested": 60, "launch_rc": 0}
+    assert valid(clean) and measured({cfg.name: clean}, cfg, 60, args)
+    assert not measured({cfg.name: clean}, cfg, 40, args)  # another drive length
+    assert not measured({cfg.name: clean}, cfg, 60, SimpleNamespace(redo=[cfg.name]))
+    for bad in ({"launch_rc": 1}, {"respawns": 2}, {"final_map": False}):
+        assert not valid({**clean, **bad})
+        assert not measured({cfg.name: {**clean, **bad}}, cfg, 60, args)
