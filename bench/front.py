@@ -20,9 +20,9 @@ published figures) and ``docs/benchmarks.md`` section ``front``.
 
 Usage::
 
-    python bench/front.py --json /tmp/front.json           # the full grid (~20 runs)
+    python bench/front.py --jobs 2                         # the grid: what docs/front.json lacks
     python bench/front.py --quick --json /tmp/front.json   # short drive, the three presets
-    python bench/front.py --json /tmp/front.json --jobs 2  # two configurations at a time
+    python bench/front.py --fresh --jobs 2                 # all of it again (a stage changed)
 
 ``--quick`` runs the three presets on the first 40 frames (2 s standing, 2 s driving), two at a
 time (``--jobs``): within 10 minutes on an idle 2-core machine.
@@ -72,6 +72,8 @@ KNOBS: tuple[tuple[str, tuple[Any, ...]], ...] = (
     ("mapper.train_downsample", (4, 1)),  # mapping image scale [2]
     ("mapper.window_size", (4, 10)),  # [6]
 )
+# the measured points, each with its commit: `python bench/front.py` measures what is missing
+DEFAULT_JSON = REPO_ROOT / "docs" / "front.json"
 QUICK_FRAMES = 40  # --quick: the 2 s standing start and 2 s of driving
 STANDSTILL_SPEED_M_S = 0.05  # ground-truth speed below this: standing still
 SAMPLE_PERIOD_S = 0.25
@@ -400,7 +402,12 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "demo.yaml"))
-    ap.add_argument("--json", default=None, help="results (read back to resume a grid)")
+    ap.add_argument(
+        "--json",
+        default=None,
+        help=f"results, read back to resume a grid (default {DEFAULT_JSON.relative_to(REPO_ROOT)};"
+        " --quick: none)",
+    )
     ap.add_argument("--quick", action="store_true", help="short drive, the three presets")
     ap.add_argument("--frames", type=int, default=None, help=f"default 60 (quick: {QUICK_FRAMES})")
     ap.add_argument(
@@ -426,6 +433,7 @@ def main(argv: list[str] | None = None) -> int:
         "--jobs", type=int, default=None, help="configurations at a time (default 1; quick: 2)"
     )
     args = ap.parse_args(argv)
+    args.json = args.json or (None if args.quick else str(DEFAULT_JSON))
     frames = args.frames or (QUICK_FRAMES if args.quick else 60)
     args.jobs = args.jobs or (2 if args.quick else 1)
     configs = grid(args.quick)

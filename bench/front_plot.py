@@ -225,9 +225,10 @@ seconds per frame of every process (broker and nodes, psutil user + system time)
 image to the final map; wall-time figures (real-time factor) depend on the load, CPU seconds much
 less. Errors from the run's own report. Peers are figures published or measured elsewhere, on other
 hardware or another path, drawn for scale only. Each point names the commit it was measured on
-(`+dirty`: with uncommitted changes); the same command re-measures only the points that are missing
-(`--redo NAME` one, `--fresh` all) after a stage changed, `--jobs 2` runs two at a time, and
-`--merge F` joins grids run in parts. Quick mode (`--quick`: the three presets on the first 40
+(`+dirty`: with uncommitted changes); the points are kept in `docs/front.json`, and
+`python bench/front.py --jobs 2` measures those the grid lacks (or that were not clean runs: a
+node respawned, the report did not score the final map), `--redo NAME` one again, `--fresh` all
+(after a stage changed); `--merge F` joins grids run in parts. Quick mode (`--quick`: the three presets on the first 40
 frames, two at a time) took {_f(results.get("quick_wall_s"), 0)} s wall.
 
 ![front]({rel})
