@@ -86,7 +86,13 @@ class Config:
     knob: tuple[str, Any] | None = None  # ("role.param[.sub]", value)
 
     def key(self) -> dict[str, Any]:
-        return {"preset": self.preset, "knob": list(self.knob) if self.knob else None}
+        """What the point measured: the preset, its table of overrides (a preset redefined is
+        measured again) and the knob moved."""
+        return {
+            "preset": self.preset,
+            "preset_table": PRESETS[self.preset],
+            "knob": list(self.knob) if self.knob else None,
+        }
 
 
 def grid(quick: bool) -> list[Config]:
@@ -512,7 +518,7 @@ def measured(done: dict[str, dict[str, Any]], cfg: Config, frames: int, args) ->
         and cfg.name not in args.redo
         and prev.get("frames_requested") == frames
         and valid(prev)
-        and {k: prev.get(k) for k in ("preset", "knob")} == cfg.key()
+        and {k: prev.get(k) for k in cfg.key()} == json.loads(json.dumps(cfg.key()))
     )
 
 

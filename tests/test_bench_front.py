@@ -183,6 +183,9 @@ def test_only_clean_runs_count_and_a_grid_resumes_the_rest() -> None:
     assert valid(clean) and measured({cfg.name: clean}, cfg, 60, args)
     assert not measured({cfg.name: clean}, cfg, 40, args)  # another drive length
     assert not measured({cfg.name: clean}, cfg, 60, SimpleNamespace(redo=[cfg.name]))
+    q = Config("quality", preset="quality")
+    old_quality = {"name": "quality", **q.key(), "frames_requested": 60, "preset_table": {}}
+    assert not measured({"quality": old_quality}, q, 60, args)  # the preset was redefined
     for bad in ({"launch_rc": 1}, {"respawns": 2}, {"final_map": False}):
         assert not valid({**clean, **bad})
         assert not measured({cfg.name: {**clean, **bad}}, cfg, 60, args)
