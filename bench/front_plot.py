@@ -149,6 +149,50 @@ def _f(v: Any, nd: int = 3) -> str:
     return f"{v:.{nd}f}" if isinstance(v, (int, float)) and np.isfinite(v) else "-"
 
 
+def must_show(results: dict[str, Any]) -> str:
+    """Issue 27's "Must show" points, each with its measured value."""
+    c = results.get("preset_checks", {})
+    undominated = all(not c.get(f"{n}_dominated_by", [1]) for n in ("fast", "balanced", "quality"))
+    ratio = c.get("fast_over_quality_cpu")
+    still = results.get("standstill_over_moving_cpu")
+    yes = {True: "met", False: "**not met**"}
+    return "\n".join(
+        [
+            f"- measured configurations: {len(results['points'])} "
+            f"({yes[len(results['points']) >= 12]}: >= 12)",
+            f"- no preset dominated by a measured point: {yes[undominated]}",
+            f"- fast over quality CPU per frame: {_f(ratio)} ({yes[bool(ratio and ratio <= 0.5)]}: "
+            "<= 0.5)",
+            "- quality best depth AbsRel of the three: "
+            f"{yes[bool(c.get('quality_best_absrel'))]}; best held-out PSNR: "
+            f"{yes[bool(c.get('quality_best_heldout_psnr'))]}",
+            f"- standstill over moving CPU per frame (balanced): {_f(still)} "
+            f"({yes[bool(still is not None and still <= 0.2)]}: <= 0.2)",
+        ]
+    )
+
+
+def insertion_text(results: dict[str, Any]) -> str:
+    """Item 4 of issue 27 as far as the bench sees it: the Gaussians each keyframe inserted."""
+    rows = [
+        f"| {p['name']} | {', '.join(str(n) for n in p['inserted_per_keyframe'])} |"
+        for p in results["points"]
+        if p.get("inserted_per_keyframe") and min(p["inserted_per_keyframe"]) >= 0
+    ]
+    fits = (
+        "\n\nShape fits skipped on sky and on a road the road model explains: not measured by this"
+        "\nbench (the metrizer keeps its per-object counts in-process, `objects_tried` /"
+        "\n`skipped_costly` in `metrize()`'s stats; sky objects are featureless and never fitted)."
+    )
+    if not rows:
+        return "Gaussians inserted per keyframe: not recorded by these runs." + fits
+    return (
+        "Gaussians each keyframe inserted, in keyframe order (`/mapper/stats`; the first keyframe\n"
+        "seeds the map, later ones add only where the map does not explain their view):\n\n"
+        "| point | inserted per keyframe |\n| --- | --- |\n" + "\n".join(rows) + fits
+    )
+
+
 def front_markdown(results: dict[str, Any], cmd: str, machine: str, load: str, png: Path) -> str:
     """docs/benchmarks.md section ``front``: the picture, the points, the knobs, standstill."""
     joint = set(results.get("front", []))
@@ -156,11 +200,11 @@ def front_markdown(results: dict[str, Any], cmd: str, machine: str, load: str, p
         f"| {p['name']} | {_f(p['cpu_s_per_frame'], 2)} | {_f(p.get('real_time_factor'), 3)} "
         f"| {_f(p.get('rss_peak_mib'), 0)} | {_f(p['depth_absrel'])} | {_f(p['depth_coverage'])} "
         f"| {_f(p['ate_pct'], 2)} | {_f(p['heldout_psnr_db'], 2)} | {_f(p['heldout_ssim'])} "
-        f"| {'yes' if p['name'] in joint else ''} |"
+        f"| {'yes' if p['name'] in joint else ''} | {p.get('commit', '-')} |"
         for p in sorted(results["points"], key=lambda p: p.get("cpu_s_per_frame", np.inf))
     )
     knobs = "\n".join(
-        f"| {k['knob']} | {k['value']} | {_f(k['d_cpu_s_per_frame'], 2)} "
+        f"| {k['knob']} | {k.get('balanced', '')} | {k['value']} | {_f(k['d_cpu_s_per_frame'], 2)} "
         f"| {_f(k['d_depth_absrel'], 4)} | {_f(k['d_depth_coverage'], 4)} "
         f"| {_f(k['d_ate_pct'], 3)} | {_f(k['d_heldout_psnr_db'], 2)} "
         f"| {_f(k['d_heldout_ssim'], 4)} |"
@@ -185,21 +229,28 @@ still), with a preset (`mogs_node/presets.py`) or one knob moved alone from `bal
 seconds per frame of every process (broker and nodes, psutil user + system time) from the first
 image to the final map; wall-time figures (real-time factor) depend on the load, CPU seconds much
 less. Errors from the run's own report. Peers are figures published or measured elsewhere, on other
-hardware or another path, drawn for scale only.
+hardware or another path, drawn for scale only. Each point names the commit it was measured on
+(`+dirty`: with uncommitted changes); the points are kept in `docs/front.json`, and
+`python bench/front.py --jobs 2` measures those the grid lacks (or that were not clean runs: a
+node respawned, the report did not score the final map), `--redo NAME` one again, `--fresh` all
+(after a stage changed); `--merge F` joins grids run in parts. Quick mode (`--quick`: the three presets on the first 40
+frames, two at a time) took {_f(results.get("quick_wall_s"), 0)} s wall.
 
 ![front]({rel})
 
-| point | CPU s / frame | real-time factor | peak RSS [MiB] | depth AbsRel | depth coverage | ATE [% path] | held-out PSNR [dB] | held-out SSIM | non-dominated |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |
+| point | CPU s / frame | real-time factor | peak RSS [MiB] | depth AbsRel | depth coverage | ATE [% path] | held-out PSNR [dB] | held-out SSIM | non-dominated | commit |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |
 {rows}
 
 Presets: {json.dumps(results.get("presets", {}))}. Checks: `{checks}`.
 
+{must_show(results)}
+
 Each knob moved alone from `balanced` (differences to `balanced`; negative AbsRel / ATE and
 positive coverage / PSNR / SSIM are better):
 
-| knob | value | d CPU s / frame | d AbsRel | d coverage | d ATE [% path] | d PSNR [dB] | d SSIM |
-| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
+| knob | balanced | moved to | d CPU s / frame | d AbsRel | d coverage | d ATE [% path] | d PSNR [dB] | d SSIM |
+| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
 {knobs}
 
 Work that follows the scene (`balanced`): CPU per frame while the ground truth stands still
@@ -211,4 +262,6 @@ the player (the sensor: here a simulator rendering the images) and the report (t
 | process | standing still [CPU s / frame] | moving [CPU s / frame] |
 | --- | ---: | ---: |
 {scene}
+
+{insertion_text(results)}
 """

@@ -4,24 +4,34 @@ grid and one knob's overrides."""
 
 from __future__ import annotations
 
+from dataclasses import MISSING
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_launch_files import _nested
 
 from bench.front import (
+    KNOBS,
+    Config,
     CpuSampler,
     analyse,
     cpu_between,
     dominates,
     grid,
     knob_overrides,
+    measured,
     pipeline_only_ratio,
     scene_figures,
+    valid,
 )
 from bench.front_plot import ERRORS, pareto_2d
+from mogs_node.commands.node import load_node_class
 from mogs_node.launch import load_launch_file
+from mogs_node.node import parse_params
+from mogs_node.presets import balanced_value
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -84,6 +94,8 @@ def test_preset_checks_and_knob_table() -> None:
     assert checks["balanced_dominated_by"] == [] and checks["quality_dominated_by"] == []
     assert checks["fast_over_quality_cpu"] == 0.2
     assert checks["quality_best_absrel"] and checks["quality_best_heldout_psnr"]
+    tie = analyse([points[0], points[1], _point("quality", 2.0, 0.15, 24.0)])["preset_checks"]
+    assert not tie["quality_best_absrel"] and tie["quality_best_heldout_psnr"]  # a tie is not best
     (knob,) = res["knobs"]
     assert knob["knob"] == "mapper.iters" and knob["value"] == 8
     assert np.isclose(knob["d_cpu_s_per_frame"], -0.3)
@@ -129,15 +141,30 @@ def test_grid_and_one_knobs_overrides_merge_nested_groups() -> None:
     names = [c.name for c in grid(quick=False)]
     assert names[:3] == ["balanced", "fast", "quality"] and len(names) >= 12
     assert len(set(names)) == len(names)
-    assert [c.name for c in grid(quick=True)] == ["balanced", "fast", "quality"]
+    assert sorted(c.name for c in grid(quick=True)) == ["balanced", "fast", "quality"]
     lf = load_launch_file(REPO / "launch" / "demo.yaml")
     over = knob_overrides(lf, "prior.flow.dis_preset", "fast")
     flow = over["prior"]["flow"]
     assert flow["dis_preset"] == "fast" and flow["max_flow_gradient"] == 2.0  # the file's kept
     assert knob_overrides(lf, "mapper.window_size", 4) == {"mapper": {"window_size": 4}}
-    # every knob of the grid names a node of the demo and loads
+    # every knob of the grid names a node of the demo, loads and validates
     for cfg in grid(quick=False)[3:]:
-        load_launch_file(REPO / "launch" / "demo.yaml", overrides=knob_overrides(lf, *cfg.knob))
+        moved = load_launch_file(
+            REPO / "launch" / "demo.yaml", overrides=knob_overrides(lf, *cfg.knob)
+        )
+        for spec in moved.nodes:
+            _nested(spec, parse_params(load_node_class(spec.cls).Params, spec.params))
+
+
+def test_every_knob_point_moves_its_knob_away_from_balanced() -> None:
+    """The knobs are relative to balanced (the demo's own values): each point moves one."""
+    lf = load_launch_file(REPO / "launch" / "demo.yaml")
+    assert balanced_value(lf, "mapper.iters_per_keyframe") == 8  # the file's
+    assert balanced_value(lf, "metrizer.cdr.irls_iters") == 3  # a default
+    for path, values in KNOBS:
+        base = balanced_value(lf, path)
+        assert base is not MISSING, path
+        assert all(v != base for v in values), (path, base, values)
 
 
 def test_standstill_ratio_without_the_sensor_and_the_scorer() -> None:
@@ -147,3 +174,18 @@ def test_standstill_ratio_without_the_sensor_and_the_scorer() -> None:
     }
     assert pipeline_only_ratio(point) == 0.1
     assert pipeline_only_ratio({}) is None
+
+
+def test_only_clean_runs_count_and_a_grid_resumes_the_rest() -> None:
+    args = SimpleNamespace(redo=[])
+    cfg = Config("mapper.window_size=4", knob=("mapper.window_size", 4))
+    clean = {"name": cfg.name, **cfg.key(), "frames_requested": 60, "launch_rc": 0}
+    assert valid(clean) and measured({cfg.name: clean}, cfg, 60, args)
+    assert not measured({cfg.name: clean}, cfg, 40, args)  # another drive length
+    assert not measured({cfg.name: clean}, cfg, 60, SimpleNamespace(redo=[cfg.name]))
+    q = Config("quality", preset="quality")
+    old_quality = {"name": "quality", **q.key(), "frames_requested": 60, "preset_table": {}}
+    assert not measured({"quality": old_quality}, q, 60, args)  # the preset was redefined
+    for bad in ({"launch_rc": 1}, {"respawns": 2}, {"final_map": False}):
+        assert not valid({**clean, **bad})
+        assert not measured({cfg.name: {**clean, **bad}}, cfg, 60, args)
