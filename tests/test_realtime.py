@@ -213,6 +213,68 @@ def test_backlog_never_exceeds_its_bound(events, cap):
     assert b.backlog == len([k for k in published if k > done])
 
 
+def test_backlog_in_time_sheds_a_keyframe_whose_depth_would_come_too_late():
+    b = KeyframeBacklog(BacklogParams(max_backlog=3, max_latency_s=2.0, deviations=0.0))
+    assert b.admit(0, 0.0, 0.0) is None  # nothing measured yet: only the count bounds it
+    b.done(0, 1.0)
+    assert b.service_s == 1.0 and b.measured == 1
+    assert b.admit(1, 1.2, 1.1) is None  # an empty chain: always admitted
+    # keyframe 1 started at 1.2 and takes 1.0: keyframe 2 (image at 1.4) would be done at 3.2
+    assert b.predicted_latency_s(1.5, 1.4) == pytest.approx(1.8)
+    assert b.admit(2, 1.5, 1.4) is None
+    # keyframe 3 (image at 1.5): behind 1 and 2, done at 4.2, 2.7 s after its image
+    reason = b.admit(3, 1.6, 1.5)
+    assert reason is not None and reason.startswith("latency: depth predicted 2.7 s")
+    assert b.shed == {"latency": 1} and b.backlog == 2
+    b.done(1, 2.4)  # 1.2 s from its start: the chain got slower
+    assert b.service_s == pytest.approx(1.0 + 0.3 * 0.2)
+    b.done(2, 3.6)  # started when 1 was through (2.4), not when published (1.5): 1.2 s again
+    assert b.service_s == pytest.approx(1.06 + 0.3 * 0.14)
+    assert b.backlog == 0 and b.admit(4, 5.0, 4.9) is None
+    with pytest.raises(ConfigError, match="max_latency_s"):
+        BacklogParams(max_latency_s=-1.0)
+
+
+def test_backlog_in_time_never_sheds_into_an_empty_chain():
+    b = KeyframeBacklog(BacklogParams(max_latency_s=0.5))
+    b.admit(0, 0.0)
+    b.done(0, 10.0)  # a chain far slower than the budget
+    assert b.admit(1, 11.0, 10.5) is None  # alone in the chain: shedding it gains nothing
+    assert b.admit(2, 11.1, 11.1) is not None and b.shed == {"latency": 1}
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(0.01, 2.0), min_size=1, max_size=40),
+    st.floats(0.1, 1.5),
+    st.floats(0.5, 4.0),
+    st.integers(0, 3),
+)
+def test_backlog_in_time_bounds_the_latency_of_a_steady_chain(gaps, service_s, budget_s, cap):
+    """A chain that takes ``service_s`` per keyframe, in order, and keyframes at any times: once
+    the chain is measured, every keyframe admitted gets its depth within the budget (or within
+    one service time, when it found the chain empty), and every keyframe is admitted or shed."""
+    b = KeyframeBacklog(BacklogParams(max_backlog=cap, max_latency_s=budget_s, deviations=0.0))
+    done_at: list[tuple[float, int]] = []  # pending completions (time, id), in order
+    last_done = 0.0
+    t = 0.0
+    admitted = 0
+    for kid, gap in enumerate(gaps):
+        t += gap
+        while done_at and done_at[0][0] <= t:
+            b.done(done_at[0][1], done_at[0][0])
+            done_at.pop(0)
+        measured, empty = b.measured > 0, not done_at
+        if b.admit(kid, t, t) is None:
+            admitted += 1
+            last_done = max(t, last_done) + service_s
+            done_at.append((last_done, kid))
+            if measured:
+                assert last_done - t <= max(budget_s, service_s) + 1e-9
+                assert not empty or last_done - t == pytest.approx(service_s)
+    assert admitted + b.shed_total == len(gaps)
+
+
 # ------------------------------------------------------------------ CPU priority in launch files
 
 
