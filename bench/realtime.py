@@ -254,6 +254,9 @@ def figures_of(
         "heldout_psnr_db": summary.get("map", {}).get("heldout_psnr_db", float("nan")),
         "latency_image_to_depth_ms_p50": percentile(lat, 50),
         "latency_image_to_depth_ms_p95": percentile(lat, 95),
+        "latency_stages_ms_p50": {
+            st: percentile([v[st] for v in stages.values()], 50) for st in STAGES
+        },
         "latency_stages_ms_p95": {
             st: percentile([v[st] for v in stages.values()], 95) for st in STAGES
         },
@@ -322,6 +325,14 @@ def table(res: dict[str, dict[str, Any]]) -> str:
     lines = ["| figure | " + " | ".join(modes) + " |", "| --- |" + " ---: |" * len(modes)]
     for label, key, second in ROWS:
         lines.append(f"| {label} | " + " | ".join(_cell(res[m], key, second) for m in modes) + " |")
+    for st in STAGES:  # where the latency goes (keyframes with every stage seen)
+
+        def stage(r: dict[str, Any], st: str = st) -> str:
+            p50, p95 = r.get("latency_stages_ms_p50", {}), r.get("latency_stages_ms_p95", {})
+            return f"{p50.get(st, float('nan')):.0f} / {p95.get(st, float('nan')):.0f}"
+
+        label = f"latency stage {st} p50 / p95 [ms]"
+        lines.append(f"| {label} | " + " | ".join(stage(res[m]) for m in modes) + " |")
     nodes = sorted({n for m in modes for n in res[m]["cpu_s"]})
     for n in nodes:
         cells = [
@@ -347,7 +358,10 @@ Machine: {machine_line()}{"; load: " + args.load if args.load else ""}. The simu
 OXTS) through `launch/kitti.yaml`: `rate` = `rate: 1.0` as the launch file has it, `fast` =
 `fast: true`{live if "live" in res else ""}. Depth, ATE and held-out PSNR from the run's
 `summary.json` (the report's own scoring); latency (a keyframe's image published -> its metrized
-depth published) and CPU per node measured by the script from the bus and the processes.
+depth published) and CPU per node measured by the script from the bus and the processes. The
+latency stages of a keyframe: `frontend` image -> keyframe published, `chain_busy` keyframe ->
+the previous keyframe's depth (the queue: the prior waits for it), `segmentation` / `prior`
+keyframe -> masks / prior (with the queue), `metrizer` the later of the two -> depth.
 
 {table(res)}
 

@@ -21,6 +21,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from mogs_node import msgs
@@ -30,8 +31,10 @@ from mogs_node.depth_prior.flow_prior import FlowPriorParams, fit_scale_huber
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
 from mogs_node.errors import ConfigError
+from mogs_node.geometry import PinholeCamera
 from mogs_node.keyframe_chain import failed_prior
 from mogs_node.node import Node, parse_params
+from mogs_node.worker_budget import ScaleBudget, ScaleBudgetParams
 
 __all__ = ["DepthPriorNode", "DepthPriorParams"]
 
@@ -60,6 +63,10 @@ class DepthPriorParams:
     metrized_wait_s: float = 5.0  # a keyframe waits at most this long for the previous one's
     # metrized depth (0: never): the prior then does not depend on which arrived first, so the
     # same drive gives the same prior on every run whenever the pipeline keeps up
+    # the flow prior's image scale from a time budget per keyframe (ScaleBudgetParams fields,
+    # mogs_node/worker_budget.py; budget_s 0 = off, full scale): the prior is published at that
+    # scale (the metrizer resizes it to the keyframe's)
+    scale_budget: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.metrized_wait_s) or self.metrized_wait_s < 0:
@@ -89,6 +96,9 @@ class DepthPriorNode(Node):
         if p.backend == "sim_lfm":
             self._setup_sim_lfm()
             return
+        self.budget = ScaleBudget(
+            parse_params(ScaleBudgetParams, p.scale_budget, where=f"{self.name}.scale_budget")
+        )
         self.sequence = PriorSequence(
             self.flow_params,
             parse_params(RoadPriorParams, p.road, where=f"{self.name}.road"),
@@ -158,7 +168,13 @@ class DepthPriorNode(Node):
                 "%s: kind %r is not metric, ignored", self.params.metrized_topic, msg.kind
             )
             return
-        if not self.sequence.add_metrized(msg.keyframe_id, msg.depth, msg.confidence):
+        depth, conf = msg.depth, msg.confidence
+        hist = self.sequence.history
+        if hist and depth.shape != hist[-1].grey.shape:  # the prior works at a smaller scale
+            size = hist[-1].grey.shape[::-1]
+            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+            conf = cv2.resize(conf, size, interpolation=cv2.INTER_NEAREST)
+        if not self.sequence.add_metrized(msg.keyframe_id, depth, conf):
             self.log.debug("metrized depth of keyframe %d not kept", msg.keyframe_id)
         self._release_waiting()
 
@@ -237,11 +253,29 @@ class DepthPriorNode(Node):
         self.log.debug("keyframe %d: prior %s", kf.keyframe_id, extra)
 
     def _flow(self, kf: msgs.Keyframe):
-        prior, refs = self.sequence.next(kf.keyframe_id, kf.image, kf.K, kf.T_world_cam)
+        scale = self.budget.scale
+        image, K = kf.image, kf.K
+        if scale < 1.0:  # the time budget's scale (worker_budget.py)
+            H, W = image.shape[:2]
+            cam = PinholeCamera.from_K(K, W, H).scaled(round(W * scale), round(H * scale))
+            image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+            K = cam.K
+        t0 = time.monotonic()
+        prior, refs = self.sequence.next(kf.keyframe_id, image, K, kf.T_world_cam)
+        if self.budget.observe(time.monotonic() - t0) != scale:
+            self.log.info(
+                "keyframe %d: prior %.0f ms at scale %.2f (budget %.0f ms): next at scale %.2f",
+                kf.keyframe_id,
+                1000.0 * (time.monotonic() - t0),
+                scale,
+                1000.0 * self.budget.params.budget_s,
+                self.budget.scale,
+            )
+        self.counters["prior_scale"] = scale
         extra: dict[str, Any] = dict(prior.stats)
         extra["references"] = refs
         if len(kf.feature_xyz_cam_m):  # diagnostic: robust scale of the prior vs sparse points
-            uv = np.round(kf.feature_uv_px).astype(int)
+            uv = np.round(kf.feature_uv_px * scale).astype(int)
             H, W = prior.depth_m.shape
             ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
             d = prior.depth_m[uv[ok, 1], uv[ok, 0]]
