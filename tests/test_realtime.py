@@ -329,6 +329,18 @@ def test_the_prior_at_a_budget_scale_is_metric_and_right(inproc_bus, scale):
         assert ok.mean() > 0.4
         absrel = np.median(np.abs(depth[ok] - truth[ok]) / truth[ok])
         assert absrel < 0.05, absrel
+        # the keyframe's metrized depth (full size) joins the history at the prior's size
+        full = np.full((H, W), 9.0, np.float32)
+        node.on_metrized(
+            msgs.DepthMap(
+                **keyframe(2).result_header(),
+                kind="metric",
+                depth=full,
+                confidence=full,
+                source="t",
+            )
+        )
+        assert node.sequence.history[-1].metrized[0].shape == depth.shape
     finally:
         node.close()
 
