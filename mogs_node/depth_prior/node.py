@@ -172,7 +172,7 @@ class DepthPriorNode(Node):
         hist, scale = self.sequence.history, self.budget.scale
         H, W = depth.shape[:2]
         size = hist[-1].grey.shape[::-1] if hist else (round(W * scale), round(H * scale))
-        if depth.shape[::-1] != tuple(size):  # the prior works at a smaller scale
+        if scale < 1.0 and depth.shape[::-1] != tuple(size):  # the prior works smaller
             depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
             conf = cv2.resize(conf, size, interpolation=cv2.INTER_NEAREST)
         if not self.sequence.add_metrized(msg.keyframe_id, depth, conf):
