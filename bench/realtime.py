@@ -54,10 +54,28 @@ COVERAGE_RATIO_MIN = 0.9
 LATENCY_P95_MAX_MS = 3000.0
 
 
-class BusProbe:
-    """Wall-clock arrival of each image and of each keyframe's metrized depth, on the bus."""
+STAGES = (
+    "frontend",
+    "chain_busy",
+    "segmentation",
+    "prior",
+    "metrizer",
+)  # where a keyframe's latency goes
 
-    TOPICS = ("/camera/image", "/frontend/keyframe", "/metrizer/depth")
+
+class BusProbe:
+    """Wall-clock arrival of each image and of each keyframe's outputs along the chain, on the
+    bus: the image (player), the keyframe (frontend), its masks and prior (workers) and its
+    metrized depth (metrizer)."""
+
+    TOPICS = (
+        "/camera/image",
+        "/frontend/keyframe",
+        "/seg/masks",
+        "/prior/depth",
+        "/metrizer/depth",
+    )
+    SLOT = {"/frontend/keyframe": "keyframe", "/seg/masks": "masks", "/prior/depth": "prior"}
 
     def __init__(self, bus, ctx: zmq.Context) -> None:
         self.sub = Subscriber(bus, context=ctx)
@@ -66,6 +84,7 @@ class BusProbe:
         self.image_s: dict[int, float] = {}  # stamp -> arrival
         self.keyframe_stamp: dict[int, int] = {}  # keyframe id -> stamp
         self.depth_s: dict[int, float] = {}  # keyframe id -> arrival
+        self.slot_s: dict[str, dict[int, float]] = {s: {} for s in self.SLOT.values()}
 
     def poll(self, timeout_ms: int) -> None:
         env = self.sub.receive(timeout_ms=timeout_ms)
@@ -74,17 +93,49 @@ class BusProbe:
         now, m = time.monotonic(), env.msg
         if env.topic == "/camera/image":
             self.image_s.setdefault(int(m.stamp_ns), now)
-        elif isinstance(m, msgs.Keyframe):
+            return
+        if env.topic == "/frontend/keyframe" and isinstance(m, msgs.Keyframe):
             self.keyframe_stamp[int(m.keyframe_id)] = int(m.stamp_ns)
-        elif env.topic == "/metrizer/depth":
+        if env.topic == "/metrizer/depth":
             self.depth_s.setdefault(int(m.keyframe_id), now)
+        elif env.topic in self.SLOT:
+            self.slot_s[self.SLOT[env.topic]].setdefault(int(m.keyframe_id), now)
+
+    def _complete(self) -> list[int]:
+        return [
+            k for k, s in self.keyframe_stamp.items() if k in self.depth_s and s in self.image_s
+        ]
 
     def latencies_ms(self) -> list[float]:
         return [
-            1000.0 * (self.depth_s[k] - self.image_s[s])
-            for k, s in self.keyframe_stamp.items()
-            if k in self.depth_s and s in self.image_s
+            1000.0 * (self.depth_s[k] - self.image_s[self.keyframe_stamp[k]])
+            for k in self._complete()
         ]
+
+    def stages_ms(self) -> dict[int, dict[str, float]]:
+        """Per keyframe, the image -> depth latency split into stages [ms]: ``frontend`` (image
+        -> keyframe published), ``chain_busy`` (keyframe -> the previous keyframe's depth: the
+        queue; the prior waits for it), ``segmentation`` / ``prior`` (keyframe -> masks / prior:
+        the worker's queue and compute), ``metrizer`` (the later of the two -> depth: its wait for
+        the keyframe in order and its compute)."""
+        out: dict[int, dict[str, float]] = {}
+        kf_s, masks_s, prior_s = (self.slot_s[s] for s in ("keyframe", "masks", "prior"))
+        for k in self._complete():
+            if k not in kf_s or k not in masks_s or k not in prior_s:
+                continue
+            t_img, t_kf = self.image_s[self.keyframe_stamp[k]], kf_s[k]
+            inputs = max(masks_s[k], prior_s[k])
+            before = [j for j in self.keyframe_stamp if j < k]
+            prev_done = self.depth_s.get(max(before), t_kf) if before else t_kf
+            out[k] = {
+                "chain_busy": 1000.0 * max(0.0, prev_done - t_kf),  # the previous one's depth
+                "frontend": 1000.0 * (t_kf - t_img),
+                "segmentation": 1000.0 * (masks_s[k] - t_kf),
+                "prior": 1000.0 * (prior_s[k] - t_kf),
+                "metrizer": 1000.0 * (self.depth_s[k] - inputs),
+                "total": 1000.0 * (self.depth_s[k] - t_img),
+            }
+        return out
 
     def close(self) -> None:
         self.sub.close()
@@ -172,6 +223,7 @@ def run_mode(mode: str, drive: Path, out: Path, args: argparse.Namespace) -> dic
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     figures = figures_of(summary, probe, meter, wall_s)
     write_json(out / "figures.json", figures)  # each run's own, as soon as it is done
+    write_json(out / "stages.json", {str(k): v for k, v in probe.stages_ms().items()})
     return figures
 
 
@@ -183,6 +235,7 @@ def figures_of(
     traj = summary.get("trajectory", {})
     rt = summary.get("realtime", {})
     lat = probe.latencies_ms()
+    stages = probe.stages_ms()
     span = max(probe.depth_s.values(), default=0.0) - min(probe.image_s.values(), default=0.0)
     return {
         "frames_seen": len(probe.image_s),
@@ -201,6 +254,12 @@ def figures_of(
         "heldout_psnr_db": summary.get("map", {}).get("heldout_psnr_db", float("nan")),
         "latency_image_to_depth_ms_p50": percentile(lat, 50),
         "latency_image_to_depth_ms_p95": percentile(lat, 95),
+        "latency_stages_ms_p50": {
+            st: percentile([v[st] for v in stages.values()], 50) for st in STAGES
+        },
+        "latency_stages_ms_p95": {
+            st: percentile([v[st] for v in stages.values()], 95) for st in STAGES
+        },
         "drive_wall_s": round(span, 1),
         "wall_s": round(wall_s, 1),
         "cpu_s": {k: round(v, 1) for k, v in sorted(meter.cpu_s.items())},
@@ -266,6 +325,14 @@ def table(res: dict[str, dict[str, Any]]) -> str:
     lines = ["| figure | " + " | ".join(modes) + " |", "| --- |" + " ---: |" * len(modes)]
     for label, key, second in ROWS:
         lines.append(f"| {label} | " + " | ".join(_cell(res[m], key, second) for m in modes) + " |")
+    for st in STAGES:  # where the latency goes (keyframes with every stage seen)
+
+        def stage(r: dict[str, Any], st: str = st) -> str:
+            p50, p95 = r.get("latency_stages_ms_p50", {}), r.get("latency_stages_ms_p95", {})
+            return f"{p50.get(st, float('nan')):.0f} / {p95.get(st, float('nan')):.0f}"
+
+        label = f"latency stage {st} p50 / p95 [ms]"
+        lines.append(f"| {label} | " + " | ".join(stage(res[m]) for m in modes) + " |")
     nodes = sorted({n for m in modes for n in res[m]["cpu_s"]})
     for n in nodes:
         cells = [
@@ -291,7 +358,10 @@ Machine: {machine_line()}{"; load: " + args.load if args.load else ""}. The simu
 OXTS) through `launch/kitti.yaml`: `rate` = `rate: 1.0` as the launch file has it, `fast` =
 `fast: true`{live if "live" in res else ""}. Depth, ATE and held-out PSNR from the run's
 `summary.json` (the report's own scoring); latency (a keyframe's image published -> its metrized
-depth published) and CPU per node measured by the script from the bus and the processes.
+depth published) and CPU per node measured by the script from the bus and the processes. The
+latency stages of a keyframe: `frontend` image -> keyframe published, `chain_busy` keyframe ->
+the previous keyframe's depth (the queue: the prior waits for it), `segmentation` / `prior`
+keyframe -> masks / prior (with the queue), `metrizer` the later of the two -> depth.
 
 {table(res)}
 

@@ -77,6 +77,9 @@ PLAYER_SOURCES = (*SOURCE_KINDS, "recording")
 ENCODINGS = ("", "mono8", "rgb8", "bgr8")
 
 
+HELD_SNOOZE_S = 0.1  # rate mode, clock held or next message not due: longest sleep [s]
+
+
 @dataclass(frozen=True)
 class PlayerParams:
     """Parameters of the player node."""
@@ -620,8 +623,13 @@ class PlayerNode(Node):
                 self._held = True  # the clock waits for the pipeline's keyframes
                 self.clock.pause(now)
                 self.state = "waiting for " + p.keyframe_done_topic
+                # the keyframe-done handler wakes the tick; meanwhile sleep in the poll (at a
+                # 2 ms tick a held replay took a sixth of a core from the chain it waits for)
+                self.reschedule(self._tick_timer, HELD_SNOOZE_S)
                 break
-            elif not self.clock.is_due(stamp, now):
+            elif not self.clock.is_due(stamp, now):  # sleep in the poll until it is due
+                due = self.clock.due_s(stamp, now) - now
+                self.reschedule(self._tick_timer, min(max(due, p.tick_s), HELD_SNOOZE_S))
                 break
             self._publish_next()
             if time.monotonic() > budget_end:

@@ -22,14 +22,19 @@ from mogs_node.geometry import make_T
 from mogs_node.keyframe_chain import failed_masks, failed_prior, failure_reason
 from mogs_node.launch import _child_setup, parse_launch, usable_cpus
 from mogs_node.metrizer.node import KeyframeMatcher
+from mogs_node.worker_budget import ScaleBudget, ScaleBudgetParams
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _two_view_scene import CAM, render  # noqa: E402
 
 
+def keyframe_pose(kid: int) -> np.ndarray:
+    return make_T(np.eye(3), np.array([0.05 * kid, 0.0, 0.3 * kid]))
+
+
 def keyframe(kid: int) -> msgs.Keyframe:
     """Keyframe ``kid`` of a camera moving forward 0.3 m per keyframe in the two-view scene."""
-    T = make_T(np.eye(3), np.array([0.05 * kid, 0.0, 0.3 * kid]))
+    T = keyframe_pose(kid)
     grey, depth = render(T)
     uv = np.array([[100.0, 120.0], [240.0, 140.0], [400.0, 100.0], [300.0, 60.0]], np.float32)
     z = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
@@ -211,6 +216,133 @@ def test_backlog_never_exceeds_its_bound(events, cap):
         assert b.backlog <= cap
     assert len(published) + b.shed_total == kid
     assert b.backlog == len([k for k in published if k > done])
+
+
+def test_backlog_in_time_sheds_a_keyframe_whose_depth_would_come_too_late():
+    b = KeyframeBacklog(BacklogParams(max_backlog=3, max_latency_s=2.0, deviations=0.0))
+    assert b.admit(0, 0.0, 0.0) is None  # nothing measured yet: only the count bounds it
+    b.done(0, 1.0)
+    assert b.service_s == 1.0 and b.measured == 1
+    assert b.admit(1, 1.2, 1.1) is None  # an empty chain: always admitted
+    # keyframe 1 started at 1.2 and takes 1.0: keyframe 2 (image at 1.4) would be done at 3.2
+    assert b.predicted_latency_s(1.5, 1.4) == pytest.approx(1.8)
+    assert b.admit(2, 1.5, 1.4) is None
+    # keyframe 3 (image at 1.5): behind 1 and 2, done at 4.2, 2.7 s after its image
+    reason = b.admit(3, 1.6, 1.5)
+    assert reason is not None and reason.startswith("latency: depth predicted 2.7 s")
+    assert b.shed == {"latency": 1} and b.backlog == 2
+    b.done(1, 2.4)  # 1.2 s from its start: the chain got slower
+    assert b.service_s == pytest.approx(1.0 + 0.3 * 0.2)
+    b.done(2, 3.6)  # started when 1 was through (2.4), not when published (1.5): 1.2 s again
+    assert b.service_s == pytest.approx(1.06 + 0.3 * 0.14)
+    assert b.backlog == 0 and b.admit(4, 5.0, 4.9) is None
+    with pytest.raises(ConfigError, match="max_latency_s"):
+        BacklogParams(max_latency_s=-1.0)
+
+
+def test_backlog_in_time_never_sheds_into_an_empty_chain():
+    b = KeyframeBacklog(BacklogParams(max_latency_s=0.5))
+    b.admit(0, 0.0)
+    b.done(0, 10.0)  # a chain far slower than the budget
+    assert b.admit(1, 11.0, 10.5) is None  # alone in the chain: shedding it gains nothing
+    assert b.admit(2, 11.1, 11.1) is not None and b.shed == {"latency": 1}
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(0.01, 2.0), min_size=1, max_size=40),
+    st.floats(0.1, 1.5),
+    st.floats(0.5, 4.0),
+    st.integers(0, 3),
+)
+def test_backlog_in_time_bounds_the_latency_of_a_steady_chain(gaps, service_s, budget_s, cap):
+    """A chain that takes ``service_s`` per keyframe, in order, and keyframes at any times: once
+    the chain is measured, every keyframe admitted gets its depth within the budget (or within
+    one service time, when it found the chain empty), and every keyframe is admitted or shed."""
+    b = KeyframeBacklog(BacklogParams(max_backlog=cap, max_latency_s=budget_s, deviations=0.0))
+    done_at: list[tuple[float, int]] = []  # pending completions (time, id), in order
+    last_done = 0.0
+    t = 0.0
+    admitted = 0
+    for kid, gap in enumerate(gaps):
+        t += gap
+        while done_at and done_at[0][0] <= t:
+            b.done(done_at[0][1], done_at[0][0])
+            done_at.pop(0)
+        measured, empty = b.measured > 0, not done_at
+        if b.admit(kid, t, t) is None:
+            admitted += 1
+            last_done = max(t, last_done) + service_s
+            done_at.append((last_done, kid))
+            if measured:
+                assert last_done - t <= max(budget_s, service_s) + 1e-9
+                assert not empty or last_done - t == pytest.approx(service_s)
+    assert admitted + b.shed_total == len(gaps)
+
+
+# ------------------------------------------------------------------ a worker's scale from its budget
+
+
+def test_a_worker_over_budget_takes_the_largest_scale_that_fits_at_once():
+    b = ScaleBudget(ScaleBudgetParams(budget_s=1.0, scales=(1.0, 0.75, 0.5), hold_keyframes=2))
+    assert b.scale == 1.0
+    # 2 s at full scale: 0.75 would take 1.125 s, 0.5 takes 0.5 s
+    assert b.observe(2.0) == 0.5 and b.unit_cost_s == 2.0 and b.changes == 1
+    assert b.observe(0.5) == 0.5  # as predicted: stays
+    # the machine gets 5x faster (0.4 s per full image): the running mean falls 2.0 -> 1.52,
+    # 1.18 (0.75 within 0.8 s: up), 0.95 (1.0 fits, but 0.75 served 1 keyframe), 0.78 (up)
+    scales = [b.observe(0.4 * b.scale**2) for _ in range(4)]
+    assert scales == [0.5, 0.75, 0.75, 1.0]
+    assert b.unit_cost_s == pytest.approx(0.4 + 1.6 * 0.7**4) and b.changes == 3
+
+
+def test_a_worker_without_budget_keeps_full_scale_and_bad_budgets_are_named():
+    b = ScaleBudget(ScaleBudgetParams())
+    assert [b.observe(c) for c in (5.0, 0.1, 9.0)] == [1.0, 1.0, 1.0]
+    for bad, key in (
+        ({"budget_s": -1.0}, "budget_s"),
+        ({"scales": (0.5, 1.0)}, "scales"),
+        ({"scales": (1.0, 0.0)}, "scales"),
+        ({"headroom": 1.5}, "headroom"),
+    ):
+        with pytest.raises(ConfigError, match=key):
+            ScaleBudgetParams(**bad)
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_the_prior_at_a_budget_scale_is_metric_and_right(inproc_bus, scale):
+    """The flow prior computed at half scale (a budget its full-scale cost cannot meet) is
+    published at that scale, in metres, as right as at full scale where it is confident."""
+    from mogs_node.depth_prior.node import DepthPriorNode
+
+    bus, ctx = inproc_bus
+    params = {"metrized_topic": "", "scale_budget": {"budget_s": 1e-9, "scales": [scale]}}
+    node = DepthPriorNode("prior", params, bus, context=ctx, diagnostics_period_s=0)
+    try:
+        for kid in range(3):
+            depth, conf, kind, _ = node._flow(keyframe(kid))
+        H, W = CAM.height, CAM.width
+        assert kind == "metric" and depth.shape == conf.shape == (H * scale, W * scale)
+        assert node.counters["prior_scale"] == scale
+        _, truth = render(keyframe_pose(2), CAM.scaled(*depth.T.shape))
+        ok = conf > 0.1  # measured: coverage 0.68 / 0.46, median AbsRel 0.013 / 0.028
+        assert ok.mean() > 0.4
+        absrel = np.median(np.abs(depth[ok] - truth[ok]) / truth[ok])
+        assert absrel < 0.05, absrel
+        # the keyframe's metrized depth (full size) joins the history at the prior's size
+        full = np.full((H, W), 9.0, np.float32)
+        node.on_metrized(
+            msgs.DepthMap(
+                **keyframe(2).result_header(),
+                kind="metric",
+                depth=full,
+                confidence=full,
+                source="t",
+            )
+        )
+        assert node.sequence.history[-1].metrized[0].shape == depth.shape
+    finally:
+        node.close()
 
 
 # ------------------------------------------------------------------ CPU priority in launch files

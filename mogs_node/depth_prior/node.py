@@ -22,6 +22,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from mogs_node import msgs
@@ -31,9 +32,11 @@ from mogs_node.depth_prior.flow_prior import FlowPriorParams, fit_scale_huber
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
 from mogs_node.errors import ConfigError
+from mogs_node.geometry import PinholeCamera
 from mogs_node.heartbeat import DIAGNOSTICS_TOPIC
 from mogs_node.keyframe_chain import failed_prior
 from mogs_node.node import Node, parse_params
+from mogs_node.worker_budget import ScaleBudget, ScaleBudgetParams
 
 __all__ = ["DepthPriorNode", "DepthPriorParams"]
 
@@ -63,6 +66,10 @@ class DepthPriorParams:
     # (0: never) until no other node has said it is busy for this long: the prior then does not
     # depend on which arrived first or on the machine's load, so the same drive gives the same
     # prior on every run; a metrizer that will not answer (dead, failed) is given up on
+    # the flow prior's image scale from a time budget per keyframe (ScaleBudgetParams fields,
+    # mogs_node/worker_budget.py; budget_s 0 = off, full scale): the prior is published at that
+    # scale (the metrizer resizes it to the keyframe's)
+    scale_budget: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.metrized_wait_s) or self.metrized_wait_s < 0:
@@ -92,6 +99,9 @@ class DepthPriorNode(Node):
         if p.backend == "sim_lfm":
             self._setup_sim_lfm()
             return
+        self.budget = ScaleBudget(
+            parse_params(ScaleBudgetParams, p.scale_budget, where=f"{self.name}.scale_budget")
+        )
         self.sequence = PriorSequence(
             self.flow_params,
             parse_params(RoadPriorParams, p.road, where=f"{self.name}.road"),
@@ -166,7 +176,14 @@ class DepthPriorNode(Node):
                 "%s: kind %r is not metric, ignored", self.params.metrized_topic, msg.kind
             )
             return
-        if not self.sequence.add_metrized(msg.keyframe_id, msg.depth, msg.confidence):
+        depth, conf = msg.depth, msg.confidence
+        hist, scale = self.sequence.history, self.budget.scale
+        H, W = depth.shape[:2]
+        size = hist[-1].grey.shape[::-1] if hist else (round(W * scale), round(H * scale))
+        if scale < 1.0 and depth.shape[::-1] != tuple(size):  # the prior works smaller
+            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+            conf = cv2.resize(conf, size, interpolation=cv2.INTER_NEAREST)
+        if not self.sequence.add_metrized(msg.keyframe_id, depth, conf):
             self.log.debug("metrized depth of keyframe %d not kept", msg.keyframe_id)
         self._release_waiting()
 
@@ -259,11 +276,29 @@ class DepthPriorNode(Node):
         self.log.debug("keyframe %d: prior %s", kf.keyframe_id, extra)
 
     def _flow(self, kf: msgs.Keyframe):
-        prior, refs = self.sequence.next(kf.keyframe_id, kf.image, kf.K, kf.T_world_cam)
+        scale = self.budget.scale
+        image, K = kf.image, kf.K
+        if scale < 1.0:  # the time budget's scale (worker_budget.py)
+            H, W = image.shape[:2]
+            cam = PinholeCamera.from_K(K, W, H).scaled(round(W * scale), round(H * scale))
+            image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+            K = cam.K
+        t0 = time.monotonic()
+        prior, refs = self.sequence.next(kf.keyframe_id, image, K, kf.T_world_cam)
+        if self.budget.observe(time.monotonic() - t0) != scale:
+            self.log.info(
+                "keyframe %d: prior %.0f ms at scale %.2f (budget %.0f ms): next at scale %.2f",
+                kf.keyframe_id,
+                1000.0 * (time.monotonic() - t0),
+                scale,
+                1000.0 * self.budget.params.budget_s,
+                self.budget.scale,
+            )
+        self.counters["prior_scale"] = scale
         extra: dict[str, Any] = dict(prior.stats)
         extra["references"] = refs
         if len(kf.feature_xyz_cam_m):  # diagnostic: robust scale of the prior vs sparse points
-            uv = np.round(kf.feature_uv_px).astype(int)
+            uv = np.round(kf.feature_uv_px * scale).astype(int)
             H, W = prior.depth_m.shape
             ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
             d = prior.depth_m[uv[ok, 1], uv[ok, 0]]

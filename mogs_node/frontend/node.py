@@ -108,7 +108,8 @@ class FrontendNodeParams:
     estimator: dict[str, Any] = field(default_factory=dict)  # EstimatorParams fields
     keyframes: dict[str, Any] = field(default_factory=dict)  # KeyframeParams fields
     backlog: dict[str, Any] = field(default_factory=dict)  # BacklogParams fields: shed whole
-    # keyframes while max_backlog are in the chain (real-time sources; frontend/backlog.py)
+    # keyframes while max_backlog are in the chain or their depth would come later than
+    # max_latency_s after their image (real-time sources; frontend/backlog.py)
     points: dict[str, Any] = field(default_factory=dict)  # TrackPointsParams fields: the
     # keyframes' sparse points from the dense tracks (docs/frontend.md, round 6)
     init: dict[str, Any] = field(default_factory=dict)  # InitParams fields
@@ -310,7 +311,8 @@ class FrontendNode(Node):
             parse_params(BacklogParams, p.backlog, where=f"{self.name}.backlog")
         )
         self.counters["keyframes_shed"] = 0
-        if self.backlog.params.max_backlog > 0:  # the latest is enough: the chain works in order
+        self._image_seen_s: dict[int, float] = {}  # stamp -> when its image came (latency)
+        if self.backlog.params.enabled:  # the latest is enough: the chain works in order
             self.subscribe(self.backlog.params.done_topic, self.on_chain_done, reliable=False)
         # after a restart: replay every journaled calibration, image and IMU sample
         # (deterministic: the same keyframe ids); only missing outputs are published
@@ -433,6 +435,9 @@ class FrontendNode(Node):
             return
         if self.frontend is None:
             self._start(msg.stamp_ns)
+        self._image_seen_s[int(msg.stamp_ns)] = time.monotonic()
+        while len(self._image_seen_s) > 256:  # frames the frontend dropped: forget the oldest
+            self._image_seen_s.pop(next(iter(self._image_seen_s)))
         img = msg.data
         if msg.encoding == "bgr8":
             img = np.ascontiguousarray(img[..., ::-1])
@@ -487,15 +492,17 @@ class FrontendNode(Node):
         self._send_odometry(
             out.stamp_ns, out.frame_index, self._last_T_world_cam, self._last_velocity, out.status
         )
+        image_s = self._image_seen_s.pop(int(out.stamp_ns), None)
         if out.keyframe is not None:
-            shed = self.backlog.admit(out.keyframe.keyframe_id)
+            shed = self.backlog.admit(out.keyframe.keyframe_id, time.monotonic(), image_s)
             if shed is None:
                 self.publish(p.keyframe_topic, keyframe_message(out.keyframe, p.frame_id))
             else:
                 self._shed(out.keyframe.keyframe_id, shed)
 
     def on_chain_done(self, msg: msgs.Message) -> None:
-        self.backlog.done(int(msg.keyframe_id))
+        self.backlog.done(int(msg.keyframe_id), time.monotonic())
+        self.counters["chain_service_ms"] = round(1000.0 * self.backlog.service_s, 1)
 
     def _shed(self, keyframe_id: int, reason: str) -> None:
         """A keyframe not published: counted by reason, said at the 1st, 2nd, 4th, 8th, ..."""
