@@ -55,14 +55,30 @@ def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
 
 
 def check_signature(
-    sess, where: str, inputs: Sequence[tuple[str, int]], outputs: Sequence[tuple[str, int]]
+    sess,
+    where: str,
+    inputs: Sequence[tuple[str, int]],
+    outputs: Sequence[tuple[str, int]],
+    *,
+    known: str = "",
 ) -> None:
-    """Check that ``sess`` has the named inputs/outputs with the given ranks (``ModelError``)."""
+    """Check that ``sess`` has the named inputs/outputs with the given ranks (``ModelError``).
+
+    The message names the model's whole signature, what was expected and (``known``) which
+    export layout that is, so that a user holding another export sees what to change.
+    """
     have_in = {i.name: len(i.shape) for i in sess.get_inputs()}
     have_out = {o.name: len(o.shape) for o in sess.get_outputs()}
+    layout = f" of {known}" if known else ""
+    expected = (
+        f"expected the signature{layout}: inputs {dict(inputs)}, outputs {dict(outputs)} "
+        f"(name: rank); the model has inputs {have_in}, outputs {have_out}"
+    )
     for kind, have, want in (("input", have_in, inputs), ("output", have_out, outputs)):
         for name, rank in want:
             if name not in have:
-                raise ModelError(f"{where}: model has no {kind} {name!r} (it has {sorted(have)})")
+                raise ModelError(f"{where}: model has no {kind} {name!r}; {expected}")
             if have[name] != rank:
-                raise ModelError(f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}")
+                raise ModelError(
+                    f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}; {expected}"
+                )
