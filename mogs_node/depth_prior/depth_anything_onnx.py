@@ -54,7 +54,7 @@ class DepthAnythingParams:
     """Parameters of the ONNX monocular depth backend."""
 
     model_path: str = ""  # ONNX file (required)
-    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda
+    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda | auto (CUDA when present)
     threads: int = 0  # intra-op threads (0 = onnxruntime default)
     input_size: int = 518  # shorter side fed to the network (for dynamic-size models)
     multiple_of: int = 14  # both sides rounded to a multiple of this (ViT patch size)

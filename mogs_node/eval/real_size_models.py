@@ -4,8 +4,8 @@ Our machines cannot download weights, but the architectures are published code: 
 real size with random weights costs what the real one costs and has the real export's signature.
 That measures speed and tests loading; its outputs are meaningless and never reported as results.
 
-Built here (extra ``models`` in pyproject.toml: torch, transformers, segment-anything,
-mobilesam-mirror, timm):
+Built here (extra ``models`` in pyproject.toml: transformers, segment-anything, mobilesam-mirror;
+torch is a core dependency):
 
 - Depth Anything V2 Small and Base from the published configurations (``transformers``'
   ``DepthAnythingConfig``, values of the ``depth-anything/Depth-Anything-V2-{Small,Base}-hf``
@@ -94,7 +94,9 @@ def export_depth_anything(size: str, path: str | Path, *, layout: str = "hf") ->
     import torch
 
     if size not in DA_CONFIGS or layout not in ("hf", "image"):
-        raise ValueError(f"size in {sorted(DA_CONFIGS)}, layout in ('hf', 'image'): got {size}, {layout}")
+        raise ValueError(
+            f"size in {sorted(DA_CONFIGS)}, layout in ('hf', 'image'): got {size}, {layout}"
+        )
     inp, out = ("pixel_values", "predicted_depth") if layout == "hf" else ("image", "depth")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -113,18 +115,110 @@ def export_depth_anything(size: str, path: str | Path, *, layout: str = "hf") ->
     return path
 
 
-def _sam_model(kind: str):
+_STUBS: dict = {}  # stand-in modules, in sys.modules only while SAM's code is imported
+
+
+def _timm_stub() -> None:
+    """MobileSAM's TinyViT imports four helpers from ``timm``; ``timm`` needs a
+    ``torchvision`` built for the installed torch, which a CPU-only torch often lacks. For
+    random-weight inference the helpers are: stochastic depth (identity in eval mode), a pair
+    maker, truncated-normal init and a model registry (unused); provided when ``timm`` cannot be
+    imported."""
+    import types
+
+    try:
+        import timm.models.layers  # noqa: F401
+
+        return
+    except Exception:  # ImportError, or torchvision's operator registration failing
+        pass
     import torch
 
-    torch.manual_seed(0)
-    if kind == "vit_b":
-        from segment_anything import sam_model_registry
-        from segment_anything.utils.onnx import SamOnnxModel
-    elif kind == "vit_t":
-        from mobile_sam import sam_model_registry
-        from mobile_sam.utils.onnx import SamOnnxModel
-    else:
+    class DropPath(torch.nn.Module):
+        def __init__(self, drop_prob: float = 0.0) -> None:
+            super().__init__()
+            self.drop_prob = drop_prob
+
+        def forward(self, x):
+            return x
+
+    layers = types.ModuleType("timm.models.layers")
+    layers.DropPath = DropPath
+    layers.to_2tuple = lambda x: tuple(x) if isinstance(x, (tuple, list)) else (x, x)
+    layers.trunc_normal_ = torch.nn.init.trunc_normal_
+    registry = types.ModuleType("timm.models.registry")
+    registry.register_model = lambda fn: fn  # registers TinyViT variants by name: unused here
+    models = types.ModuleType("timm.models")
+    models.layers, models.registry = layers, registry
+    timm = types.ModuleType("timm")
+    timm.models = models
+    _STUBS.update(
+        {
+            "timm": timm,
+            "timm.models": models,
+            "timm.models.layers": layers,
+            "timm.models.registry": registry,
+        }
+    )
+
+
+def _torchvision_stub() -> None:
+    """``segment_anything`` and ``mobile_sam`` import ``torchvision`` in their image transforms
+    and automatic mask generator, neither of which the export uses; a CPU-only torch often has no
+    matching ``torchvision``. Stand-ins that raise if called are installed when it cannot be
+    imported."""
+    import types
+
+    try:
+        import torchvision.transforms.functional  # noqa: F401
+
+        return
+    except Exception:  # ImportError, or its operator registration failing
+        pass
+
+    def unavailable(*args, **kwargs):
+        raise NotImplementedError("torchvision is not installed (export-only stand-in)")
+
+    mods = {
+        n: types.ModuleType(n)
+        for n in (
+            "torchvision",
+            "torchvision.transforms",
+            "torchvision.transforms.functional",
+            "torchvision.ops",
+            "torchvision.ops.boxes",
+        )
+    }
+    for name in ("resize", "to_pil_image"):
+        setattr(mods["torchvision.transforms.functional"], name, unavailable)
+    for name in ("batched_nms", "box_area"):
+        setattr(mods["torchvision.ops.boxes"], name, unavailable)
+    _STUBS.update(mods)
+
+
+def _sam_model(kind: str):
+    import sys
+
+    import torch
+
+    if kind not in ("vit_b", "vit_t"):
         raise ValueError(f"SAM kind: expected 'vit_b' or 'vit_t', got {kind!r}")
+    torch.manual_seed(0)
+    _torchvision_stub()
+    if kind == "vit_t":
+        _timm_stub()
+    sys.modules.update(_STUBS)
+    try:  # the stand-ins must not outlive the import: transformers probes for torchvision/timm
+        if kind == "vit_b":
+            from segment_anything import sam_model_registry
+            from segment_anything.utils.onnx import SamOnnxModel
+        else:
+            from mobile_sam import sam_model_registry
+            from mobile_sam.utils.onnx import SamOnnxModel
+    finally:
+        for name, mod in _STUBS.items():
+            if sys.modules.get(name) is mod:
+                del sys.modules[name]
     sam = sam_model_registry[kind](checkpoint=None).eval()
     return sam, SamOnnxModel
 

@@ -68,7 +68,7 @@ class SamParams:
 
     encoder_path: str = ""  # ONNX image encoder (required)
     decoder_path: str = ""  # ONNX prompt decoder, official export layout (required)
-    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda
+    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda | auto (CUDA when present)
     threads: int = 0  # intra-op threads (0 = onnxruntime default)
     image_size: int = 1024  # encoder input side (longest image side is resized to this)
     encoder_input: str = "image"  # encoder input name
