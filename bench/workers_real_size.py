@@ -13,6 +13,7 @@ except the prompt and decoder-call counts, which depend on what the random masks
 
 from __future__ import annotations
 
+import logging
 import resource
 import time
 from pathlib import Path
@@ -21,6 +22,8 @@ import numpy as np
 
 from mogs_node.depth_prior.depth_anything_onnx import DepthAnythingOnnx, DepthAnythingParams
 from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
+
+log = logging.getLogger(__name__)
 
 SAM_MODELS = {"sam_vit_b": "sam_vit_b", "sam_small": "mobile_sam"}
 DA_MODELS = {
@@ -47,7 +50,11 @@ def _paths(name: str) -> dict[str, str]:
         if len(files) == 1:
             return {"model_path": str(files[0])}
         return {"encoder_path": str(files[0]), "decoder_path": str(files[1])}
-    return ensure(name)  # needs torch + the `models` extra
+    try:
+        return ensure(name)  # needs torch + the `models` extra
+    except ImportError as err:
+        log.warning("%s: not exported and the `models` extra is missing (%s): skipped", name, err)
+        return {}
 
 
 def _timed(fn, repeats: int) -> tuple[list[float], list[float], list]:
@@ -69,12 +76,14 @@ def real_size_latency(
     threads: int = 2,
     provider: str = "cpu",
     da_input_sizes: tuple[int, ...] = (518, 266),
-    sam_points_per_side: int = 32,
+    sam_points_per_side: int = 16,
 ) -> dict[str, float]:
     """Figures per model (see the module docstring); ``rgb`` ``[375, 1242, 3]`` uint8."""
     out: dict[str, float] = {"real_size_threads": float(threads)}
     for key, name in DA_MODELS.items():
-        path = _paths(name)["model_path"]
+        path = _paths(name).get("model_path")
+        if path is None:
+            continue
         for size in da_input_sizes:
             net = DepthAnythingOnnx(
                 DepthAnythingParams(
@@ -92,6 +101,8 @@ def real_size_latency(
             assert res[0].value.shape == rgb.shape[:2] and res[0].value.dtype == np.float32
     for key, name in SAM_MODELS.items():
         paths = _paths(name)
+        if not paths:
+            continue
         sam = SamOnnx(
             SamParams(
                 **paths, threads=threads, provider=provider, points_per_side=sam_points_per_side
