@@ -10,9 +10,13 @@
    baseline to the reference keyframe, on the real KITTI excerpt (poses by PnP as in
    ``mogs eval depth --dataset kitti78``).
 
-Usage: ``python bench/workers.py [--json PATH] [--repeats N] [--frames N]``. Prints the figures,
-writes them to ``--json`` (a flat object, units in the names) and to the ``workers`` section of
-docs/benchmarks.md.
+3. With ``--real-size`` instead: the learned workers at real model sizes with random weights
+   (bench/workers_real_size.py; Depth Anything V2 Small/Base, SAM ViT-B, MobileSAM), split into
+   network time and ours, on ``--threads`` onnxruntime threads; section ``workers-real-size``.
+
+Usage: ``python bench/workers.py [--real-size [--threads N]] [--json PATH] [--repeats N]
+[--frames N]``. Prints the figures, writes them to ``--json`` (a flat object, units in the names;
+``-`` for standard output) and, with ``--write-docs``, to docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -220,7 +225,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per backend")
     ap.add_argument("--frames", type=int, default=8, help="keyframes per baseline")
     ap.add_argument("--data", default=None, help="KITTI excerpt folder")
+    ap.add_argument("--real-size", action="store_true", help="real-size learned models only")
+    ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads (--real-size)")
+    ap.add_argument("--provider", default="cpu", help="onnxruntime provider (--real-size)")
+    ap.add_argument("--write-docs", action="store_true", help="update docs/benchmarks.md")
     args = ap.parse_args(argv)
+    if args.real_size:
+        return _main_real_size(args, argv)
 
     from mogs_node.eval.depth_kitti78 import DEFAULT_DIR, load_kitti78, localise_pnp
 
@@ -231,8 +242,39 @@ def main(argv: list[str] | None = None) -> int:
     fig.update(coverage_vs_baseline(data, poses, args.frames))
     for k, v in fig.items():
         print(f"{k}: {v:.4g}")
-    write_json(args.json, fig)
-    update_markdown_section("workers", _markdown(fig, args))
+    _write_json(args.json, fig)
+    if args.write_docs:
+        update_markdown_section("workers", _markdown(fig, args))
+    return 0
+
+
+def _write_json(path: str | None, fig: dict[str, float]) -> None:
+    if path == "-":
+        print(json.dumps(fig, indent=2, sort_keys=True))
+    else:
+        write_json(path, fig)
+
+
+def _main_real_size(args: argparse.Namespace, argv: list[str] | None) -> int:
+    sys.path.insert(0, str(REPO / "bench"))
+    import workers_real_size as wrs
+
+    fig = {"load_average_1min": float(os.getloadavg()[0])}
+    fig.update(
+        wrs.real_size_latency(
+            wrs.frame(args.data),
+            repeats=args.repeats,
+            threads=args.threads,
+            provider=args.provider,
+        )
+    )
+    if args.json != "-":
+        for k, v in fig.items():
+            print(f"{k}: {v:.4g}")
+    _write_json(args.json, fig)
+    if args.write_docs:
+        cmd = "python bench/workers.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        update_markdown_section("workers-real-size", wrs.markdown(fig, cmd, machine_line()))
     return 0
 
 

@@ -2,12 +2,20 @@
 
 A missing or malformed model, an unavailable execution provider or a wrong input/output signature
 raises :class:`ModelError` at start-up; there is never a silent fallback to another backend or
-provider. Shared by the learned depth-prior and segmentation backends.
+provider (``provider: auto`` asks for CUDA when this onnxruntime has it, else CPU, and logs which).
+Shared by the learned depth-prior and segmentation backends.
+
+Session options (docs/workers.md "Session options"): all graph optimisations (operator fusion of
+the ViT blocks; ``ORT_ENABLE_ALL``); ``threads`` intra-op threads with one inter-op thread (the
+graphs are sequential); and no spin-waiting of idle worker threads
+(``session.intra_op.allow_spinning = 0``): on a small shared CPU a spinning pool burns the cores
+the other nodes need between the many short decoder calls, for no gain in latency.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -17,7 +25,7 @@ __all__ = ["PROVIDERS", "check_signature", "open_session"]
 
 log = logging.getLogger(__name__)
 
-PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "auto": ""}
 
 
 def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
@@ -25,17 +33,21 @@ def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
 
     Args:
         path: ONNX file.
-        provider: ``"cpu"`` or ``"cuda"``; CUDA must be available (no fallback to CPU).
+        provider: ``"cpu"``, ``"cuda"`` (must be available: no fallback to CPU) or ``"auto"``
+            (CUDA when available, else CPU).
         threads: intra-op threads (0 = onnxruntime's default).
     """
     import onnxruntime as ort
 
     if provider not in PROVIDERS:
         raise ConfigError(f"provider: expected one of {sorted(PROVIDERS)}, got {provider!r}")
-    p = Path(path)
+    p = Path(os.path.expandvars(str(path))).expanduser()  # launch files may say ~ or $VAR
     if not str(path) or not p.is_file():
         raise ModelError(f"model file not found: {str(path)!r}")
     name = PROVIDERS[provider]
+    if provider == "auto":
+        cuda = PROVIDERS["cuda"] in ort.get_available_providers()
+        name = PROVIDERS["cuda" if cuda else "cpu"]
     if name not in ort.get_available_providers():
         raise ModelError(
             f"{p.name}: execution provider {name} is not available in this onnxruntime "
@@ -46,6 +58,8 @@ def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
     opts.log_severity_level = 3
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         sess = ort.InferenceSession(str(p), sess_options=opts, providers=[name])
     except Exception as err:  # onnxruntime raises its own exception types on bad files
@@ -55,14 +69,30 @@ def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
 
 
 def check_signature(
-    sess, where: str, inputs: Sequence[tuple[str, int]], outputs: Sequence[tuple[str, int]]
+    sess,
+    where: str,
+    inputs: Sequence[tuple[str, int]],
+    outputs: Sequence[tuple[str, int]],
+    *,
+    known: str = "",
 ) -> None:
-    """Check that ``sess`` has the named inputs/outputs with the given ranks (``ModelError``)."""
+    """Check that ``sess`` has the named inputs/outputs with the given ranks (``ModelError``).
+
+    The message names the model's whole signature, what was expected and (``known``) which
+    export layout that is, so that a user holding another export sees what to change.
+    """
     have_in = {i.name: len(i.shape) for i in sess.get_inputs()}
     have_out = {o.name: len(o.shape) for o in sess.get_outputs()}
+    layout = f" of {known}" if known else ""
+    expected = (
+        f"expected the signature{layout}: inputs {dict(inputs)}, outputs {dict(outputs)} "
+        f"(name: rank); the model has inputs {have_in}, outputs {have_out}"
+    )
     for kind, have, want in (("input", have_in, inputs), ("output", have_out, outputs)):
         for name, rank in want:
             if name not in have:
-                raise ModelError(f"{where}: model has no {kind} {name!r} (it has {sorted(have)})")
+                raise ModelError(f"{where}: model has no {kind} {name!r}; {expected}")
             if have[name] != rank:
-                raise ModelError(f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}")
+                raise ModelError(
+                    f"{where}: {kind} {name!r} has rank {have[name]}, expected {rank}; {expected}"
+                )

@@ -119,14 +119,16 @@ class TinyDepth(torch.nn.Module):
         return (F.avg_pool2d(image, 1) * w).sum(1) + DA_OFFSET
 
 
-def export_depth_anything(path, dynamic: bool = True, hw=(56, 84), out_name="depth") -> str:
+def export_depth_anything(
+    path, dynamic: bool = True, hw=(56, 84), out_name="depth", in_name="image"
+) -> str:
     x = torch.zeros(1, 3, *hw)
-    axes = {"image": {2: "h", 3: "w"}, out_name: {1: "h", 2: "w"}} if dynamic else None
+    axes = {in_name: {2: "h", 3: "w"}, out_name: {1: "h", 2: "w"}} if dynamic else None
     torch.onnx.export(
         TinyDepth(),
         (x,),
         str(path),
-        input_names=["image"],
+        input_names=[in_name],
         output_names=[out_name],
         dynamic_axes=axes,
         opset_version=17,

@@ -123,7 +123,7 @@ def test_missing_malformed_and_mismatched_models(tmp_path, dyn_model) -> None:
     bad.write_bytes(b"this is not a protobuf" * 10)
     with pytest.raises(ModelError, match="cannot load"):
         DepthAnythingOnnx(DepthAnythingParams(model_path=str(bad)))
-    with pytest.raises(ModelError, match="input 'pixel_values'"):
+    with pytest.raises(ModelError, match="'pixel_values' -> '' not found.*known layouts"):
         DepthAnythingOnnx(DepthAnythingParams(model_path=dyn_model, input_name="pixel_values"))
     with pytest.raises(ModelError, match="predicted_depth"):
         DepthAnythingOnnx(DepthAnythingParams(model_path=dyn_model, output_name="predicted_depth"))
@@ -136,3 +136,21 @@ def test_missing_malformed_and_mismatched_models(tmp_path, dyn_model) -> None:
         DepthAnythingOnnx(DepthAnythingParams(model_path=dyn_model, provider="tpu"))
     with pytest.raises(ConfigError, match="output_kind"):
         DepthAnythingParams(output_kind="disparity")
+
+
+def test_known_layouts_recognised_and_unknown_refused(tmp_path) -> None:
+    """Both common export layouts load without naming tensors; another one is refused by name."""
+    rgb = np.full((40, 60, 3), 128, np.uint8)
+    hf = _tiny_onnx.export_depth_anything(
+        tmp_path / "hf.onnx", in_name="pixel_values", out_name="predicted_depth"
+    )
+    net = DepthAnythingOnnx(DepthAnythingParams(model_path=hf, input_size=28))
+    assert (net.input_name, net.output_name) == ("pixel_values", "predicted_depth")
+    assert net.infer(rgb).value.shape == (40, 60)
+    odd = _tiny_onnx.export_depth_anything(tmp_path / "odd.onnx", in_name="x", out_name="y")
+    with pytest.raises(ModelError, match=r"signature unknown.*'x'.*'y'.*pixel_values -> predicted"):
+        DepthAnythingOnnx(DepthAnythingParams(model_path=odd))
+    net = DepthAnythingOnnx(
+        DepthAnythingParams(model_path=odd, input_name="x", output_name="y", input_size=28)
+    )
+    assert net.infer(rgb).value.dtype == np.float32

@@ -78,7 +78,15 @@ def test_sam_node_publishes_painted_masks(inproc_bus, wired_node, tmp_path) -> N
     bus, ctx = inproc_bus
     node = SegmentationNode(
         "seg",
-        {"backend": "sam", "sam": {"encoder_path": enc, "decoder_path": dec, "points_per_side": 3}},
+        {
+            "backend": "sam",
+            "sam": {
+                "encoder_path": enc,
+                "decoder_path": dec,
+                "points_per_side": 3,
+                "flat_prompt_stride": 1,
+            },
+        },
         bus,
         context=ctx,
         diagnostics_period_s=0,

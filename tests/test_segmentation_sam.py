@@ -35,6 +35,8 @@ from mogs_node.segmentation.sam_onnx import (  # noqa: E402
 )
 
 H, W = 240, 310
+# SAM's own AMG prompt set: every grid prompt, none skipped (the cost cuts are tested apart).
+EXACT_AMG = dict(flat_prompt_stride=1, skip_covered_prompts=False)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +47,7 @@ def models(tmp_path_factory) -> tuple[str, str]:
 @pytest.fixture(scope="module")
 def sam(models) -> SamOnnx:
     enc, dec = models
-    return SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, points_per_side=4))
+    return SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, points_per_side=4, **EXACT_AMG))
 
 
 def test_grid_points_are_cell_centres() -> None:
@@ -74,11 +76,25 @@ def test_decoder_mask_aligned_to_prompt(sam) -> None:
     assert emb.shape == (1, 256, 64, 64)
     scale = 1024 / max(H, W)
     for pt in ([100.0, 60.0], [250.0, 180.0]):
-        logits, iou = sam.predict_point(emb, np.array(pt), H, W)
-        assert logits.shape == (4, H, W)
-        np.testing.assert_allclose(iou, _tiny_sam.IOUS, atol=1e-3)
+        low, iou = sam.decode(emb, np.array([pt]), H, W)
+        assert low.shape == (1, 4, 256, 256) and iou.shape == (1, 4)
+        np.testing.assert_allclose(iou[0], _tiny_sam.IOUS, atol=1e-3)
+        coords = sam.to_model_coords(np.array([pt, [0.0, 0.0]]), H, W)[None].astype(np.float32)
+        (full,) = sam.decoder.run(
+            ["masks"],
+            {
+                "image_embeddings": emb,
+                "point_coords": coords,
+                "point_labels": np.array([[1.0, -1.0]], np.float32),
+                "mask_input": np.zeros((1, 1, 256, 256), np.float32),
+                "has_mask_input": np.zeros(1, np.float32),
+                "orig_im_size": np.array([H, W], np.float32),
+            },
+        )
         for k in (1, 3):
-            m = logits[k] > 0
+            m = sam.upsample(low[0, k], H, W) > 0
+            # Our upsampling of the low-res logits reproduces the export's mask_postprocessing.
+            assert np.mean(m == (full[0, k] > 0)) > 0.999
             vv, uu = np.nonzero(m)
             # Disc around the prompt in original pixels, radius RADII[k] / scale (clipped
             # discs are not centred, so check the centre only where the disc is inside).
@@ -121,7 +137,9 @@ def test_automatic_masks_filtered_nms_painted(sam) -> None:
 def test_nms_suppresses_overlapping_masks(models) -> None:
     enc, dec = models
     dense = SamOnnx(
-        SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8, box_nms_thresh=0.3)
+        SamParams(
+            encoder_path=enc, decoder_path=dec, points_per_side=8, box_nms_thresh=0.3, **EXACT_AMG
+        )
     )
     res = dense.generate(np.zeros((H, W, 3), np.uint8))
     assert res.stats["n_after_filters"] == 128
@@ -160,7 +178,33 @@ def test_missing_and_mismatched_models(models, tmp_path) -> None:
     enc, dec = models
     with pytest.raises(ModelError, match="not found"):
         SamOnnx(SamParams(encoder_path=enc, decoder_path=str(tmp_path / "missing.onnx")))
-    with pytest.raises(ModelError, match="point_coords"):
+    with pytest.raises(ModelError, match="no input 'image'.*model has inputs.*point_coords"):
         SamOnnx(SamParams(encoder_path=dec, decoder_path=enc))  # swapped files
+    with pytest.raises(ModelError, match="no input 'image_embeddings'.*official SAM"):
+        SamOnnx(SamParams(encoder_path=enc, decoder_path=enc))  # an encoder as the decoder
     with pytest.raises(ModelError, match="input_image"):
         SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, encoder_input="input_image"))
+
+
+def test_prompt_cuts_fewer_decoder_calls_same_coverage(models) -> None:
+    """Flat cells keep a coarser prompt grid and covered prompts are skipped: far fewer decoder
+    calls, the label image still covers the frame."""
+    enc, dec = models
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:, W // 2 :] = 200  # one vertical edge: structure in one column of cells only
+    full = SamOnnx(
+        SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8, **EXACT_AMG)
+    ).generate(rgb)
+    cut = SamOnnx(SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8))
+    pts = cut.prompt_points(rgb)
+    assert len(pts) < 64
+    # The two columns of cells on the edge keep every prompt; the flat ones only the even rows
+    # and columns (3 of the 6 flat columns, 4 of the 8 rows).
+    assert np.sum(np.abs(pts[:, 0] - W / 2) < W / 8) == 16
+    assert len(pts) == 16 + 3 * 4
+    res = cut.generate(rgb)
+    assert res.stats["n_prompts"] == len(pts)
+    assert res.stats["n_decoder_calls"] < 0.5 * full.stats["n_decoder_calls"]
+    assert full.stats["n_decoder_calls"] == 64
+    assert full.stats["coverage"] == 1.0 and res.stats["coverage"] > 0.9
+    assert res.labels.dtype == np.int32 and res.labels.shape == (H, W)

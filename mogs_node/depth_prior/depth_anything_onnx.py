@@ -1,8 +1,13 @@
 """Learned depth prior: monocular relative depth from an ONNX model, Depth Anything V2 style.
 
 The paper's LFM (section III-A) is a large foundation model for monocular depth. Users who have an
-ONNX export of Depth Anything V2 (the common export: input ``image`` ``[1, 3, h, w]`` float32,
-output ``depth`` ``[1, h, w]`` relative inverse depth, ``h, w`` multiples of 14) can run it here.
+ONNX export of Depth Anything V2 can run it here. The two common export layouts are recognised by
+their names (:data:`KNOWN_SIGNATURES`): input ``image`` -> output ``depth`` (the Depth-Anything-ONNX
+exports, ``[1, 3, h, w]`` -> ``[1, h, w]``) and input ``pixel_values`` -> output
+``predicted_depth`` (the ``transformers`` / onnx-community exports, ``[batch, 3, height, width]``
+-> ``[batch, height, width]``); ``h, w`` multiples of 14, static or dynamic. Another layout is
+refused with a message naming what the model has and what is known, unless ``input_name`` and
+``output_name`` name its tensors explicitly.
 
 Pre-processing as the reference implementation: RGB to [0, 1], resize so that the shorter side is
 ``input_size`` keeping the aspect ratio with both sides rounded to a multiple of 14 (bicubic),
@@ -27,13 +32,21 @@ from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
 from mogs_node.ort import check_signature, open_session
 
-__all__ = ["DepthAnythingOnnx", "DepthAnythingParams", "MonoDepth", "preprocess_size"]
+__all__ = [
+    "KNOWN_SIGNATURES",
+    "DepthAnythingOnnx",
+    "DepthAnythingParams",
+    "MonoDepth",
+    "preprocess_size",
+]
 
 log = logging.getLogger(__name__)
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 OUTPUT_KINDS = ("relative_inverse_depth", "relative_depth", "metric")
+# (input name, output name) of the export layouts users find.
+KNOWN_SIGNATURES = (("image", "depth"), ("pixel_values", "predicted_depth"))
 
 
 @dataclass(frozen=True)
@@ -41,13 +54,13 @@ class DepthAnythingParams:
     """Parameters of the ONNX monocular depth backend."""
 
     model_path: str = ""  # ONNX file (required)
-    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda
+    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda | auto (CUDA when present)
     threads: int = 0  # intra-op threads (0 = onnxruntime default)
     input_size: int = 518  # shorter side fed to the network (for dynamic-size models)
     multiple_of: int = 14  # both sides rounded to a multiple of this (ViT patch size)
     output_kind: str = "relative_inverse_depth"  # what the model outputs (declared, not guessed)
-    input_name: str = "image"  # model input name
-    output_name: str = "depth"  # model output name
+    input_name: str = ""  # model input name ("" = recognise a known export layout)
+    output_name: str = ""  # model output name ("" = recognise a known export layout)
 
     def __post_init__(self) -> None:
         if self.output_kind not in OUTPUT_KINDS:
@@ -87,6 +100,27 @@ def preprocess_size(H: int, W: int, input_size: int, multiple_of: int) -> tuple[
     return fit(H * scale), fit(W * scale)
 
 
+def _signature(sess, params: DepthAnythingParams) -> tuple[str, str]:
+    """(input, output) names: the ones named in ``params``, else the known layout the model has."""
+    ins = {i.name: list(i.shape) for i in sess.get_inputs()}
+    outs = {o.name: list(o.shape) for o in sess.get_outputs()}
+    asked = params.input_name or params.output_name
+    if asked:
+        pair = (params.input_name, params.output_name)
+        if pair[0] in ins and pair[1] in outs:
+            return pair
+    else:
+        for pair in KNOWN_SIGNATURES:
+            if pair[0] in ins and pair[1] in outs:
+                return pair
+    known = ", ".join(f"{a} -> {b}" for a, b in KNOWN_SIGNATURES)
+    what = f"{params.input_name!r} -> {params.output_name!r} not found" if asked else "unknown"
+    raise ModelError(
+        f"{params.model_path}: depth model signature {what}: the model has inputs {ins} and "
+        f"outputs {outs}; known layouts: {known} (or name both with input_name/output_name)"
+    )
+
+
 class DepthAnythingOnnx:
     """A loaded ONNX monocular depth model; :meth:`infer` is pure given the session."""
 
@@ -95,17 +129,18 @@ class DepthAnythingOnnx:
         self.session = open_session(
             params.model_path, provider=params.provider, threads=params.threads
         )
-        check_signature(self.session, params.model_path, [(params.input_name, 4)], [])
+        self.input_name, self.output_name = _signature(self.session, params)
+        check_signature(self.session, params.model_path, [(self.input_name, 4)], [])
         outs = {o.name: o.shape for o in self.session.get_outputs()}
-        if params.output_name not in outs or len(outs[params.output_name]) not in (3, 4):
+        if len(outs[self.output_name]) not in (3, 4):
             raise ModelError(
-                f"{params.model_path}: expected output {params.output_name!r} of "
+                f"{params.model_path}: expected output {self.output_name!r} of "
                 f"shape [1, h, w] or [1, 1, h, w], model has {outs}"
             )
-        shape = next(i.shape for i in self.session.get_inputs() if i.name == params.input_name)
+        shape = next(i.shape for i in self.session.get_inputs() if i.name == self.input_name)
         if isinstance(shape[1], int) and shape[1] != 3:
             raise ModelError(
-                f"{params.model_path}: input {params.input_name!r} must have 3 "
+                f"{params.model_path}: input {self.input_name!r} must have 3 "
                 f"channels, has {shape[1]}"
             )
         static = all(isinstance(s, int) for s in shape[2:])
@@ -134,7 +169,7 @@ class DepthAnythingOnnx:
         H, W = np.shape(rgb)[:2]
         x = self.preprocess(rgb)
         t0 = time.perf_counter()
-        (out,) = self.session.run([self.params.output_name], {self.params.input_name: x})
+        (out,) = self.session.run([self.output_name], {self.input_name: x})
         model_ms = (time.perf_counter() - t0) * 1e3
         out = np.asarray(out, np.float32)
         if out.ndim == 4:

@@ -59,7 +59,7 @@ DECODER_INPUTS = [
     ("has_mask_input", 1),
     ("orig_im_size", 1),
 ]
-DECODER_OUTPUTS = [("masks", 4), ("iou_predictions", 2)]
+DECODER_OUTPUTS = [("masks", 4), ("iou_predictions", 2), ("low_res_masks", 4)]
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ class SamParams:
 
     encoder_path: str = ""  # ONNX image encoder (required)
     decoder_path: str = ""  # ONNX prompt decoder, official export layout (required)
-    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda
+    provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda | auto (CUDA when present)
     threads: int = 0  # intra-op threads (0 = onnxruntime default)
     image_size: int = 1024  # encoder input side (longest image side is resized to this)
     encoder_input: str = "image"  # encoder input name
@@ -80,6 +80,10 @@ class SamParams:
     mask_threshold: float = 0.0  # logit threshold of a mask
     box_nms_thresh: float = 0.7  # drop a mask whose box IoU with a better one exceeds this
     min_mask_region_px: int = 100  # drop masks smaller than this [px]
+    skip_covered_prompts: bool = True  # skip a prompt that already lies in a kept mask
+    flat_prompt_stride: int = 2  # in cells without structure keep every n-th prompt (1 = all)
+    flat_gradient_thresh: float = 2.0  # mean Sobel magnitude [grey levels/px] below = flat cell
+    max_batch: int = 64  # prompts per decoder call when the decoder takes a batch
 
     def __post_init__(self) -> None:
         if self.points_per_side < 1 or self.image_size < 16:
@@ -88,6 +92,8 @@ class SamParams:
             raise ConfigError("SamParams: pred_iou_thresh and stability_score_thresh in [0, 1]")
         if not 0 < self.box_nms_thresh <= 1 or self.stability_score_offset < 0:
             raise ConfigError("SamParams: box_nms_thresh in (0, 1], stability_score_offset >= 0")
+        if self.flat_prompt_stride < 1 or self.max_batch < 1:
+            raise ConfigError("SamParams: flat_prompt_stride >= 1 and max_batch >= 1 required")
 
 
 @dataclass
@@ -209,11 +215,28 @@ class SamOnnx:
             params.encoder_path,
             [(params.encoder_input, 4)],
             [(params.encoder_output, 4)],
+            known="a SAM / MobileSAM image-encoder export",
         )
         self.decoder = open_session(
             params.decoder_path, provider=params.provider, threads=params.threads
         )
-        check_signature(self.decoder, params.decoder_path, DECODER_INPUTS, DECODER_OUTPUTS)
+        check_signature(
+            self.decoder,
+            params.decoder_path,
+            DECODER_INPUTS,
+            DECODER_OUTPUTS,
+            known="the official SAM / MobileSAM prompt-decoder export (scripts/export_onnx_model.py)",
+        )
+        shapes = {i.name: i.shape for i in self.decoder.get_inputs()}
+        # The official export fixes the prompt batch at 1; an export with a free batch axis
+        # takes up to max_batch prompts per call.
+        self.batched = not isinstance(shapes["point_coords"][0], int)
+        self.batch = params.max_batch if self.batched else 1
+        mh, mw = shapes["mask_input"][2:]
+        self.mask_input_hw = (
+            mh if isinstance(mh, int) else 256,
+            mw if isinstance(mw, int) else 256,
+        )
         self.model_ms = 0.0  # time spent inside the two networks (running total)
 
     def preprocess(self, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
@@ -240,59 +263,105 @@ class SamOnnx:
         h, w = resized_hw(H, W, self.params.image_size)
         return np.asarray(points_px, np.float64) * np.array([w / W, h / H])
 
-    def predict_point(
-        self, embeddings: NDArray[np.float32], point_px: NDArray[np.floating], H: int, W: int
+    def decode(
+        self, embeddings: NDArray[np.float32], points_px: NDArray[np.floating], H: int, W: int
     ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Decoder on one foreground point: mask logits ``[M, H, W]`` and IoU ``[M]``."""
-        pt = self.to_model_coords(np.asarray(point_px, np.float64).reshape(1, 2), H, W)
-        coords = np.concatenate([pt, np.zeros((1, 2))])[None].astype(np.float32)
+        """Decoder on single foreground points ``[B, 2]``: low-res logits ``[B, M, L, L]``, IoU
+        ``[B, M]``; one call when the decoder takes a batch, else one call per point."""
+        pts = self.to_model_coords(np.asarray(points_px, np.float64).reshape(-1, 2), H, W)
+        B = len(pts)
+        if not self.batched and B > 1:
+            outs = [self.decode(embeddings, p[None], H, W) for p in points_px]
+            return np.concatenate([o[0] for o in outs]), np.concatenate([o[1] for o in outs])
+        coords = np.zeros((B, 2, 2), np.float32)  # each prompt: its point + the padding point
+        coords[:, 0] = pts
+        labels = np.tile(np.array([[1.0, -1.0]], np.float32), (B, 1))
         feeds = {
             "image_embeddings": embeddings,
             "point_coords": coords,
-            "point_labels": np.array([[1.0, -1.0]], np.float32),
-            "mask_input": np.zeros((1, 1, 256, 256), np.float32),
+            "point_labels": labels,
+            "mask_input": np.zeros((1, 1, *self.mask_input_hw), np.float32),
             "has_mask_input": np.zeros(1, np.float32),
             "orig_im_size": np.array([H, W], np.float32),
         }
         t0 = time.perf_counter()
-        masks, iou = self.decoder.run(["masks", "iou_predictions"], feeds)
+        iou, low = self.decoder.run(["iou_predictions", "low_res_masks"], feeds)
         self.model_ms += (time.perf_counter() - t0) * 1e3
-        masks = np.asarray(masks, np.float32)[0]
-        iou = np.asarray(iou, np.float32)[0]
-        if masks.shape[1:] != (H, W) or masks.shape[0] != iou.shape[0]:
+        low, iou = np.asarray(low, np.float32), np.asarray(iou, np.float32)
+        if low.ndim != 4 or low.shape[:2] != iou.shape or low.shape[0] != B:
             raise ModelError(
-                f"{self.params.decoder_path}: masks {list(masks.shape)} do not "
-                f"match the image {H}x{W} / iou {list(iou.shape)}"
+                f"{self.params.decoder_path}: low_res_masks {list(low.shape)} and "
+                f"iou_predictions {list(iou.shape)} do not match {B} prompts"
             )
-        return masks, iou
+        return low, iou
+
+    def upsample(self, low: NDArray[np.float32], H: int, W: int) -> NDArray[np.float32]:
+        """Low-res logits ``[L, L]`` -> ``[H, W]`` as the export's ``mask_postprocessing``:
+        bilinear to the encoder frame, crop the resized image, bilinear to the original size."""
+        S = self.params.image_size
+        h, w = resized_hw(H, W, S)
+        up = cv2.resize(low, (S, S), interpolation=cv2.INTER_LINEAR)[:h, :w]
+        return cv2.resize(up, (W, H), interpolation=cv2.INTER_LINEAR)
+
+    def prompt_points(self, rgb: NDArray[np.uint8]) -> NDArray[np.float64]:
+        """Grid prompts ``[N, 2]`` (u, v), thinned to every ``flat_prompt_stride``-th row and
+        column in cells whose mean Sobel magnitude is below ``flat_gradient_thresh``."""
+        p = self.params
+        H, W = rgb.shape[:2]
+        n = p.points_per_side
+        pts = grid_points(H, W, n)
+        if p.flat_prompt_stride == 1:
+            return pts
+        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+        mag = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+        cell = cv2.resize(mag / 8.0, (n, n), interpolation=cv2.INTER_AREA)  # mean per grid cell
+        i, j = np.divmod(np.arange(n * n), n)
+        on_coarse = (i % p.flat_prompt_stride == 0) & (j % p.flat_prompt_stride == 0)
+        return pts[(cell.ravel() >= p.flat_gradient_thresh) | on_coarse]
+
+    def _filter(
+        self, low: NDArray[np.float32], iou: NDArray[np.float32], H: int, W: int
+    ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        """Candidates ``[B*M]`` (flattened) passing the IoU and stability filters, and their
+        stability; both scores on the low-res logits cropped to the image (vectorised)."""
+        p = self.params
+        S, L = self.params.image_size, low.shape[-1]
+        h, w = resized_hw(H, W, S)
+        lh, lw = int(np.ceil(h * L / S)), int(np.ceil(w * L / S))
+        flat = low[:, :, :lh, :lw].reshape(-1, lh, lw)
+        cand = np.flatnonzero(iou.ravel() >= p.pred_iou_thresh)
+        stab = stability_score(flat[cand], p.mask_threshold, p.stability_score_offset)
+        ok = stab >= p.stability_score_thresh
+        return cand[ok], stab[ok]
 
     def generate(
         self, rgb: NDArray[np.uint8], depth_m: NDArray[np.floating] | None = None
     ) -> SamMasks:
         """Automatic mask generation on ``rgb`` ``[H, W, 3]`` uint8 (see module docstring)."""
         p = self.params
-        H, W = np.shape(rgb)[:2]
+        rgb = check_array("rgb", rgb, shape=(None, None, 3), dtype=np.uint8)
+        H, W = rgb.shape[:2]
         model_ms0 = self.model_ms
         emb = self.embed(rgb)
-        pts = grid_points(H, W, p.points_per_side)
+        pts = self.prompt_points(rgb)
+        covered = np.zeros((H, W), bool)
         # Candidates are kept cropped to their box (a full-size mask per prompt would need
         # gigabytes for a 32x32 grid on a 1242x375 image).
         boxes, crops, keep_iou, keep_stab, keep_pts = [], [], [], [], []
-        n_total = 0
-        for pt in pts:  # one decoder call per prompt point (the export has batch 1)
-            logits, iou = self.predict_point(emb, pt, H, W)
-            if logits.shape[0] == 4:  # multi-mask decoder: SAM's AMG uses outputs 1..3
-                logits, iou = logits[1:], iou[1:]
-            n_total += len(iou)
-            for k in np.flatnonzero(iou >= p.pred_iou_thresh):  # loop over <= 3 masks
-                stab = float(
-                    stability_score(logits[k : k + 1], p.mask_threshold, p.stability_score_offset)[
-                        0
-                    ]
-                )
-                if stab < p.stability_score_thresh:
-                    continue
-                m = logits[k] > p.mask_threshold
+        n_total = n_calls = n_run = 0
+        pending = np.arange(len(pts))
+        while pending.size:
+            batch, pending = pending[: self.batch], pending[self.batch :]
+            low, iou = self.decode(emb, pts[batch], H, W)
+            n_calls += 1 if self.batched else len(batch)
+            n_run += len(batch)
+            if low.shape[1] == 4:  # multi-mask decoder: SAM's AMG uses outputs 1..3
+                low, iou = low[:, 1:], iou[:, 1:]
+            n_total += iou.size
+            idx, stab = self._filter(low, iou, H, W)
+            for c, s in zip(idx, stab):  # loop over surviving masks only
+                b, k = divmod(int(c), low.shape[1])
+                m = self.upsample(low[b, k], H, W) > p.mask_threshold
                 if np.count_nonzero(m) < max(p.min_mask_region_px, 1):
                     continue
                 rows = np.flatnonzero(m.any(axis=1))
@@ -300,9 +369,13 @@ class SamOnnx:
                 box = (cols[0], rows[0], cols[-1], rows[-1])
                 boxes.append(box)
                 crops.append(m[box[1] : box[3] + 1, box[0] : box[2] + 1].copy())
-                keep_iou.append(iou[k])
-                keep_stab.append(stab)
-                keep_pts.append(pt)
+                keep_iou.append(iou[b, k])
+                keep_stab.append(s)
+                keep_pts.append(pts[batch[b]])
+                covered |= m
+            if p.skip_covered_prompts and pending.size:
+                uv = np.clip(np.floor(pts[pending]).astype(np.int64), 0, [W - 1, H - 1])
+                pending = pending[~covered[uv[:, 1], uv[:, 0]]]
         n_filtered = len(crops)
         ious = np.asarray(keep_iou, np.float32)
         stabs = np.asarray(keep_stab, np.float32)
@@ -320,6 +393,8 @@ class SamOnnx:
         labels, _ = paint_masks(masks, depth_m)
         stats = {
             "n_prompts": float(len(pts)),
+            "n_prompts_run": float(n_run),
+            "n_decoder_calls": float(n_calls),
             "n_candidates": float(n_total),
             "n_after_filters": float(n_filtered),
             "n_masks": float(len(masks)),
