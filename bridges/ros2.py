@@ -278,7 +278,7 @@ class Ros2Mirror(Node):
             self._out[name] = (self.rnode.create_publisher(get_message(rtype), name, 10), rtype)
         self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
         self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
-        self.subscribe("/frontend/keyframe_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
+        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
         self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
         self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
         self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)

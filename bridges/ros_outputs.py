@@ -10,7 +10,7 @@ onto a ROS graph; a test checks them without one.
 | --- | --- |
 | ``/frontend/odometry`` | ``<prefix>/odometry`` (``nav_msgs/Odometry``) and ``/tf`` world -> camera, for estimated frames |
 | ``/frontend/keyframe`` | ``<prefix>/path`` (``nav_msgs/Path`` of every keyframe pose so far) |
-| ``/frontend/keyframe_pose`` | a keyframe's pose moved by the window's solve: the path again (:meth:`RosOutputs.flush`, at most every flush) |
+| ``/frontend/refined_pose`` | a keyframe's pose moved by the window's solve: the path again (:meth:`RosOutputs.flush`, at most every flush) |
 | ``/metrizer/depth`` | ``<prefix>/depth`` (32FC1 metres, REP 118) |
 | ``/mapper/gaussians`` | the map is updated; at most every ``map_period_s`` ``<prefix>/map_cloud`` (``sensor_msgs/PointCloud2``, Gaussian centres + rgb; :meth:`RosOutputs.flush` sends the last change) |
 | ``/mapper/stats`` | ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, status ``mogs/mapper``) |

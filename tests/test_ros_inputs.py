@@ -2,7 +2,7 @@
 without ROS installed: camera (Image, CompressedImage), IMU, CameraInfo and /tf_static become the
 bus's messages and its calibration (T_imu_cam from /tf_static, else the launch value, else
 unknown after the wait); malformed input raises one MessageError naming what is wrong. Also the
-output side's path following the frontend's window refinements (``/frontend/keyframe_pose``)."""
+output side's path following the frontend's window refinements (``/frontend/refined_pose``)."""
 
 from __future__ import annotations
 

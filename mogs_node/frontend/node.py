@@ -121,7 +121,7 @@ class FrontendNodeParams:
     pose_topic: str = "/camera/pose"  # poses the user has (player.poses), mode 'poses'
     odometry_topic: str = "/frontend/odometry"
     keyframe_topic: str = "/frontend/keyframe"
-    keyframe_pose_topic: str = "/frontend/keyframe_pose"  # a published keyframe's pose each time
+    refined_pose_topic: str = "/frontend/refined_pose"  # a published keyframe's pose each time
     # the window's solve moves it (PoseStamped with the keyframe's stamp; "" = not published)
     frame_id: str = "world"
     no_calibration_warn_s: float = 10.0  # images this long without a calibration: say so once
@@ -465,7 +465,7 @@ class FrontendNode(Node):
         with the keyframe's stamp (the ROS bridges' path follows them)."""
         p: FrontendNodeParams = self.params
         window = getattr(self.frontend, "window_keyframe_poses", None)  # camera-only: none
-        if not p.keyframe_pose_topic or window is None:
+        if not p.refined_pose_topic or window is None:
             return
         sent, self._refined_sent = self._refined_sent, {}
         for stamp_ns, T in window():
@@ -473,7 +473,7 @@ class FrontendNode(Node):
             before = sent.get(stamp_ns)
             if before is None or not np.array_equal(before, T):
                 self.publish(
-                    p.keyframe_pose_topic,
+                    p.refined_pose_topic,
                     msgs.PoseStamped(
                         stamp_ns=int(stamp_ns),
                         frame_id=p.frame_id,
