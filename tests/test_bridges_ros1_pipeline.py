@@ -152,6 +152,10 @@ def test_ros1_bag_through_the_pipeline(tmp_path: Path, encoding: str) -> None:
     assert heard["odometry_frames"] == ["world", "cam0"]  # the camera images' frame id
     assert heard["depth"]["frame_id"] == "cam0"
     assert heard["path"] is not None and len(heard["path"]["poses"]) >= 3
+    # the path follows the window's refinements: keyframes moved since the path first showed them
+    final = {str(int(r[0])): r[1:4] for r in heard["path"]["poses"]}
+    moved = [np.linalg.norm(np.subtract(final[s], heard["path_first"][s][:3])) for s in final]
+    assert 1e-4 < max(moved) < 0.2, moved
     cloud = heard["map_cloud"]
     assert cloud["width"] * cloud["height"] >= 1000 and cloud["finite"]
     assert cloud["width"] == int(heard["diagnostics"]["last"]["n_gaussians"])  # the whole map
