@@ -350,10 +350,10 @@ class Ros1Bridge(Node):
     # ------------------------------------------------------------ ROS -> bus (bus thread)
 
     def _bad(self, what: str, err: Exception) -> None:
-        self.counters["ros_malformed"] += 1
-        n = int(self.counters["ros_malformed"])
-        if n & (n - 1) == 0:  # 1st, 2nd, 4th, ...: a flood of bad input is not a log flood
-            self.log.warning("malformed %s from ROS (%d so far): %s", what, n, err)
+        line = self.inputs.count_malformed(what, err)
+        self.counters["ros_malformed"] = self.inputs.malformed
+        if line is not None:
+            self.log.warning("%s", line)
 
     def drain(self) -> None:
         """Converts what the ROS callbacks queued and publishes it on the bus: IMU first (the

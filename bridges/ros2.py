@@ -199,10 +199,10 @@ class Ros2Mirror(Node):
             self.every(p.camera_info_period_s, self._republish_calibration)
 
     def _bad(self, what: str, err: Exception) -> None:
-        self.counters["ros_malformed"] += 1
-        n = int(self.counters["ros_malformed"])
-        if n & (n - 1) == 0:  # 1st, 2nd, 4th, ...: a flood of bad input is not a log flood
-            self.log.warning("malformed %s from ROS 2 (%d so far): %s", what, n, err)
+        line = self.inputs.count_malformed(what, err)
+        self.counters["ros_malformed"] = self.inputs.malformed
+        if line is not None:
+            self.log.warning("%s", line)
 
     def _in_image(self, itype: str, raw: bytes) -> None:
         try:

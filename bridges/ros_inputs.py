@@ -27,7 +27,7 @@ from mogs_node import msgs
 from mogs_node.errors import ConfigError, GeometryError, MessageError
 from mogs_node.geometry import rigid_transform, tf_lookup
 
-__all__ = ["RosInputParams", "RosInputs"]
+__all__ = ["IMAGE_TYPES", "RosInputParams", "RosInputs", "calibration_line"]
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 
@@ -66,6 +66,14 @@ class RosInputs:
         self.imu_frame = ""  # the IMU's frame id (the first sample's)
         self.image_frame = ""  # the camera images' frame id (the last image's)
         self._calibration_since_s: float | None = None
+        self.malformed = 0  # malformed messages so far
+
+    def count_malformed(self, what: str, err: Exception) -> str | None:
+        """Counts a malformed ``what``; the line to log at the 1st, 2nd, 4th, ... (else None:
+        a flood of bad input is not a log flood)."""
+        self.malformed += 1
+        n = self.malformed
+        return f"malformed {what} from ROS ({n} so far): {err}" if n & (n - 1) == 0 else None
 
     def image(self, rtype: str, raw: bytes) -> msgs.Image:
         """A camera message of ROS type ``rtype`` (either spelling) -> ``Image``."""

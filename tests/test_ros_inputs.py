@@ -130,6 +130,9 @@ def test_malformed_inputs_are_one_message_error_each(distro: Distro) -> None:
         inp.camera_info(rc.serialize(bad, "sensor_msgs/CameraInfo", distro), now_s=0.0)
     assert inp.calibration is None  # a bad CameraInfo is not kept: the next good one is
     assert inp.camera_info(_info(distro), now_s=1.0) == CAL
+    lines = [inp.count_malformed("image", MessageError("short", field="data")) for _ in range(5)]
+    assert inp.malformed == 5 and [x is not None for x in lines] == [1, 1, 0, 1, 0]
+    assert lines[0] == "malformed image from ROS (1 so far): data: short"
 
 
 def _kf(i: int, T: np.ndarray) -> msgs.Keyframe:
