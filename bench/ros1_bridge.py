@@ -59,8 +59,15 @@ TOPIC_SETS = [
     f"player.bag_pose_topic={GT_POSE_TOPIC}",
     "player.groundtruth_depth=false",
 ]
-#: both runs: the trajectory is measured, not the map (keyframes inserted, not optimised)
-MAPPER_SETS = ["mapper.iters_per_keyframe=0", "mapper.publish_render=false"]
+#: both runs: the trajectory is measured, not the map (keyframes inserted, not optimised; the
+#: report renders one keyframe of the final map, no held-out views: minutes on shared cores)
+MAPPER_SETS = [
+    "mapper.iters_per_keyframe=0",
+    "mapper.publish_render=false",
+    "report.heldout_views=0",
+    "report.max_keyframe_views=1",
+    "report.save_renders=false",
+]
 
 
 def _sets(items: list[str]) -> list[str]:
