@@ -278,8 +278,8 @@ def main(argv: list[str] | None = None) -> int:
 | frames dropped by the bridge / without odometry | | {dropped} / {fig["bridge_frames_without_odometry"]} |
 | `/mogs/path`: keyframes, ATE as first shown -> after the window's refinements | | {path_final["frames"]}, {path_first["ate_se3_rmse_m"]:.3f} m -> {path_final["ate_se3_rmse_m"]:.3f} m (largest move {fig["path_max_move_m"] * 100:.1f} cm) |
 
-Frames without odometry are those before the frontend's static initialisation: no pose, nothing
-sent on ROS. The latency is the wall time between a rospy listener receiving a camera message and
+Frames without odometry are those before the frontend's static initialisation (no pose, nothing
+sent on ROS) and those the live policy dropped while the pipeline was behind. The latency is the wall time between a rospy listener receiving a camera message and
 receiving its odometry (one host; 2 cores shared with other work: the figures of a loaded machine).
 The path's keyframes move while the frontend's sliding window refines them (the frontend publishes
 each move on `/frontend/refined_pose`, the bridge sends the path again); its ATE is over the
