@@ -177,7 +177,18 @@ def run_bridge(bag: Path, tmp: Path, rate: float) -> tuple[dict, str]:
                 if not wait_for_subscriber(env, TOPICS["image"], "mogs", 1200):
                     raise SystemExit(f"bridge not up: {log_path.read_text()[-3000:]}")
                 subprocess.run(
-                    ["rosbag", "play", "--clock", "-q", "-r", str(rate), str(bag)],
+                    # a deep outgoing queue: rosbag's 100 drops IMU samples on a busy machine
+                    [
+                        "rosbag",
+                        "play",
+                        "--clock",
+                        "-q",
+                        "--queue",
+                        "10000",
+                        "-r",
+                        str(rate),
+                        str(bag),
+                    ],
                     env=env,
                     check=True,
                     capture_output=True,

@@ -104,7 +104,19 @@ def run_bag_through_ros1(tmp_path: Path, encoding: str) -> tuple[dict, dict, Pat
                 tmp_path / "launch.log"
             ).read_text()[-4000:]
             play = subprocess.run(
-                ["rosbag", "play", "--clock", "-q", "-r", str(PLAY_RATE), str(bag)],
+                # a deep outgoing queue: on a crowded machine rosbag's 100 drops IMU samples
+                # before they reach the bridge (an IMU gap resets the frontend)
+                [
+                    "rosbag",
+                    "play",
+                    "--clock",
+                    "-q",
+                    "--queue",
+                    "10000",
+                    "-r",
+                    str(PLAY_RATE),
+                    str(bag),
+                ],
                 env=env,
                 capture_output=True,
                 text=True,
