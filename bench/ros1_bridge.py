@@ -38,6 +38,7 @@ from _ros1 import (  # noqa: E402
     GT_POSE_TOPIC,
     TOPICS,
     read_listener,
+    rosbag_play_argv,
     roscore,
     set_param,
     start_listener,
@@ -177,18 +178,7 @@ def run_bridge(bag: Path, tmp: Path, rate: float) -> tuple[dict, str]:
                 if not wait_for_subscriber(env, TOPICS["image"], "mogs", 1200):
                     raise SystemExit(f"bridge not up: {log_path.read_text()[-3000:]}")
                 subprocess.run(
-                    # a deep outgoing queue: rosbag's 100 drops IMU samples on a busy machine
-                    [
-                        "rosbag",
-                        "play",
-                        "--clock",
-                        "-q",
-                        "--queue",
-                        "10000",
-                        "-r",
-                        str(rate),
-                        str(bag),
-                    ],
+                    rosbag_play_argv(bag, rate),
                     env=env,
                     check=True,
                     capture_output=True,

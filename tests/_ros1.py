@@ -110,6 +110,13 @@ def stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int | None:
     return proc.returncode
 
 
+def rosbag_play_argv(bag: Path, rate: float = 1.0) -> list[str]:
+    """``rosbag play --clock`` of ``bag`` at ``rate``, with a deep outgoing queue: rosbag's default
+    of 100 drops IMU samples on a crowded machine before they reach the bridge (and an IMU gap
+    resets the frontend)."""
+    return ["rosbag", "play", "--clock", "-q", "--queue", "10000", "-r", str(rate), str(bag)]
+
+
 def set_param(env: dict[str, str], name: str, value: str) -> None:
     subprocess.run(["rosparam", "set", name, value], env=env, check=True, timeout=30)
 

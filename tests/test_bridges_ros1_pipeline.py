@@ -19,6 +19,7 @@ from _ros1 import (
     EPOCH_2011_NS,
     TOPICS,
     read_listener,
+    rosbag_play_argv,
     roscore,
     rospy_or_skip,
     set_param,
@@ -104,19 +105,7 @@ def run_bag_through_ros1(tmp_path: Path, encoding: str) -> tuple[dict, dict, Pat
                 tmp_path / "launch.log"
             ).read_text()[-4000:]
             play = subprocess.run(
-                # a deep outgoing queue: on a crowded machine rosbag's 100 drops IMU samples
-                # before they reach the bridge (an IMU gap resets the frontend)
-                [
-                    "rosbag",
-                    "play",
-                    "--clock",
-                    "-q",
-                    "--queue",
-                    "10000",
-                    "-r",
-                    str(PLAY_RATE),
-                    str(bag),
-                ],
+                rosbag_play_argv(bag, PLAY_RATE),
                 env=env,
                 capture_output=True,
                 text=True,
