@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # from pulling a multi-GB CUDA build for the `torch` requirement.
 TORCH_SPEC ?= torch==2.13.0
 
-.PHONY: all install demo test test-all lint format bench clean
+.PHONY: all install demo test test-all test-ros1 lint format bench clean
 
 all: test
 
@@ -30,6 +30,13 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(BIN)/python -m pytest -q -m "" -p no:cacheprovider
+
+# The ROS 1 bridge's slow tests against a real roscore (`make test` runs the others): the
+# whole pipeline (mono8, rgb8, jpeg) and the other encodings; .ci/run runs them where ROS 1 is
+# installed (README "On a ROS 1 robot").
+test-ros1: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow -p no:cacheprovider tests/test_bridges_ros1.py \
+		tests/test_bridges_ros1_pipeline.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check mogs_node bridges tests bench

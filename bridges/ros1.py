@@ -38,6 +38,7 @@ from typing import Any
 
 from bridges import ros_convert as rc
 from bridges.ros_convert import Distro
+from bridges.ros_inputs import RosInputParams, RosInputs, calibration_line
 from bridges.ros_outputs import (
     DIAGNOSTICS_TYPE,
     OUTPUT_TYPES,
@@ -47,8 +48,7 @@ from bridges.ros_outputs import (
     RosOutputs,
 )
 from mogs_node import msgs
-from mogs_node.errors import ConfigError, GeometryError, MessageError, Ros1UnavailableError
-from mogs_node.geometry import rigid_transform, tf_lookup
+from mogs_node.errors import ConfigError, MessageError, Ros1UnavailableError
 from mogs_node.node import Node
 
 __all__ = [
@@ -158,11 +158,16 @@ class Ros1BridgeParams:
             raise ConfigError("ros1: image_queue >= 1, end_after_quiet_s >= 0, master_check_s > 0")
         if not self.image_topic or not self.imu_topic:
             raise ConfigError("ros1: image_topic and imu_topic are required")
-        if self.T_imu_cam is not None:
-            try:
-                rigid_transform(self.T_imu_cam, "ros1.T_imu_cam")
-            except GeometryError as err:
-                raise ConfigError(str(err)) from err
+        self.inputs()  # checks T_imu_cam, tf_wait_s
+
+    def inputs(self) -> RosInputParams:
+        return RosInputParams(
+            camera_info_topic=self.camera_info_topic,
+            tf_static_topic=self.tf_static_topic,
+            T_imu_cam=self.T_imu_cam,
+            tf_wait_s=self.tf_wait_s,
+            source="ros1",
+        )
 
     def outputs(self) -> RosOutputParams:
         return RosOutputParams(
@@ -248,11 +253,7 @@ class Ros1Bridge(Node):
         self._rospy = rospy
         self.inbox = _Inbox(p.image_queue)
         self.outputs = RosOutputs(p.outputs(), Distro.ROS1)
-        self.calibration: rc.CameraCalibration | None = None
-        self.calibration_msg: msgs.CameraInfo | None = None
-        self._calibration_since: float | None = None
-        self._tf_edges: dict[tuple[str, str], Any] = {}
-        self._imu_frame = ""
+        self.inputs = RosInputs(p.inputs(), Distro.ROS1)
         for k in ("frames_in", "frames_published", "frames_dropped", "imu_in", "imu_published"):
             self.counters[k] = 0
         self.counters.update(ros_malformed=0, ros_published=0, master_lost=0)
@@ -268,6 +269,7 @@ class Ros1Bridge(Node):
         )
         self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
         self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
+        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
         self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
         self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
         self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
@@ -340,7 +342,7 @@ class Ros1Bridge(Node):
         self.inbox.put_tf_static(m._buff)
 
     def _on_ros_info(self, m: Any) -> None:
-        if self.calibration is None:
+        if self.inputs.calibration is None:
             with self.inbox.lock:
                 self.inbox.camera_info = m._buff
             self.inbox.wake()
@@ -348,10 +350,10 @@ class Ros1Bridge(Node):
     # ------------------------------------------------------------ ROS -> bus (bus thread)
 
     def _bad(self, what: str, err: Exception) -> None:
-        self.counters["ros_malformed"] += 1
-        n = int(self.counters["ros_malformed"])
-        if n & (n - 1) == 0:  # 1st, 2nd, 4th, ...: a flood of bad input is not a log flood
-            self.log.warning("malformed %s from ROS (%d so far): %s", what, n, err)
+        line = self.inputs.count_malformed(what, err)
+        self.counters["ros_malformed"] = self.inputs.malformed
+        if line is not None:
+            self.log.warning("%s", line)
 
     def drain(self) -> None:
         """Converts what the ROS callbacks queued and publishes it on the bus: IMU first (the
@@ -361,32 +363,31 @@ class Ros1Bridge(Node):
         self.counters["imu_in"] = self.inbox.imu_in
         self.counters["frames_in"] = self.inbox.frames_in
         self.counters["frames_dropped"] = self.inbox.frames_dropped
+        now = time.monotonic()
         for raw in tf:
             try:
-                ros = rc.deserialize(raw, "tf2_msgs/TFMessage", Distro.ROS1)
-                self._tf_edges.update(rc.transforms_from_ros(ros))
+                self.inputs.tf_static(raw)
             except MessageError as err:
                 self._bad("tf_static", err)
         if info is not None:
-            self._on_camera_info(info)
+            try:
+                cal = self.inputs.camera_info(info, now)
+            except MessageError as err:
+                self._bad("CameraInfo", err)
+            else:
+                if cal is not None:
+                    self._log_calibration(cal)
         for raw in imu:
             try:
-                m = rc.imu_from_ros(rc.deserialize(raw, "sensor_msgs/Imu", Distro.ROS1))
+                m = self.inputs.imu(raw)
             except MessageError as err:
                 self._bad("IMU", err)
                 continue
-            self._imu_frame = self._imu_frame or m.frame_id
             self.publish(p.bus_imu_topic, m)
             self.counters["imu_published"] += 1
         for rtype, raw in images:
             try:
-                if rtype == "sensor_msgs/CompressedImage":
-                    ros = rc.deserialize(raw, rtype, Distro.ROS1)
-                    img = rc.compressed_image_from_ros(ros)
-                elif rtype == "sensor_msgs/Image":
-                    img = rc.image_from_ros(rc.deserialize(raw, rtype, Distro.ROS1))
-                else:
-                    raise MessageError(f"{p.image_topic} carries {rtype!r}", field="type")
+                img = self.inputs.image(rtype, raw)
             except MessageError as err:
                 self._bad("image", err)
                 continue
@@ -394,62 +395,28 @@ class Ros1Bridge(Node):
             self.publish(p.bus_image_topic, img)
             self.counters["frames_published"] += 1
 
-    def _on_camera_info(self, raw: bytes) -> None:
-        try:
-            cal = rc.camera_info_from_ros(
-                rc.deserialize(raw, "sensor_msgs/CameraInfo", Distro.ROS1)
-            )
-        except MessageError as err:
-            self._bad("CameraInfo", err)
-            return
-        self.calibration = cal
-        self._calibration_since = time.monotonic()
+    def _log_calibration(self, cal: rc.CameraCalibration) -> None:
         c = cal.camera
         self.counters.update(
             camera_fx_px=c.fx_px, camera_fy_px=c.fy_px, camera_cx_px=c.cx_px, camera_cy_px=c.cy_px
         )
-        self.log.info(
-            "CameraInfo on %s: %dx%d fx %.3f fy %.3f cx %.3f cy %.3f, %s %s",
-            self.params.camera_info_topic,
-            c.width,
-            c.height,
-            c.fx_px,
-            c.fy_px,
-            c.cx_px,
-            c.cy_px,
-            cal.distortion_model,
-            list(cal.distortion_coeffs),
-        )
+        self.log.info(*calibration_line(cal, self.params.camera_info_topic))
 
     def _calibration_due(self) -> None:
-        """Publish the calibration on the bus once T_imu_cam is found on /tf_static, given in
-        the launch file, or ``tf_wait_s`` after the CameraInfo (then the frontend's value)."""
-        p: Ros1BridgeParams = self.params
-        cal = self.calibration
-        if cal is None or self.calibration_msg is not None:
+        """The calibration on the bus once its T_imu_cam is known (:class:`RosInputs`)."""
+        due = self.inputs.calibration_due(time.monotonic())
+        if due is None:
             return
-        T, where = None, ""
-        if self._tf_edges and self._imu_frame:
-            T = tf_lookup(self._tf_edges, self._imu_frame.lstrip("/"), cal.frame_id.lstrip("/"))
-            where = f"{p.tf_static_topic} {self._imu_frame} -> {cal.frame_id}"
-        if T is None and p.T_imu_cam is not None:
-            T, where = rigid_transform(p.T_imu_cam, "ros1.T_imu_cam")[0], "the launch file"
-        assert self._calibration_since is not None
-        if T is None and time.monotonic() - self._calibration_since < p.tf_wait_s:
-            return
-        self.calibration_msg = cal.message(
-            T_imu_cam=T, source=f"ros1:{p.camera_info_topic}" + (f" + {where}" if where else "")
-        )
         self.log.info(
             "calibration on %s: T_imu_cam %s",
-            p.bus_camera_info_topic,
-            f"from {where}" if T is not None else "unknown (the frontend's launch value)",
+            self.params.bus_camera_info_topic,
+            f"from {due[1]}" if due[1] else "unknown (the frontend's launch value)",
         )
         self._republish_calibration()
 
     def _republish_calibration(self) -> None:
-        if self.calibration_msg is not None:
-            self.publish(self.params.bus_camera_info_topic, self.calibration_msg)
+        if self.inputs.calibration_msg is not None:
+            self.publish(self.params.bus_camera_info_topic, self.inputs.calibration_msg)
 
     # ------------------------------------------------------------ bus -> ROS (bus thread)
 
@@ -470,6 +437,10 @@ class Ros1Bridge(Node):
 
     def on_keyframe(self, msg: msgs.Keyframe) -> None:
         self._send(self.outputs.on_keyframe(msg))
+
+    def on_keyframe_pose(self, msg: msgs.PoseStamped) -> None:
+        self._send(self.outputs.on_keyframe_pose(msg))
+        self.counters["path_moves"] = self.outputs.path_moves
 
     def on_depth(self, msg: msgs.DepthMap) -> None:
         self._send(self.outputs.on_depth(msg))

@@ -31,6 +31,7 @@ from bridges.ros_convert import (
     tf_from_pose,
     to_ros,
 )
+from bridges.ros_inputs import RosInputParams, RosInputs, calibration_line
 from bridges.ros_outputs import (
     DIAGNOSTICS_TYPE,
     OUTPUT_TYPES,
@@ -40,7 +41,7 @@ from bridges.ros_outputs import (
     RosOutputs,
 )
 from mogs_node import msgs
-from mogs_node.errors import Ros2UnavailableError
+from mogs_node.errors import MessageError, Ros2UnavailableError
 from mogs_node.node import Node
 
 __all__ = [
@@ -116,7 +117,13 @@ class Ros2MirrorParams:
     ros_image_topic: str = "/camera/image_raw"  # ROS 2 camera in -> /camera/image
     ros_image_compressed: bool = False  # the camera is sensor_msgs/CompressedImage (jpeg / png)
     ros_imu_topic: str = "/imu"  # ROS 2 sensor_msgs/Imu in -> /imu
-    ros_camera_info_topic: str = ""  # sensor_msgs/CameraInfo: logged ("" = none)
+    ros_camera_info_topic: str = ""  # sensor_msgs/CameraInfo -> the calibration on /camera/info
+    # ("" = none: the frontend's launch values)
+    ros_tf_static_topic: str = "/tf_static"  # T_imu_cam (the IMU's frame -> the camera's)
+    T_imu_cam: tuple[float, ...] | None = None  # without /tf_static: the camera in the IMU frame
+    # (16 numbers, row-major; None: the frontend's own launch value)
+    tf_wait_s: float = 1.0  # after the first CameraInfo, wait this long for /tf_static
+    camera_info_period_s: float = 2.0  # the calibration on the bus again this often
     mirror_in: bool = True  # bring the ROS 2 camera and IMU onto the bus
     mirror_out: bool = True  # publish odometry, path, map cloud, depth, map stats to ROS 2
     ros_prefix: str = "/mogs"  # ROS 2 names of the outputs: <prefix>/odometry, /path,
@@ -124,6 +131,18 @@ class Ros2MirrorParams:
     world_frame: str = "world"  # parent frame of poses, path, cloud and tf
     map_period_s: float = 2.0  # map cloud at most this often (0: after every mapped keyframe)
     tick_s: float = 0.005  # how often the rclpy executor is spun
+
+    def __post_init__(self) -> None:
+        self.inputs()  # checks T_imu_cam, tf_wait_s
+
+    def inputs(self) -> RosInputParams:
+        return RosInputParams(
+            camera_info_topic=self.ros_camera_info_topic,
+            tf_static_topic=self.ros_tf_static_topic,
+            T_imu_cam=self.T_imu_cam,
+            tf_wait_s=self.tf_wait_s,
+            source="ros2",
+        )
 
 
 class Ros2Mirror(Node):
@@ -153,42 +172,85 @@ class Ros2Mirror(Node):
         self.every(p.tick_s, self.spin_ros)
         self.log.info("mirroring to ROS 2 as node %s", self.rnode.get_name())
 
-    def _sub(self, rtype: str, topic: str, callback: Any) -> None:
+    def _sub(self, rtype: str, topic: str, callback: Any, qos: Any = None) -> None:
         from rclpy.qos import qos_profile_sensor_data
         from rosidl_runtime_py.utilities import get_message
 
         self.rnode.create_subscription(
-            get_message(rtype), topic, callback, qos_profile_sensor_data, raw=True
+            get_message(rtype), topic, callback, qos or qos_profile_sensor_data, raw=True
         )
 
     def _mirror_in(self) -> None:
+        """The camera, IMU, CameraInfo and /tf_static through :class:`RosInputs` (shared with the
+        ROS 1 bridge): malformed messages are counted and logged, never fatal."""
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+
         p = self.params
-        d = Distro.ROS2
+        self.inputs = RosInputs(p.inputs(), Distro.ROS2)
+        self.counters.update(ros_malformed=0, frames_published=0, imu_published=0)
         itype = "sensor_msgs/msg/" + ("CompressedImage" if p.ros_image_compressed else "Image")
-        decode = ros_convert.compressed_image_from_ros if p.ros_image_compressed else image_from_ros
-
-        def on_image(raw: bytes) -> None:
-            img = decode(ros_convert.deserialize(raw, itype, d))
-            if p.mirror_out:
-                self.outputs.input_frame = img.frame_id
-            self.publish("/camera/image", img)
-
-        def on_imu(raw: bytes) -> None:
-            imu = imu_from_ros(ros_convert.deserialize(raw, "sensor_msgs/msg/Imu", d))
-            self.publish("/imu", imu)
-
-        def on_info(raw: bytes) -> None:
-            cal = ros_convert.camera_info_from_ros(
-                ros_convert.deserialize(raw, "sensor_msgs/msg/CameraInfo", d)
-            )
-            if getattr(self, "calibration", None) != cal:
-                self.calibration = cal
-                self.log.info("CameraInfo on %s: %s", p.ros_camera_info_topic, cal)
-
-        self._sub(itype, p.ros_image_topic, on_image)
-        self._sub("sensor_msgs/msg/Imu", p.ros_imu_topic, on_imu)
+        self._sub(itype, p.ros_image_topic, lambda raw: self._in_image(itype, raw))
+        self._sub("sensor_msgs/msg/Imu", p.ros_imu_topic, self._in_imu)
         if p.ros_camera_info_topic:
-            self._sub("sensor_msgs/msg/CameraInfo", p.ros_camera_info_topic, on_info)
+            self._sub("sensor_msgs/msg/CameraInfo", p.ros_camera_info_topic, self._in_info)
+            latched = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self._sub("tf2_msgs/msg/TFMessage", p.ros_tf_static_topic, self._in_tf, latched)
+            self.every(0.2, self._calibration_due)
+            self.every(p.camera_info_period_s, self._republish_calibration)
+
+    def _bad(self, what: str, err: Exception) -> None:
+        line = self.inputs.count_malformed(what, err)
+        self.counters["ros_malformed"] = self.inputs.malformed
+        if line is not None:
+            self.log.warning("%s", line)
+
+    def _in_image(self, itype: str, raw: bytes) -> None:
+        try:
+            img = self.inputs.image(itype, raw)
+        except MessageError as err:
+            self._bad("image", err)
+            return
+        if self.params.mirror_out:
+            self.outputs.input_frame = img.frame_id
+        self.publish("/camera/image", img)
+        self.counters["frames_published"] += 1
+
+    def _in_imu(self, raw: bytes) -> None:
+        try:
+            imu = self.inputs.imu(raw)
+        except MessageError as err:
+            self._bad("IMU", err)
+            return
+        self.publish("/imu", imu)
+        self.counters["imu_published"] += 1
+
+    def _in_info(self, raw: bytes) -> None:
+        try:
+            cal = self.inputs.camera_info(raw, time.monotonic())
+        except MessageError as err:
+            self._bad("CameraInfo", err)
+            return
+        if cal is not None:
+            self.log.info(*calibration_line(cal, self.params.ros_camera_info_topic))
+
+    def _in_tf(self, raw: bytes) -> None:
+        try:
+            self.inputs.tf_static(raw)
+        except MessageError as err:
+            self._bad("tf_static", err)
+
+    def _calibration_due(self) -> None:
+        due = self.inputs.calibration_due(time.monotonic())
+        if due is not None:
+            self.log.info(
+                "calibration on /camera/info: T_imu_cam %s",
+                f"from {due[1]}" if due[1] else "unknown (the frontend's launch value)",
+            )
+            self._republish_calibration()
+
+    def _republish_calibration(self) -> None:
+        if self.inputs.calibration_msg is not None:
+            self.publish("/camera/info", self.inputs.calibration_msg)
 
     def _mirror_out(self) -> None:
         from rosidl_runtime_py.utilities import get_message
@@ -216,6 +278,7 @@ class Ros2Mirror(Node):
             self._out[name] = (self.rnode.create_publisher(get_message(rtype), name, 10), rtype)
         self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
         self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
+        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
         self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
         self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
         self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
@@ -236,6 +299,10 @@ class Ros2Mirror(Node):
         rtype = "geometry_msgs/msg/PoseStamped"
         self._send([(f"{p.ros_prefix.rstrip('/')}/keyframe_pose", rtype, pose)])
         self._send(self.outputs.on_keyframe(msg))
+
+    def on_keyframe_pose(self, msg: msgs.Message) -> None:
+        assert isinstance(msg, msgs.PoseStamped)
+        self._send(self.outputs.on_keyframe_pose(msg))
 
     def on_depth(self, msg: msgs.Message) -> None:
         assert isinstance(msg, msgs.DepthMap)

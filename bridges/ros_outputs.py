@@ -10,6 +10,7 @@ onto a ROS graph; a test checks them without one.
 | --- | --- |
 | ``/frontend/odometry`` | ``<prefix>/odometry`` (``nav_msgs/Odometry``) and ``/tf`` world -> camera, for estimated frames |
 | ``/frontend/keyframe`` | ``<prefix>/path`` (``nav_msgs/Path`` of every keyframe pose so far) |
+| ``/frontend/refined_pose`` | a keyframe's pose moved by the window's solve: the path again (:meth:`RosOutputs.flush`, at most every flush) |
 | ``/metrizer/depth`` | ``<prefix>/depth`` (32FC1 metres, REP 118) |
 | ``/mapper/gaussians`` | the map is updated; at most every ``map_period_s`` ``<prefix>/map_cloud`` (``sensor_msgs/PointCloud2``, Gaussian centres + rgb; :meth:`RosOutputs.flush` sends the last change) |
 | ``/mapper/stats`` | ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, status ``mogs/mapper``) |
@@ -84,6 +85,9 @@ class RosOutputs:
         self.path_stamps_ns: list[int] = []
         self.path_T_world_cam: list[np.ndarray] = []
         self._path_index: dict[int, int] = {}  # keyframe id -> position in the path
+        self._path_by_stamp: dict[int, int] = {}  # keyframe stamp -> position in the path
+        self._path_dirty = False  # a keyframe moved since the path was last sent
+        self.path_moves = 0  # keyframe poses moved by the window (refinements applied)
         self.cloud = GaussianCloud()
         self._last_cloud_s: float | None = None
         self._cloud_dirty = False
@@ -117,17 +121,33 @@ class RosOutputs:
         i = self._path_index.get(msg.keyframe_id)
         if i is None:
             self._path_index[msg.keyframe_id] = len(self.path_stamps_ns)
+            self._path_by_stamp[int(msg.stamp_ns)] = len(self.path_stamps_ns)
             self.path_stamps_ns.append(int(msg.stamp_ns))
             self.path_T_world_cam.append(np.asarray(msg.T_world_cam, np.float64))
         else:
             self.path_T_world_cam[i] = np.asarray(msg.T_world_cam, np.float64)
+        return [self.path()]
+
+    def on_keyframe_pose(self, msg: msgs.PoseStamped) -> list[Triple]:
+        """A keyframe's pose refined by the frontend's window (matched by stamp; a keyframe not
+        on the path, e.g. shed, is ignored): the path is sent again from :meth:`flush`."""
+        i = self._path_by_stamp.get(int(msg.stamp_ns))
+        if i is not None:
+            self.path_T_world_cam[i] = np.asarray(msg.T_world_cam, np.float64)
+            self._path_dirty = True
+            self.path_moves += 1
+        return []
+
+    def path(self) -> Triple:
+        """The keyframe path now (``nav_msgs/Path``, every keyframe's latest pose)."""
+        self._path_dirty = False
         path = rc.path_to_ros(
             np.asarray(self.path_stamps_ns, np.int64),
             np.asarray(self.path_T_world_cam).reshape(-1, 4, 4),
             world_frame=self.params.world_frame,
             distro=self.distro,
         )
-        return [(self.params.topic("path"), OUTPUT_TYPES["path"], path)]
+        return (self.params.topic("path"), OUTPUT_TYPES["path"], path)
 
     def on_depth(self, msg: msgs.DepthMap) -> list[Triple]:
         if msg.kind != "metric":
@@ -145,16 +165,18 @@ class RosOutputs:
         return self.flush(now_s)
 
     def flush(self, now_s: float) -> list[Triple]:
-        """The map cloud if it changed since the last one and ``map_period_s`` has passed (call
-        it now and then: the last change of a run is sent too)."""
+        """The path if a keyframe moved since it was sent; the map cloud if it changed since the
+        last one and ``map_period_s`` has passed (call it now and then: the last change of a run
+        is sent too)."""
         p = self.params
+        out = [self.path()] if self._path_dirty else []
         due = self._last_cloud_s is None or now_s - self._last_cloud_s >= p.map_period_s
         empty = len(self.cloud.ids) == 0 and self._last_cloud_s is None  # nothing to show yet
         if not (self._cloud_dirty and due) or empty:
-            return []
+            return out
         self._last_cloud_s = now_s
         self._cloud_dirty = False
-        return [self.map_cloud(self._cloud_stamp_ns)]
+        return [*out, self.map_cloud(self._cloud_stamp_ns)]
 
     def on_stats(self, msg: msgs.MapStats) -> list[Triple]:
         ros = rc.mapstats_to_ros(msg, distro=self.distro)

@@ -73,8 +73,10 @@ def master_up(env: dict[str, str]) -> bool:
 
 
 @contextlib.contextmanager
-def roscore(tmp: Path, timeout_s: float = 60.0, port: int = 0) -> Iterator[dict[str, str]]:
-    """A real ``roscore`` on ``port`` (0: a free one); yields the environment pointing at it."""
+def roscore(tmp: Path, timeout_s: float = 300.0, port: int = 0) -> Iterator[dict[str, str]]:
+    """A real ``roscore`` on ``port`` (0: a free one); yields the environment pointing at it
+    (``timeout_s``: a roscore takes a minute or more to answer on a machine shared with other
+    runs)."""
     home = tmp / "ros_home"
     home.mkdir(parents=True, exist_ok=True)
     env = ros_env(port or free_tcp_port(), home)
@@ -106,6 +108,13 @@ def stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int | None:
             proc.wait()
             return None
     return proc.returncode
+
+
+def rosbag_play_argv(bag: Path, rate: float = 1.0) -> list[str]:
+    """``rosbag play --clock`` of ``bag`` at ``rate``, with a deep outgoing queue: rosbag's default
+    of 100 drops IMU samples on a crowded machine before they reach the bridge (and an IMU gap
+    resets the frontend)."""
+    return ["rosbag", "play", "--clock", "-q", "--queue", "10000", "-r", str(rate), str(bag)]
 
 
 def set_param(env: dict[str, str], name: str, value: str) -> None:
@@ -279,7 +288,7 @@ def start_listener(
         stdout=log,
         stderr=subprocess.STDOUT,
     )
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 300  # rospy's start takes minutes on a crowded machine
     while not Path(str(out) + ".ready").exists():
         if proc.poll() is not None or time.monotonic() > deadline:
             raise RuntimeError(f"listener did not start: {out.with_suffix('.log').read_text()}")

@@ -41,6 +41,7 @@ def main() -> int:
         "images": [],
         "path": None,
         "path_count": 0,
+        "path_first": {},
         "map_cloud": None,
         "map_cloud_count": 0,
         "depth": None,
@@ -79,6 +80,8 @@ def main() -> int:
         ]
         with lock:
             rec["path"] = {"frame_id": m.header.frame_id, "poses": poses}
+            for row in poses:  # each keyframe's pose as the path first showed it
+                rec["path_first"].setdefault(str(row[0]), row[1:])
             rec["path_count"] += 1
 
     def on_cloud(m) -> None:

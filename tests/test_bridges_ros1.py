@@ -27,6 +27,7 @@ from _ros1 import (
     set_param,
     start_listener,
     stop,
+    tf_static_msg,
     wait_for_connections,
     wait_for_subscriber,
 )
@@ -39,6 +40,7 @@ from mogs_node.errors import ConfigError, Ros1UnavailableError
 from mogs_node.geometry import make_T, quat_wxyz_to_rotmat, so3_exp
 
 N_FRAMES, W, H = 20, 64, 48
+T_IMU_CAM = make_T(so3_exp(np.array([1.2, -1.2, 1.2])), np.array([0.05, -0.02, 0.01]))
 
 
 def _images(n: int) -> list[np.ndarray]:
@@ -63,6 +65,8 @@ def _write_tiny_bag(
     ]
     K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
     with rosbag.Bag(str(path), "w", compression=rosbag.Compression.BZ2) as bag:
+        tf = tf_static_msg(rospy, EPOCH_2011_NS, T_IMU_CAM, "imu0", "cam0")
+        bag.write("/tf_static", tf, _rt(rospy, EPOCH_2011_NS))
         for j, t in enumerate(imu_t):
             bag.write(
                 TOPICS["imu"], imu_msg(rospy, int(t), imu[j], imu[j][::-1]), _rt(rospy, int(t))
@@ -103,6 +107,7 @@ def _publish_pipeline_outputs(bus, stamps: list[int]) -> dict:
         time.sleep(0.02)
     img = np.zeros((H, W), np.uint8)
     for k in range(3):
+        time.sleep(0.05)
         pub.publish(
             "/frontend/keyframe",
             msgs.Keyframe(
@@ -118,6 +123,8 @@ def _publish_pipeline_outputs(bus, stamps: list[int]) -> dict:
                 np.zeros(0, np.float32),
             ),
         )
+    time.sleep(0.1)  # the window moved keyframe 1: the path follows (within a flush)
+    pub.publish("/frontend/refined_pose", msgs.PoseStamped(stamps[3], "world", _pose(4)))
     depth = np.full((H, W), 7.5, np.float32)
     depth[:10] = 0.0  # no value: NaN on ROS
     pub.publish(
@@ -159,8 +166,8 @@ def _run_bridge_case(tmp_path: Path, broker_bus, encoding: str) -> None:
         set_param(env, "/use_sim_time", "true")
         listener = start_listener(env, tmp_path / "heard.json", image_type=image_type)
         sub = Subscriber(broker_bus)
-        sub.subscribe("/camera/image")
-        sub.subscribe("/imu")
+        for topic in ("/camera/image", "/imu", "/camera/info"):
+            sub.subscribe(topic)
         params = {
             "image_topic": TOPICS["image"],
             "imu_topic": TOPICS["imu"],
@@ -191,15 +198,15 @@ def _run_bridge_case(tmp_path: Path, broker_bus, encoding: str) -> None:
                 timeout=120,
             )
             assert play.returncode == 0, play.stderr
-            got_img, got_imu = [], []
+            got: dict[str, list] = {"/camera/image": [], "/imu": [], "/camera/info": []}
+            got_img, got_imu = got["/camera/image"], got["/imu"]
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and (
-                len(got_img) < N_FRAMES or len(got_imu) < len(imu)
+                len(got_img) < N_FRAMES or len(got_imu) < len(imu) or not got["/camera/info"]
             ):
                 env_ = sub.receive(timeout_ms=200)
-                if env_ is None:
-                    continue
-                (got_img if env_.topic == "/camera/image" else got_imu).append(env_.msg)
+                if env_ is not None:
+                    got[env_.topic].append(env_.msg)
             # the bridge ends by itself: the camera went quiet for end_after_quiet_s
             rc_bridge = bridge.wait(60)
         finally:
@@ -214,6 +221,12 @@ def _run_bridge_case(tmp_path: Path, broker_bus, encoding: str) -> None:
         assert re.search(r"malformed IMU from ROS \(\d so far\): angular_velocity:", bridge_log)
         assert "2 malformed" in bridge_log, bridge_log
         assert heard_rc == 0
+    # the calibration: the CameraInfo's intrinsics, T_imu_cam from /tf_static (imu0 -> cam0)
+    info = got["/camera/info"][0]
+    assert (info.width, info.height, info.frame_id) == (W, H, "cam0")
+    np.testing.assert_allclose(info.K, [[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    np.testing.assert_allclose(info.T_imu_cam, T_IMU_CAM, atol=1e-9)
+    assert "/tf_static imu0 -> cam0" in info.source
     # in: every frame and IMU sample, exact stamps, exact pixels (jpeg: close)
     assert [m.stamp_ns for m in got_img] == stamps
     assert len(got_imu) == len(imu)
@@ -238,9 +251,10 @@ def _run_bridge_case(tmp_path: Path, broker_bus, encoding: str) -> None:
         np.testing.assert_allclose(T, _pose(i), atol=1e-9)
     path = heard["path"]["poses"]
     assert heard["path"]["frame_id"] == "world" and [int(p[0]) for p in path] == stamps[0:9:3]
-    np.testing.assert_allclose(
-        np.array(path)[:, 1:4], [_pose(i)[:3, 3] for i in (0, 3, 6)], atol=1e-9
+    np.testing.assert_allclose(  # keyframe 1 where the window moved it
+        np.array(path)[:, 1:4], [_pose(i)[:3, 3] for i in (0, 4, 6)], atol=1e-9
     )
+    assert heard["path_first"][str(stamps[3])][:3] == pytest.approx(list(_pose(3)[:3, 3]))
     cloud = heard["map_cloud"]
     assert cloud["width"] * cloud["height"] == truth["n"] >= 1000
     assert cloud["fields"] == [["x", 0, 7, 1], ["y", 4, 7, 1], ["z", 8, 7, 1], ["rgb", 12, 7, 1]]

@@ -124,7 +124,7 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
     }
     node = FrontendNode("frontend", params, bus, context=ctx, diagnostics_period_s=0)
     watcher = Subscriber(bus, context=ctx)
-    for topic in ("/frontend/odometry", "/frontend/keyframe"):
+    for topic in ("/frontend/odometry", "/frontend/keyframe", "/frontend/refined_pose"):
         watcher.subscribe(topic)
     pub = Publisher(bus, context=ctx)
     try:
@@ -136,7 +136,7 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
         f_true = seq.T_world_imu[0, :3, :3].T @ -GRAVITY_WORLD_M_S2
         t_imu = 1_000_000_000 + np.arange(int(2.8 * 200)) * 5_000_000
         t_img = t_imu[0] + 500_000_000 + np.arange(20) * 100_000_000
-        got: dict[str, list] = {"/frontend/odometry": [], "/frontend/keyframe": []}
+        got: dict[str, list] = {t: [] for t in watcher.topics}
         k = 0
 
         def drain() -> None:
@@ -182,6 +182,11 @@ def test_node_streams_odometry_and_keyframes(inproc_bus):
     assert all(np.all(np.isfinite(o.T_world_cam)) for o in odo)
     assert kfs and kfs[0].image.shape == img.shape and kfs[0].K.shape == (3, 3)
     assert diag.counters["frontend_static_inits"] == 1
+    # refined keyframe poses: keyframes' stamps only, each sent when the window moved it
+    first = {kf.stamp_ns: kf.T_world_cam for kf in kfs}
+    for m in got["/frontend/refined_pose"]:
+        assert m.stamp_ns in first and m.frame_id == "world" and np.isfinite(m.T_world_cam).all()
+        assert np.linalg.norm(m.T_world_cam[:3, 3] - first[m.stamp_ns][:3, 3]) < 0.02  # parked
 
 
 def test_node_waits_for_the_camera_info(inproc_bus):

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +21,9 @@ from mogs_node.frontend.frontend import FrameOutput, Frontend, FrontendParams
 from mogs_node.frontend.trajectory_io import write_kitti, write_tum
 from mogs_node.geometry import se3_inverse
 from mogs_node.shared_data import shared_data_dir
+
+if TYPE_CHECKING:
+    from mogs_node.sim.sequence import SimSequence
 
 __all__ = [
     "RunResult",
@@ -370,3 +374,45 @@ def evaluate(args: argparse.Namespace) -> dict:
         static_start_s=getattr(args, "static_start_s", None),
         ground=args.dataset in ("sim", "oxts") and not getattr(args, "no_ground", False),
     )
+
+
+def window_refinement(seq: SimSequence, params: FrontendParams) -> dict:
+    """A sim sequence through the frontend, keeping each
+    keyframe's pose as first published and as the window's solves last left it
+    (``Frontend.window_keyframe_poses``, what ``/frontend/refined_pose`` carries); scored against
+    the sequence's ground truth by stamp: ``keyframes``, ``ate_first_m``, ``ate_refined_m``
+    (SE(3)-aligned keyframe ATE), ``max_move_m``, ``refined`` (keyframes moved by the window),
+    ``window_not_keyframe`` (window poses of stamps never published as keyframes: must be 0)."""
+    from mogs_node.eval.traj import trajectory_metrics
+
+    fe = Frontend(params, CameraModel(seq.camera), seq.T_imu_cam)
+    published: dict[int, NDArray] = {}
+    refined: dict[int, NDArray] = {}
+    strays = 0
+    for t, kind, k in seq.sensor_events():
+        if kind == "imu":
+            outs = fe.add_imu(int(t), seq.imu_gyro_rad_s[k], seq.imu_accel_m_s2[k])
+        else:
+            outs = fe.add_image(int(t), seq.render(k).rgb)
+        for o in outs:
+            if o.keyframe is not None:
+                published[o.keyframe.stamp_ns] = o.keyframe.T_world_cam.copy()
+        if outs:
+            window = fe.window_keyframe_poses()
+            strays += sum(s not in published for s, _ in window)
+            refined.update(window)
+    stamps = np.array(sorted(published), np.int64)
+    truth = {int(t): T for t, T in zip(seq.stamps_ns, seq.T_world_cam)}
+    gt = np.array([truth[int(s)] for s in stamps])
+    final = {s: refined.get(s, published[s]) for s in published}
+    moves = [float(np.linalg.norm(final[s][:3, 3] - published[s][:3, 3])) for s in published]
+    first = trajectory_metrics(stamps, np.array([published[s] for s in stamps]), gt)
+    last = trajectory_metrics(stamps, np.array([final[s] for s in stamps]), gt)
+    return {
+        "keyframes": len(stamps),
+        "refined": sum(m > 0 for m in moves),
+        "max_move_m": max(moves, default=0.0),
+        "ate_first_m": first["ate_se3_rmse_m"],
+        "ate_refined_m": last["ate_se3_rmse_m"],
+        "window_not_keyframe": strays,
+    }

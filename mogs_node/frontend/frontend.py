@@ -266,6 +266,7 @@ class Frontend:
         self._road_normal = road_normal_from_mount(self.T_imu_cam)
         self._prev_gray: tuple[int, NDArray] | None = None  # (estimator seq, grey image)
         self._ground_ratios: deque[float] = deque(maxlen=params.ground.gate_window)
+        self._keyframe_stamps: dict[int, int] = {}  # IMU time -> camera stamp of the keyframes
 
     @property
     def initialized(self) -> bool:
@@ -437,6 +438,8 @@ class Frontend:
                     tg = time.perf_counter()
                     self._measure_ground(image)
                     ground_s = time.perf_counter() - tg
+        if kf is not None:
+            self._keyframe_stamps[t_ns] = stamp_ns
         if self.estimator.frames:
             self.imu.trim(self.estimator.frames[0].t_ns - int(1e9))
         else:
@@ -457,6 +460,23 @@ class Frontend:
             },
             stats=stats,
         )
+
+    def window_keyframe_poses(self) -> list[tuple[int, NDArray[np.float64]]]:
+        """``(camera stamp, T_world_cam [4, 4])`` of the published keyframes still in the
+        estimator's window, as its latest solve left them: their earlier poses refined (VINS-Mono
+        republishes its window's keyframe poses for its path the same way). Empty when none."""
+        if not self.initialized or not self.estimator.frames:
+            self._keyframe_stamps.clear()
+            return []
+        stamps, T_world_imu, _ = self.estimator.window_states()
+        first = int(stamps[0])
+        for t in [t for t in self._keyframe_stamps if t < first]:  # left the window
+            del self._keyframe_stamps[t]
+        return [
+            (self._keyframe_stamps[int(t)], T @ self.T_imu_cam)
+            for t, T in zip(stamps, T_world_imu)
+            if int(t) in self._keyframe_stamps
+        ]
 
     def _reset(self, reason: str, message: str) -> None:
         """Re-initialise, counted by ``reason`` (``resets_<reason>``), logged once per reason."""

@@ -122,6 +122,8 @@ class FrontendNodeParams:
     pose_topic: str = "/camera/pose"  # poses the user has (player.poses), mode 'poses'
     odometry_topic: str = "/frontend/odometry"
     keyframe_topic: str = "/frontend/keyframe"
+    refined_pose_topic: str = "/frontend/refined_pose"  # a published keyframe's pose each time
+    # the window's solve moves it (PoseStamped with the keyframe's stamp; "" = not published)
     frame_id: str = "world"
     no_calibration_warn_s: float = 10.0  # images this long without a calibration: say so once
 
@@ -296,6 +298,7 @@ class FrontendNode(Node):
         self._first_uncalibrated: float | None = None
         self._last_T_world_cam = np.eye(4)  # best pose so far: acknowledges frames without one
         self._last_velocity = np.zeros(3)
+        self._refined_sent: dict[int, np.ndarray] = {}  # keyframe stamp -> pose last published
         self.counters.update(frames_without_calibration=0, camera_info_ignored=0)
         if p.overrides_all():
             self._configure(None)  # the launch file gives everything: no need to wait
@@ -406,8 +409,11 @@ class FrontendNode(Node):
         if self.frontend is None:
             self._imu_waiting.append(msg)
             return
-        for out in self.frontend.add_imu(msg.stamp_ns, msg.gyro_rad_s, msg.accel_m_s2):
+        outs = self.frontend.add_imu(msg.stamp_ns, msg.gyro_rad_s, msg.accel_m_s2)
+        for out in outs:
             self._publish(out)
+        if outs:
+            self._publish_refined()
 
     def _no_calibration(self, msg: msgs.Image) -> None:
         """An image before any calibration: acknowledged, counted, said once after a while."""
@@ -457,6 +463,29 @@ class FrontendNode(Node):
                 self._acknowledge(t, "dropped")
         for out in outs:
             self._publish(out)
+        if outs:
+            self._publish_refined()
+
+    def _publish_refined(self) -> None:
+        """The window's keyframes whose pose its last solve moved, each as a ``PoseStamped``
+        with the keyframe's stamp (the ROS bridges' path follows them)."""
+        p: FrontendNodeParams = self.params
+        window = getattr(self.frontend, "window_keyframe_poses", None)  # camera-only: none
+        if not p.refined_pose_topic or window is None:
+            return
+        sent, self._refined_sent = self._refined_sent, {}
+        for stamp_ns, T in window():
+            self._refined_sent[stamp_ns] = T
+            before = sent.get(stamp_ns)
+            if before is None or not np.array_equal(before, T):
+                self.publish(
+                    p.refined_pose_topic,
+                    msgs.PoseStamped(
+                        stamp_ns=int(stamp_ns),
+                        frame_id=p.frame_id,
+                        T_world_cam=np.ascontiguousarray(T, dtype=np.float64),
+                    ),
+                )
 
     def _acknowledge(self, stamp_ns: int, status: str) -> None:
         self._send_odometry(stamp_ns, -1, self._last_T_world_cam, self._last_velocity, status)
@@ -497,6 +526,7 @@ class FrontendNode(Node):
             shed = self.backlog.admit(out.keyframe.keyframe_id, time.monotonic(), image_s)
             if shed is None:
                 self.publish(p.keyframe_topic, keyframe_message(out.keyframe, p.frame_id))
+                self._refined_sent[out.keyframe.stamp_ns] = out.keyframe.T_world_cam
             else:
                 self._shed(out.keyframe.keyframe_id, shed)
 
