@@ -50,7 +50,7 @@ from mogs_node.bus import (
     tune_malloc_for_large_messages,
 )
 from mogs_node.demo_nodes import make_keyframe
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json
 
 CASES = ("bare", "hop", "inline", "mogs")
 

@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section  # noqa: E402
 from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     calibration_bins,
     prior_params,
@@ -36,7 +37,6 @@ from mogs_node.eval.pipeline_stages import (  # noqa: E402
     graph_masks,
     prepare_keyframes,
 )
-from mogs_node.eval.report import machine_line, update_markdown_section  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BEFORE = "flow only, references from 0.3 m (main)"

@@ -25,7 +25,7 @@ import time
 import uuid
 from pathlib import Path
 
-from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.fleet.batch import BatchOptions, run_batch
 from mogs_node.fleet.drives import PATIENT_PLAYER, drive_id, write_sim_drives
 from mogs_node.fleet.table import comparable_figures

@@ -50,7 +50,7 @@ import zmq
 
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
-from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 from mogs_node.presets import FIGURES_PATH, PRESETS, balanced_value, deep_merge, role_of
 

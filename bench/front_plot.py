@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from mogs_node.eval.report import REPO_ROOT
+from mogs_node.eval.bench_docs import REPO_ROOT
 
 # error -> True when lower is better
 ERRORS: dict[str, bool] = {

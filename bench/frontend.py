@@ -28,13 +28,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.eval.frontend_runs import (  # noqa: E402
     keyframe_point_figures,
     load_dataset,
     run_dataset_frames,
     score_run,
 )
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.frontend.camera import CameraModel  # noqa: E402
 from mogs_node.frontend.frontend import FrontendParams  # noqa: E402
 

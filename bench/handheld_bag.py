@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from mogs_node import msgs
-from mogs_node.eval.report import REPO_ROOT, write_json
+from mogs_node.eval.bench_docs import REPO_ROOT, write_json
 from mogs_node.journal.store import JournalStore
 from mogs_node.launch import load_launch_file
 from mogs_node.mapper.image_metrics import psnr_db, ssim

@@ -26,8 +26,8 @@ import time  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.eval.depth_sim import make_cases  # noqa: E402
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams, metrize  # noqa: E402
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph  # noqa: E402
 

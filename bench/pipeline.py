@@ -34,7 +34,7 @@ import zmq
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.launch import parse_overrides
-from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
 
 

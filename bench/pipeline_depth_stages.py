@@ -29,13 +29,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
     demo_params,
     evaluate_stages,
     prepare_keyframes,
     stage_inputs,
 )
-from mogs_node.eval.report import machine_line, update_markdown_section  # noqa: E402
 
 SPARSE_NAME = {
     "frontend": "frontend points",

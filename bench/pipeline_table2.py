@@ -53,7 +53,7 @@ import zmq
 
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
-from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
 from mogs_node.mapper.insertion import InsertionParams, random_depth
 from mogs_node.mapper.insertion import _stride_map as stride_map

@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json
 from mogs_node.mapper.composite import load_cpp_extension
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, render
 

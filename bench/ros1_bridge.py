@@ -47,7 +47,7 @@ from _ros1 import (  # noqa: E402
     write_sim_bag_official,
 )
 
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.eval.traj import trajectory_metrics  # noqa: E402
 from mogs_node.frontend.trajectory_io import read_tum  # noqa: E402
 from mogs_node.geometry import make_T, quat_wxyz_to_rotmat  # noqa: E402

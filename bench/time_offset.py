@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.eval.frontend_runs import RunResult, run_frontend, score_run  # noqa: E402
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.frontend.camera import CameraModel  # noqa: E402
 from mogs_node.frontend.frontend import Frontend, FrontendParams  # noqa: E402
 from mogs_node.frontend.keyframes import KeyframeParams  # noqa: E402

@@ -17,8 +17,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.eval.frontend_runs import window_refinement  # noqa: E402
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.frontend.frontend import FrontendParams  # noqa: E402
 from mogs_node.frontend.keyframes import KeyframeParams  # noqa: E402
 from mogs_node.sim import SimConfig, make_sequence  # noqa: E402

@@ -41,7 +41,7 @@ from mogs_node.depth_prior.flow_prior import (  # noqa: E402
     compute_flow_prior,
     two_view_depth,
 )
-from mogs_node.eval.report import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.geometry import se3_inverse  # noqa: E402
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph  # noqa: E402
 

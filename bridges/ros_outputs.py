@@ -28,7 +28,7 @@ from bridges.ros_convert import Distro
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.report.node import NOT_ESTIMATED
-from mogs_node.viz.logging import GaussianCloud
+from mogs_node.viz.rerun_log import GaussianCloud
 
 __all__ = [
     "DIAGNOSTICS_TYPE",

@@ -17,7 +17,7 @@ from mogs_node import msgs
 from mogs_node.bus import Publisher
 from mogs_node.geometry import se3_inverse
 from mogs_node.viz import ENTITY_PATHS
-from mogs_node.viz.logging import GaussianCloud, Trajectory, sparse_points_world
+from mogs_node.viz.rerun_log import GaussianCloud, Trajectory, sparse_points_world
 
 
 def _pose(yaw: float, t: tuple[float, float, float]) -> np.ndarray:
@@ -225,7 +225,7 @@ EXPECTED = {
 
 def test_logging_functions_write_every_entity_to_an_rrd(tmp_path: Path) -> None:
     rr = pytest.importorskip("rerun", reason="rerun-sdk (the viz extra) is not installed")
-    from mogs_node.viz import logging as vl
+    from mogs_node.viz import rerun_log as vl
 
     path = tmp_path / "out.rrd"
     rec = rr.RecordingStream("mogs-test")

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from mogs_node.commands.launch import parse_overrides
-from mogs_node.eval.report import REPO_ROOT
+from mogs_node.eval.bench_docs import REPO_ROOT
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
 

@@ -15,7 +15,7 @@ import json
 import sys
 
 from mogs_node.errors import ConfigError
-from mogs_node.eval.report import write_json
+from mogs_node.eval.bench_docs import write_json
 
 DEPTH_DATASETS = {
     "sim": "mogs_node.eval.depth_sim",

@@ -50,8 +50,8 @@ from mogs_node.depth_prior.flow_prior import (
     fit_scale_huber,
 )
 from mogs_node.errors import ConfigError, DatasetError
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section
 from mogs_node.eval.metrics import depth_metrics, depth_metrics_by_range
-from mogs_node.eval.report import machine_line, update_markdown_section
 from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from mogs_node.errors import ConfigError
-from mogs_node.eval.report import machine_line, update_markdown_section
+from mogs_node.eval.bench_docs import machine_line, update_markdown_section
 
 __all__ = ["SimDepthCase", "evaluate", "make_cases", "run_methods"]
 

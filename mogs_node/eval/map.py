@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from mogs_node.eval.report import REPO_ROOT, machine_line, update_markdown_section
+from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section
 
 __all__ = ["MapEvalConfig", "evaluate", "run_init"]
 

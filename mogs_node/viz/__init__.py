@@ -1,7 +1,7 @@
 """Optional rerun (``rerun-sdk``, the ``viz`` extra) sink: images, masks, depth, trajectory, sparse
 points and Gaussian centres, live in a viewer or saved to an ``.rrd`` file.
 
-:mod:`mogs_node.viz.logging` turns messages into rerun archetypes (no bus); :mod:`mogs_node.viz.node`
+:mod:`mogs_node.viz.rerun_log` turns messages into rerun archetypes (no bus); :mod:`mogs_node.viz.node`
 is the node shell. Importing this package does not import rerun.
 """
 

@@ -18,7 +18,7 @@ import numpy as np
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.node import Node
-from mogs_node.viz import logging as vl
+from mogs_node.viz import rerun_log as vl
 
 __all__ = ["VizNode", "VizParams", "import_rerun"]
 
