@@ -98,3 +98,13 @@ def test_no_import_circle_in_the_package() -> None:
     graph = import_graph()
     assert len(graph) > 100  # the walk found the package
     assert strongly_connected(graph) == []
+
+
+def test_evaluation_imports_no_node_shell() -> None:
+    """``eval/`` runs the pipeline in-process through the pure modules (adapters, joins, params),
+    never through a node shell (issue 19)."""
+    graph = import_graph()
+    evals = [m for m in graph if m.startswith("mogs_node.eval")]
+    assert len(evals) > 5
+    shells = {m: sorted(t for t in graph[m] if t.endswith(".node")) for m in evals}
+    assert {m: s for m, s in shells.items() if s} == {}

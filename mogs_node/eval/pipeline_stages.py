@@ -88,7 +88,7 @@ def prepare_keyframes(
     """
     from mogs_node.eval.frontend_runs import run_frontend
     from mogs_node.frontend.frontend import Frontend
-    from mogs_node.frontend.node import FrontendNodeParams, keyframe_message
+    from mogs_node.frontend.node_config import FrontendNodeParams, keyframe_message
     from mogs_node.params import parse_params
     from mogs_node.sim import SimConfig, make_sequence
 
@@ -142,7 +142,7 @@ def graph_masks(kfs: list[StageKeyframe], params: dict[str, dict[str, Any]]) -> 
     """The demo segmentation node's masks of each keyframe (its launch parameters)."""
     from mogs_node.params import parse_params
     from mogs_node.segmentation.graph import GraphSegParams, segment_graph
-    from mogs_node.segmentation.node import SegmentationParams
+    from mogs_node.segmentation.params import SegmentationParams
 
     seg = parse_params(SegmentationParams, params.get("segmentation", {}), where="segmentation")
     gp = parse_params(GraphSegParams, seg.graph, where="segmentation.graph")
@@ -199,7 +199,7 @@ def stage_inputs(
     from mogs_node.eval.depth_sim import _depth_edge_free
     from mogs_node.params import parse_params
     from mogs_node.segmentation.graph import GraphSegParams, segment_graph
-    from mogs_node.segmentation.node import SegmentationParams
+    from mogs_node.segmentation.params import SegmentationParams
     from mogs_node.sim import LfmParams, simulated_lfm
 
     sparse: dict[str, list] = {"frontend": [s.keyframe for s in kfs], "gt": [], "gt_corners": []}

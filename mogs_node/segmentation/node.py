@@ -8,38 +8,16 @@ silent fallback to the graph segmenter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
-
 import numpy as np
 
 from mogs_node import msgs
-from mogs_node.errors import ConfigError
 from mogs_node.keyframe_chain import failed_masks
 from mogs_node.node import Node, parse_params
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
+from mogs_node.segmentation.params import SegmentationParams
 from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
 
 __all__ = ["SegmentationNode", "SegmentationParams"]
-
-BACKENDS = ("graph", "sam")
-
-
-@dataclass(frozen=True)
-class SegmentationParams:
-    """Parameters of the segmentation worker."""
-
-    backend: str = "graph"  # "graph" (weight-free) or "sam" (ONNX files in `sam`)
-    graph: dict[str, Any] = field(default_factory=dict)  # GraphSegParams fields
-    sam: dict[str, Any] = field(default_factory=dict)  # SamParams fields (encoder/decoder paths)
-    in_topic: str = "/frontend/keyframe"  # keyframes to segment
-    out_topic: str = "/seg/masks"  # label images, keyed by keyframe id
-
-    def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ConfigError(
-                f"segmentation.backend: expected one of {BACKENDS}, got {self.backend!r}"
-            )
 
 
 class SegmentationNode(Node):
