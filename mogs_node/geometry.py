@@ -40,6 +40,7 @@ __all__ = [
     "so3_exp",
     "so3_log",
     "transform_points",
+    "view_tan_limits",
 ]
 
 FloatArray = NDArray[np.floating]
@@ -355,6 +356,17 @@ def pixel_to_normalized(K: FloatArray, u: ArrayLike, v: ArrayLike) -> tuple[Floa
     shapes that broadcast) for a ``[3, 3]`` intrinsic matrix without skew; times a z-depth they
     give the camera-frame point. The one back-projection formula for callers that hold ``K``."""
     return (np.asarray(u) - K[0, 2]) / K[0, 0], (np.asarray(v) - K[1, 2]) / K[1, 1]
+
+
+def view_tan_limits(
+    fx: float, fy: float, cx: float, cy: float, width: int, height: int, scale: float = 1.0
+) -> tuple[float, float]:
+    """``scale`` times the largest ``|x / z|`` and ``|y / z|`` of a ray through the image (to its
+    farther pixel edge): the view-direction clamp of the 3DGS projection Jacobian."""
+    return (
+        scale * max(cx + 0.5, width - 0.5 - cx) / fx,
+        scale * max(cy + 0.5, height - 0.5 - cy) / fy,
+    )
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from mogs_node.errors import ConfigError, ShapeError
-from mogs_node.geometry import check_array
+from mogs_node.geometry import check_array, pixel_to_normalized
 
 __all__ = [
     "InsertionParams",
@@ -267,8 +267,9 @@ def sample_gaussians(
     pick = m & (uu % s == offset % s) & (vv % s == offset % s)
     v, u = np.nonzero(pick)
     z = d[v, u]
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    p_cam = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)
+    fx, fy = K[0, 0], K[1, 1]
+    x_n, y_n = pixel_to_normalized(K, u, v)
+    p_cam = np.stack([x_n * z, y_n * z, z], -1)
     p_world = p_cam @ T[:3, :3].T + T[:3, 3]
     sigma = params.scale_factor * s[v, u] * z / math.sqrt(fx * fy)
     n = len(z)

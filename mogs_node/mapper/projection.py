@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import torch
 
+from mogs_node.geometry import view_tan_limits
+
 __all__ = [
     "Projected",
     "TileBins",
@@ -140,8 +142,7 @@ def project_gaussians(
     u = fx * x_s / z_s + cx
     v = fy * y_s / z_s + cy
     # Jacobian of the perspective map at a clamped view direction (3DGS: avoids huge J off-screen)
-    lim_x = fov_clamp * max(cx + 0.5, width - 0.5 - cx) / fx
-    lim_y = fov_clamp * max(cy + 0.5, height - 0.5 - cy) / fy
+    lim_x, lim_y = view_tan_limits(fx, fy, cx, cy, width, height, fov_clamp)
     tx = (x_s / z_s).clamp(-lim_x, lim_x)
     ty = (y_s / z_s).clamp(-lim_y, lim_y)
     inv_z = 1.0 / z_s
@@ -198,8 +199,7 @@ def cull_gaussians(
     zs = torch.where(in_front, z, torch.ones_like(z))
     u = fx * p_cam[:, 0] / zs + cx
     v = fy * p_cam[:, 1] / zs + cy
-    lim_x = fov_clamp * max(cx + 0.5, width - 0.5 - cx) / fx
-    lim_y = fov_clamp * max(cy + 0.5, height - 0.5 - cy) / fy
+    lim_x, lim_y = view_tan_limits(fx, fy, cx, cy, width, height, fov_clamp)
     s2 = torch.exp(2.0 * log_scales.amax(1).clamp(*log_scale_range))
     opacity = torch.sigmoid(opacity_logit)
     ln2 = 2.0 * torch.log((opacity / alpha_min).clamp_min(1.0))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from mogs_node.geometry import view_tan_limits
 from mogs_node.mapper.projection import quat_wxyz_to_rotmat_torch, se3_exp_torch
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput
 
@@ -49,8 +50,7 @@ def render_reference(
     S = torch.diag_embed(torch.exp(g.log_scales.clamp(params.log_scale_min, params.log_scale_max)))
     Sigma = R @ S @ S @ R.transpose(1, 2)
     Sigma_cam = R_cw @ Sigma @ R_cw.T
-    lim_x = 1.3 * max(cx + 0.5, width - 0.5 - cx) / fx
-    lim_y = 1.3 * max(cy + 0.5, height - 0.5 - cy) / fy
+    lim_x, lim_y = view_tan_limits(fx, fy, cx, cy, width, height, 1.3)
     tx = (xs / zs).clamp(-lim_x, lim_x) * zs
     ty = (ys / zs).clamp(-lim_y, lim_y) * zs
     J = torch.zeros(n, 2, 3, dtype=dt)

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.fill import (
@@ -64,8 +65,8 @@ def model_output(fr: Frame, models: ShapeModels, depth: NDArray[np.float32], spe
         coef[plane] = -bm[plane] / cm[plane, None]
         lo = np.where(plane, 1.0 / zhi.clip(min=1e-12), np.inf).astype(np.float32)
         hi = np.where(plane, 1.0 / zlo.clip(min=1e-12), -np.inf).astype(np.float32)
-        xg = ((np.arange(W) - K[0, 2]) / K[0, 0]).astype(np.float32)
-        yg = ((np.arange(H) - K[1, 2]) / K[1, 1]).astype(np.float32)
+        xg, yg = pixel_to_normalized(K, np.arange(W), np.arange(H))
+        xg, yg = xg.astype(np.float32), yg.astype(np.float32)
         # full-resolution float32 passes; per-object values expanded from the raster runs
         c32 = coef.astype(np.float32)
         inv = fr.per_pixel(c32[:, 0]).reshape(H, W)

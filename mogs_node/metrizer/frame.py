@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.params import MetrizerParams
 
@@ -171,7 +172,7 @@ def object_map(table: NDArray[np.intp], obj_i: NDArray[np.intp]) -> NDArray[np.i
 def pixel_xy(flat_idx: NDArray[np.intp], W: int, K: F64) -> tuple[F64, F64]:
     """Normalised image coordinates (ray ``(x, y, 1)``) of flat pixel indices."""
     v, u = np.divmod(flat_idx, W)
-    return (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    return pixel_to_normalized(K, u, v)
 
 
 def model_depth(flat_idx, g, kind_g, Am, bm, cm, W, K) -> F64:

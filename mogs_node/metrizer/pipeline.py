@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.absorption import absorb_groups
 from mogs_node.metrizer.alignment import depth_from_space, fit_global_affine, space_from_depth
@@ -415,7 +416,8 @@ def _fit_shapes(
     if mode != "full" or not len(z):
         return models, None, counts
     rng = np.random.default_rng(p.seed)
-    Xf = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], 1)
+    x_n, y_n = pixel_to_normalized(K, uv[:, 0], uv[:, 1])
+    Xf = np.stack([x_n * z, y_n * z, z], 1)
     order = np.argsort(fr.feat_g, kind="stable")
     starts = np.concatenate([[0], np.cumsum(fr.n_feat_g)])
     fits = fit_objects(Xf, w, fr.feat_g, G, rng, cons)
