@@ -46,6 +46,17 @@ class CameraModel:
     def _dist(self) -> NDArray[np.float64]:
         return np.asarray(self.coeffs, dtype=np.float64)
 
+    def undistort_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
+        """``cv2.remap`` maps from the distorted image to the undistorted pinhole one (same K and
+        size); None for a camera without distortion."""
+        if self.model == "none":
+            return None
+        K, D = self.K, np.asarray(self.coeffs, float)
+        size = (self.pinhole.width, self.pinhole.height)
+        if self.model == "radtan":
+            return cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
+        return cv2.fisheye.initUndistortRectifyMap(K, D, np.eye(3), K, size, cv2.CV_32FC1)
+
     def undistort_px(self, uv_px: NDArray) -> NDArray[np.float64]:
         """Raw pixels ``[N, 2]`` -> undistorted pinhole pixels ``[N, 2]`` (float64)."""
         uv = check_array("uv_px", uv_px, shape=(None, 2)).astype(np.float64)

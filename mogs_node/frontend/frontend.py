@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -19,160 +18,42 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.camera import CameraModel
-from mogs_node.frontend.estimator import EstimatorDivergedError, EstimatorParams, VioEstimator
-from mogs_node.frontend.ground import (
-    GroundParams,
-    estimate_ground_translation,
-    road_normal_from_mount,
-)
+from mogs_node.frontend.estimator import EstimatorDivergedError, VioEstimator
+from mogs_node.frontend.frontend_types import FrameOutput, FrontendParams, KeyframeOutput
 from mogs_node.frontend.initialization import (
     DynamicInitializer,
-    InitParams,
     is_still,
     static_init,
 )
 from mogs_node.frontend.keyframes import (
-    KeyframeParams,
     StandstillKeyframes,
     is_keyframe,
     omega_weight,
 )
 from mogs_node.frontend.platform import (
-    PlatformBounds,
     PlatformChooser,
     motion_violation,
 )
-from mogs_node.frontend.preintegration import ImuNoise, ImuSamples, make_params
+from mogs_node.frontend.preintegration import ImuBuffer, ImuSamples, make_params
+from mogs_node.frontend.road_distance import RoadDistance
 from mogs_node.frontend.time_offset import (
     TimeOffsetEstimator,
-    TimeOffsetParams,
     gyro_variation,
 )
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
-    TrackPointsParams,
     carry_forward,
     keyframe_points,
     merge_points,
     reproject_points,
 )
-from mogs_node.frontend.tracker import FeatureTracker, TrackerParams
+from mogs_node.frontend.tracker import FeatureTracker
 from mogs_node.geometry import check_array, se3_inverse, so3_exp
 
 __all__ = ["FrameOutput", "Frontend", "FrontendParams", "KeyframeOutput"]
 
 log = logging.getLogger(__name__)
-
-INIT_MODES = ("auto", "static", "dynamic")
-
-
-@dataclass(frozen=True)
-class FrontendParams:
-    """Parameters of the whole frontend (one group per component)."""
-
-    tracker: TrackerParams = field(default_factory=TrackerParams)  # feature tracking
-    estimator: EstimatorParams = field(default_factory=EstimatorParams)  # sliding window
-    keyframes: KeyframeParams = field(default_factory=KeyframeParams)  # keyframe policy, omega
-    points: TrackPointsParams = field(default_factory=TrackPointsParams)  # keyframes' sparse
-    # points from a second, denser tracker (the estimator's tracks are unchanged)
-    init: InitParams = field(default_factory=InitParams)  # static / dynamic initialisation
-    imu: ImuNoise = field(default_factory=ImuNoise)  # IMU noise densities and gravity
-    ground: GroundParams = field(default_factory=GroundParams)  # road-plane distance (off unless
-    # the camera height above the road is given: a vehicle calibration, docs/frontend.md round 5)
-    init_mode: str = "auto"  # 'auto' (static when still, else dynamic), 'static' or 'dynamic'
-    window_every_frame: bool = True  # every frame enters the estimator's window (not only the
-    # published keyframes): shorter window span, more IMU-vision coupling, better accuracy
-    time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns (camera-IMU time offset): the
-    # prior of the estimate (time_offset.enabled), the value used as it is otherwise
-    time_offset: TimeOffsetParams = field(default_factory=TimeOffsetParams)  # its estimation
-    platform: str = "car"  # 'car', 'handheld' or 'drone': bounds on plausible motion and the
-    # keyframe rate cap (frontend/platform.py, docs/frontend.md "Platform profiles"); 'auto':
-    # platform_default until the IMU shows a walk's step cadence, then 'handheld'
-    platform_default: str = "car"
-    bounds: PlatformBounds = field(default_factory=PlatformBounds)  # overrides of its bounds
-    max_imu_gap_s: float = 0.05  # a larger hole in the IMU stream between frames resets the window
-    max_pending_frames: int = 5  # frames waiting for their IMU; older ones are dropped (counted)
-    imu_history_s: float = 30.0  # IMU kept in memory
-
-    def __post_init__(self) -> None:
-        if self.init_mode not in INIT_MODES:
-            raise ConfigError(f"frontend.init_mode: {self.init_mode!r} not in {INIT_MODES}")
-        if self.max_imu_gap_s <= 0 or self.max_pending_frames < 1:
-            raise ConfigError("frontend: max_imu_gap_s > 0 and max_pending_frames >= 1")
-
-
-@dataclass
-class KeyframeOutput:
-    """A keyframe with the metric sparse points of its tracked features (camera frame)."""
-
-    keyframe_id: int
-    stamp_ns: int  # camera time
-    image: NDArray[np.uint8]  # [H, W, 3] or [H, W], undistorted
-    K: NDArray[np.float64]  # [3, 3] of the undistorted image
-    T_world_cam: NDArray[np.float64]  # [4, 4]
-    feature_ids: NDArray[np.int64]  # [N]
-    feature_uv_px: NDArray[np.float32]  # [N, 2]
-    feature_xyz_cam_m: NDArray[np.float32]  # [N, 3]
-    feature_cov_cam_m2: NDArray[np.float32]  # [N, 3, 3]
-    feature_weight: NDArray[np.float32]  # [N] omega
-
-
-@dataclass
-class FrameOutput:
-    """Result of one processed camera frame."""
-
-    stamp_ns: int  # camera time
-    frame_index: int
-    status: str  # 'initializing', 'tracking', 'reset'
-    T_world_cam: NDArray[np.float64] | None  # [4, 4], None while initialising
-    velocity_world_m_s: NDArray[np.float64] | None  # [3]
-    keyframe: KeyframeOutput | None = None
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    stats: dict[str, float] = field(default_factory=dict)
-
-
-class _ImuBuffer:
-    """Append-only IMU stream with amortised O(1) appends and trimming of old samples."""
-
-    def __init__(self) -> None:
-        self.t = np.zeros(0, np.int64)
-        self.g = np.zeros((0, 3))
-        self.a = np.zeros((0, 3))
-        self._pending: list[tuple[int, tuple, tuple]] = []
-
-    def append(self, t_ns: int, g: tuple, a: tuple) -> None:
-        self._pending.append((t_ns, g, a))
-
-    def flush(self) -> None:
-        if self._pending:
-            t, g, a = zip(*self._pending, strict=True)
-            self.t = np.concatenate([self.t, np.asarray(t, np.int64)])
-            self.g = np.concatenate([self.g, np.asarray(g, float).reshape(-1, 3)])
-            self.a = np.concatenate([self.a, np.asarray(a, float).reshape(-1, 3)])
-            self._pending = []
-
-    @property
-    def last_ns(self) -> int | None:
-        if self._pending:
-            return self._pending[-1][0]
-        return int(self.t[-1]) if len(self.t) else None
-
-    def trim(self, before_ns: int) -> None:
-        self.flush()
-        k = int(np.searchsorted(self.t, before_ns))
-        if k > 0:
-            self.t, self.g, self.a = self.t[k:], self.g[k:], self.a[k:]
-
-    def samples(self) -> ImuSamples:
-        self.flush()
-        return ImuSamples(self.t, self.g, self.a)
-
-    def max_gap_s(self, t0_ns: int, t1_ns: int) -> float:
-        self.flush()
-        inner = self.t[(self.t > t0_ns) & (self.t < t1_ns)]
-        knots = np.concatenate([[t0_ns], inner, [t1_ns]])
-        return float(np.max(np.diff(knots))) * 1e-9
 
 
 class Frontend:
@@ -211,7 +92,7 @@ class Frontend:
         self._init_offset_ns: int | None = None  # the offset a dynamic initialisation used
         self._reset_logged: set[str] = set()
         self._pim_params = make_params(params.imu)
-        self.imu = _ImuBuffer()
+        self.imu = ImuBuffer()
         self._pending: deque[tuple[int, NDArray]] = deque()
         self._last_image_ns: int | None = None
         self._last_frame_ns: int | None = None  # IMU time of the last processed frame
@@ -228,19 +109,7 @@ class Frontend:
         )
         self._last_kf: tuple[int, NDArray, NDArray] | None = None
         self._standstill = StandstillKeyframes(params.keyframes)  # no keyframes while parked
-        self._undistort_maps = None
-        if camera.model != "none":
-            K = camera.K
-            D = np.asarray(camera.coeffs, float)
-            size = (camera.pinhole.width, camera.pinhole.height)
-            if camera.model == "radtan":
-                self._undistort_maps = cv2.initUndistortRectifyMap(
-                    K, D, None, K, size, cv2.CV_32FC1
-                )
-            else:
-                self._undistort_maps = cv2.fisheye.initUndistortRectifyMap(
-                    K, D, np.eye(3), K, size, cv2.CV_32FC1
-                )
+        self._undistort_maps = camera.undistort_maps()
         self.counters: dict[str, int] = {
             "frames": 0,
             "keyframes": 0,
@@ -263,9 +132,7 @@ class Frontend:
                 "ground.camera_height_m: the road measurement needs rectified images "
                 f"(camera model 'none', got {camera.model!r})"
             )
-        self._road_normal = road_normal_from_mount(self.T_imu_cam)
-        self._prev_gray: tuple[int, NDArray] | None = None  # (estimator seq, grey image)
-        self._ground_ratios: deque[float] = deque(maxlen=params.ground.gate_window)
+        self._road = RoadDistance(params.ground, camera.K, self.T_imu_cam)
         self._keyframe_stamps: dict[int, int] = {}  # IMU time -> camera stamp of the keyframes
 
     @property
@@ -436,7 +303,9 @@ class Frontend:
                     points_s += time.perf_counter() - tk
                 if p.ground.enabled:
                     tg = time.perf_counter()
-                    self._measure_ground(image)
+                    counter = self._road.measure(self.estimator, image)
+                    if counter is not None:
+                        self.counters[counter] += 1
                     ground_s = time.perf_counter() - tg
         if kf is not None:
             self._keyframe_stamps[t_ns] = stamp_ns
@@ -489,11 +358,10 @@ class Frontend:
         self.estimator.reset()
         self._dyn_init.reset()
         self._last_kf = None
-        self._prev_gray = None
+        self._road.reset()
         self._history.reset()  # the next initialisation starts a new world frame
         self._last_points = None
         self._recent_points.clear()
-        self._ground_ratios.clear()
         self._standstill.reset()
 
     def _check_platform(self, idx: int, status: str) -> str:
@@ -556,50 +424,6 @@ class Frontend:
             "platform_walk_detected": float(self.platform.detection is not None),
             **{f"init_rejected_{k}": float(v) for k, v in self._dyn_init.rejections.items()},
         }
-
-    def _measure_ground(self, image: NDArray) -> None:
-        """Road-plane distance between the previous and the newest window frame, added to the
-        window (used from the next solve)."""
-        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        frames = self.estimator.frames
-        prev, self._prev_gray = self._prev_gray, (frames[-1].seq, gray)
-        if prev is None or len(frames) < 2 or frames[-2].seq != prev[0]:
-            return
-        T_ic = self.T_imu_cam
-        T_cur_prev = se3_inverse(self.estimator.pose(frames[-1].seq) @ T_ic) @ (
-            self.estimator.pose(prev[0]) @ T_ic
-        )
-        t = T_cur_prev[:3, 3]
-        gp = self.params.ground
-        dist = float(np.linalg.norm(t))
-        m = None
-        if dist > 0.05:  # below ~0.5 m/s the road moves too little in 0.1 s
-            m = estimate_ground_translation(
-                prev[1],
-                gray,
-                self.camera.K,
-                T_cur_prev[:3, :3],
-                t,
-                self._road_normal,
-                dist / gp.camera_height_m,
-                gp,
-            )
-        if m is None:
-            self.counters["ground_rejected"] += dist > 0.05
-            return
-        # A vehicle ahead or its shadow can bias a measurement for a few frames: one far from
-        # the recent ratios to the window's own distance is not used (the ratio is kept, so a
-        # lasting change of the window's scale is followed).
-        ratio = m.distance_m / dist
-        recent = self._ground_ratios
-        off = len(recent) >= 5 and abs(ratio / float(np.median(recent)) - 1) > gp.gate_rel
-        recent.append(ratio)
-        if off or not self.estimator.add_ground_distance(
-            prev[0], frames[-1].seq, m.distance_m, gp.relative_sigma * m.distance_m
-        ):
-            self.counters["ground_gated" if off else "ground_rejected"] += 1
-            return
-        self.counters["ground_measurements"] += 1
 
     def _compensated_accel_m_s2(self, imu: ImuSamples, t_ns: int) -> float:
         """Norm of the mean acceleration over the last ``still_accel_window_s`` with gravity and the

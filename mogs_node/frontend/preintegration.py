@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, so3_exp
 
-__all__ = ["ImuNoise", "ImuSamples", "make_params", "preintegrate", "zero_bias"]
+__all__ = ["ImuBuffer", "ImuNoise", "ImuSamples", "make_params", "preintegrate", "zero_bias"]
 
 log = logging.getLogger(__name__)
 
@@ -126,3 +126,46 @@ def preintegrate(
     for k in range(len(dts)):
         pim.integrateMeasurement(am[k], gm[k], dts[k])
     return pim
+
+
+class ImuBuffer:
+    """Append-only IMU stream with amortised O(1) appends and trimming of old samples."""
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0, np.int64)
+        self.g = np.zeros((0, 3))
+        self.a = np.zeros((0, 3))
+        self._pending: list[tuple[int, tuple, tuple]] = []
+
+    def append(self, t_ns: int, g: tuple, a: tuple) -> None:
+        self._pending.append((t_ns, g, a))
+
+    def flush(self) -> None:
+        if self._pending:
+            t, g, a = zip(*self._pending, strict=True)
+            self.t = np.concatenate([self.t, np.asarray(t, np.int64)])
+            self.g = np.concatenate([self.g, np.asarray(g, float).reshape(-1, 3)])
+            self.a = np.concatenate([self.a, np.asarray(a, float).reshape(-1, 3)])
+            self._pending = []
+
+    @property
+    def last_ns(self) -> int | None:
+        if self._pending:
+            return self._pending[-1][0]
+        return int(self.t[-1]) if len(self.t) else None
+
+    def trim(self, before_ns: int) -> None:
+        self.flush()
+        k = int(np.searchsorted(self.t, before_ns))
+        if k > 0:
+            self.t, self.g, self.a = self.t[k:], self.g[k:], self.a[k:]
+
+    def samples(self) -> ImuSamples:
+        self.flush()
+        return ImuSamples(self.t, self.g, self.a)
+
+    def max_gap_s(self, t0_ns: int, t1_ns: int) -> float:
+        self.flush()
+        inner = self.t[(self.t > t0_ns) & (self.t < t1_ns)]
+        knots = np.concatenate([[t0_ns], inner, [t1_ns]])
+        return float(np.max(np.diff(knots))) * 1e-9
