@@ -35,7 +35,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -45,103 +44,20 @@ from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap, MapChanges
 from mogs_node.mapper.image_metrics import ssim_torch
 from mogs_node.mapper.insertion import (
-    InsertionParams,
     background_mask,
     insertion_mask,
     sample_gaussians,
 )
 from mogs_node.mapper.keyframe import KeyframeState
+from mogs_node.mapper.mapper_params import MapperParams, resolve_device
+from mogs_node.mapper.ply import export_ply
 from mogs_node.mapper.projection import cull_gaussians, se3_exp_torch
-from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput, render
+from mogs_node.mapper.rasterizer import GaussianTensors, RenderOutput, render
 from mogs_node.mapper.window import update_window
 
 __all__ = ["GaussianMapper", "KeyframeState", "MapperParams", "export_ply", "resolve_device"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class MapperParams:
-    """Mapper settings (MonoGS defaults where they exist; learning rates for metric scenes)."""
-
-    raster: RasterParams = field(default_factory=RasterParams)  # rasterizer settings
-    insertion: InsertionParams = field(default_factory=InsertionParams)  # insertion settings
-    window_size: int = 8  # keyframes in the optimisation window
-    overlap_min: float = 0.3  # window keyframes seeing less of the newest one's Gaussians leave
-    n_random_past: int = 2  # random past (non-window) keyframes among the views an iteration
-    # samples from (against forgetting): odd iterations pick uniformly from the older window
-    # keyframes plus this many past keyframes drawn afresh
-    train_downsample: int = 1  # optimise at 1/n of the resolution (area-averaged targets)
-    converge_rel: float = 0.0  # end a round once the newest view's L1 error fell by less than
-    # this fraction since its previous iteration (0: always run every iteration asked for)
-    min_iters: int = 4  # ... but never before this many iterations of the round
-    device: str = "cpu"  # cpu | cuda | cuda:N (cuda: gsplat rasterizer, needs CUDA + gsplat)
-    lambda_depth: float = 0.1  # weight of the confidence-weighted relative depth L1
-    lambda_iso: float = 0.05  # weight of the isotropic regulariser on log-scales
-    lambda_ssim: float = 0.0  # weight of the D-SSIM term in the photometric loss (3DGS eq. 7:
-    # (1 - l) L1 + l (1 - SSIM); 3DGS and MonoGS's colour refinement use 0.2)
-    refine_lambda_ssim: float = 0.0  # ... in the final refinement (:meth:`refine`; MonoGS's
-    # colour refinement uses 0.2 there and none while mapping)
-    lr_means_m: float = 0.002  # Adam step size of positions (metres)
-    lr_colors: float = 0.01  # of colours
-    lr_opacity: float = 0.05  # of opacity logits
-    lr_log_scales: float = 0.01  # of log-scales
-    lr_quats: float = 0.002  # of quaternions
-    exposure: bool = True  # per-keyframe affine exposure compensation exp(a) c + b
-    lr_exposure: float = 0.005  # Adam step size of (a, b)
-    exposure_gauge: bool = False  # the first keyframe's exposure stays the identity: the map's
-    # colours are in its brightness (without it the map colours and every exposure drift together
-    # and a render without exposure, such as the report's, is off by that drift)
-    refine_poses: bool = False  # optimise window keyframe poses (SE(3) tangents)
-    lr_pose: float = 1e-4  # Adam step size of pose tangents
-    prune_opacity: float = 0.005  # Gaussians below this opacity are removed
-    prune_size_ratio: float = 0.2  # removed when largest sigma > ratio * distance to the newest kf
-    support_kfs: int = 3  # after this many newer keyframes, a Gaussian must have ...
-    support_min_obs: int = 1  # ... been seen by at least this many window keyframes (MonoGS: 3;
-    # 1 here: under forward motion image borders are seen by one keyframe only)
-    prune_contrib_px: float = 1.0  # redundant below this summed blending weight (pixels) over
-    # the window views; applies to Gaussians the window sees, born before the newest keyframe
-    prune_min_steps: int = 1  # support and redundancy are judged only for Gaussians optimised
-    # (drawn by a training iteration) at least this many times; opacity and size always
-    densify: bool = False  # clone Gaussians with large view-space positional gradient
-    densify_grad_px: float = 0.0005  # mean |d loss / d mean| * depth / f threshold for cloning
-    seed: int = 0  # random past keyframe choice
-
-    def __post_init__(self) -> None:
-        if self.window_size < 1 or self.n_random_past < 0:
-            raise ConfigError("MapperParams: window_size >= 1, n_random_past >= 0")
-        if not all(
-            0 <= v <= 1 for v in (self.lambda_depth, self.lambda_ssim, self.refine_lambda_ssim)
-        ):
-            raise ConfigError(
-                "MapperParams: lambda_depth, lambda_ssim, refine_lambda_ssim must be in [0, 1]"
-            )
-        if self.train_downsample < 1 or self.converge_rel < 0 or self.min_iters < 1:
-            raise ConfigError(
-                "MapperParams: train_downsample >= 1, converge_rel >= 0, min_iters >= 1"
-            )
-        if self.device != "cpu" and not self.device.startswith("cuda"):
-            raise ConfigError(f"MapperParams.device: 'cpu' or 'cuda[:N]', got {self.device!r}")
-
-
-def resolve_device(name: str) -> torch.device:
-    """The torch device for ``MapperParams.device``; :class:`ConfigError` when CUDA is asked for
-    but this machine has none (or not that index)."""
-    if name == "cpu":
-        return torch.device("cpu")
-    try:
-        dev = torch.device(name)
-    except RuntimeError as err:
-        raise ConfigError(f"mapper device: not a torch device: {name!r}") from err
-    if dev.type != "cuda":
-        raise ConfigError(f"mapper device: 'cpu' or 'cuda[:N]', got {name!r}")
-    if not torch.cuda.is_available():
-        raise ConfigError(f"mapper device {name!r}: CUDA is not available on this machine")
-    if dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise ConfigError(
-            f"mapper device {name!r}: only {torch.cuda.device_count()} CUDA device(s) here"
-        )
-    return dev
 
 
 class GaussianMapper:
@@ -679,18 +595,3 @@ class GaussianMapper:
             if kf.keyframe_id == keyframe_id:
                 return kf.T_world_cam
         raise ShapeError(f"keyframe_id: unknown keyframe {keyframe_id}")
-
-
-def export_ply(mapper: GaussianMapper, path: str) -> None:
-    """Write ``mapper``'s map as a standard 3DGS PLY (:mod:`mogs_node.mapper.ply`)."""
-    from mogs_node.mapper.ply import write_gaussian_ply
-
-    prm = {k: v.detach().cpu().numpy() for k, v in mapper.map.params.items()}
-    write_gaussian_ply(
-        path,
-        prm["means"],
-        prm["quats_wxyz"],
-        prm["log_scales"],
-        prm["opacity_logit"],
-        prm["colors"],
-    )

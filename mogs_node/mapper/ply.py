@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from plyfile import PlyData
@@ -24,6 +25,7 @@ from mogs_node.errors import DatasetError
 from mogs_node.geometry import check_array
 
 __all__ = [
+    "export_ply",
     "PLY_PROPERTIES",
     "SH_C0",
     "read_gaussian_ply",
@@ -141,3 +143,16 @@ def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:
         "opacity_logit": np.asarray(v["opacity"], np.float32),
         "colors_rgb": cols([f"f_dc_{i}" for i in range(3)]) * SH_C0 + 0.5,
     }
+
+
+def export_ply(mapper: Any, path: str) -> None:
+    """Write a :class:`~mogs_node.mapper.mapper.GaussianMapper`'s map as a standard 3DGS PLY."""
+    prm = {k: v.detach().cpu().numpy() for k, v in mapper.map.params.items()}
+    write_gaussian_ply(
+        path,
+        prm["means"],
+        prm["quats_wxyz"],
+        prm["log_scales"],
+        prm["opacity_logit"],
+        prm["colors"],
+    )
