@@ -219,6 +219,29 @@ def read_imu_text(path: str | Path) -> ImuSamples:
 read_euroc_imu_csv = read_imu_text  # EuRoC's csv is one of the text logs read_imu_text takes
 
 
+def _ground_truth_depth_files(
+    d: Path, camera: str, depth: str, T_cam_velo: np.ndarray | None
+) -> tuple[dict[str, Path], str]:
+    """The drive's ground-truth depth files by frame stem, and their kind (``depth`` as in
+    :func:`read_kitti_raw`; "auto" takes the first kind present)."""
+    order = {"auto": ["groundtruth", "velodyne_raw", "velodyne_points"]}.get(depth, [depth])
+    if depth not in ("auto", "none", "groundtruth", "velodyne_raw", "velodyne_points"):
+        raise DatasetError(f"depth: unknown choice {depth!r}")
+    for kind in order if depth != "none" else []:
+        folder = (
+            d / "velodyne_points" / "data"
+            if kind == "velodyne_points"
+            else d / "proj_depth" / kind / camera
+        )
+        ext = "*.bin" if kind == "velodyne_points" else "*.png"
+        found = {f.stem: f for f in sorted(folder.glob(ext))}
+        if found:
+            if kind == "velodyne_points" and T_cam_velo is None:
+                raise DatasetError(f"{d}: velodyne_points need calib_velo_to_cam.txt")
+            return found, kind
+    return {}, "none"
+
+
 def read_kitti_raw(
     drive_dir: str | Path,
     *,
@@ -276,25 +299,7 @@ def read_kitti_raw(
         log.info("%s: no timestamps.txt, stamping frames at 10 Hz", d / camera)
         stamps = np.arange(len(files), dtype=np.int64) * KITTI_FRAME_PERIOD_NS
         meta["synthetic_stamps"] = True
-    # ground-truth depth
-    depth_files: dict[str, Path] = {}
-    depth_kind = "none"
-    order = {"auto": ["groundtruth", "velodyne_raw", "velodyne_points"]}.get(depth, [depth])
-    if depth not in ("auto", "none", "groundtruth", "velodyne_raw", "velodyne_points"):
-        raise DatasetError(f"depth: unknown choice {depth!r}")
-    for kind in order if depth != "none" else []:
-        folder = (
-            d / "velodyne_points" / "data"
-            if kind == "velodyne_points"
-            else d / "proj_depth" / kind / camera
-        )
-        ext = "*.bin" if kind == "velodyne_points" else "*.png"
-        found = {f.stem: f for f in sorted(folder.glob(ext))}
-        if found:
-            if kind == "velodyne_points" and T_cam_velo is None:
-                raise DatasetError(f"{d}: velodyne_points need calib_velo_to_cam.txt")
-            depth_files, depth_kind = found, kind
-            break
+    depth_files, depth_kind = _ground_truth_depth_files(d, camera, depth, T_cam_velo)
     meta["depth"] = depth_kind
     # OXTS -> ground truth and IMU
     T_imu_cam = se3_inverse(T_cam_imu) if T_cam_imu is not None else None
