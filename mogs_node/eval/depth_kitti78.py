@@ -319,6 +319,41 @@ def _viz(path: Path, rgb, labels, prior, prior_conf, depth, gt, gt_mask) -> None
     cv2.imwrite(str(path), strip[..., ::-1])
 
 
+def _score_methods(cat: dict[str, NDArray], g: NDArray) -> tuple[NDArray, dict[str, dict]]:
+    """Each method's figures on the pixels every method predicts (a fair comparison), and on its
+    own coverage under "own"; also that common mask."""
+    common = np.ones(len(g), bool)
+    for name in METHODS:
+        common &= cat[name] > 0
+    methods: dict[str, dict] = {}
+    for name, p in cat.items():
+        com = depth_metrics(p, g, common)
+        own = depth_metrics(p, g)
+        entry = {k: com[k] for k in ("absrel", "rmse", "delta1")}
+        entry["count"] = com["count"]
+        entry["by_range"] = depth_metrics_by_range(p, g, common, edges_m=RANGES)
+        entry["own"] = {k: own[k] for k in ("absrel", "rmse", "delta1", "count")}
+        entry["own"]["coverage"] = float(own["count"] / max(len(g), 1))
+        entry["own"]["by_range"] = depth_metrics_by_range(p, g, edges_m=RANGES)
+        methods[name] = entry
+    return common, methods
+
+
+def _sparse_point_errors(data, frames, eligible: list[int]) -> dict[str, float]:
+    """The triangulated points against the LiDAR return at their pixel: relative error median
+    and 90th percentile."""
+    rel = []
+    for i in eligible:
+        z_lidar, _ = sample_lidar(data.lidar_m[i], frames[i].uv)
+        ok = z_lidar > 0
+        rel.append(np.abs(frames[i].z[ok] - z_lidar[ok]) / z_lidar[ok])
+    rel_all = np.concatenate(rel) if rel else np.zeros(0)
+    return {
+        "sparse_rel_err_median": float(np.median(rel_all)) if len(rel_all) else 0.0,
+        "sparse_rel_err_p90": float(np.percentile(rel_all, 90)) if len(rel_all) else 0.0,
+    }
+
+
 def evaluate(args: argparse.Namespace) -> dict:
     """Run the protocol of the module docstring; returns the DESIGN.md section 7 dict."""
     from mogs_node.metrizer.baselines import BASELINES
@@ -400,35 +435,13 @@ def evaluate(args: argparse.Namespace) -> dict:
         log.info("frame %d (%d/%d) done", i, n + 1, len(eligible))
     g = np.concatenate(gts) if gts else np.zeros(0)
     cat = {name: (np.concatenate(parts) if parts else np.zeros(0)) for name, parts in pred.items()}
-    common = np.ones(len(g), bool)
-    for name in METHODS:
-        common &= cat[name] > 0
-    methods: dict[str, dict] = {}
-    for name, p in cat.items():
-        # Primary figures on the pixels every method predicts (a fair comparison); the figures on
-        # each method's own coverage go under "own".
-        com = depth_metrics(p, g, common)
-        own = depth_metrics(p, g)
-        entry = {k: com[k] for k in ("absrel", "rmse", "delta1")}
-        entry["count"] = com["count"]
-        entry["by_range"] = depth_metrics_by_range(p, g, common, edges_m=RANGES)
-        entry["own"] = {k: own[k] for k in ("absrel", "rmse", "delta1", "count")}
-        entry["own"]["coverage"] = float(own["count"] / max(len(g), 1))
-        entry["own"]["by_range"] = depth_metrics_by_range(p, g, edges_m=RANGES)
-        methods[name] = entry
+    common, methods = _score_methods(cat, g)
     n_f = max(len(eligible), 1)
     n_pts = [len(frames[i].z) for i in eligible]
     loc_stats["sparse_points_mean"] = float(np.mean(n_pts)) if n_pts else 0.0
     loc_stats["sparse_points_median"] = float(np.median(n_pts)) if n_pts else 0.0
-    if source == "tracks":  # the triangulated points against the LiDAR return at their pixel
-        rel = []
-        for i in eligible:
-            z_lidar, _ = sample_lidar(data.lidar_m[i], frames[i].uv)
-            ok = z_lidar > 0
-            rel.append(np.abs(frames[i].z[ok] - z_lidar[ok]) / z_lidar[ok])
-        rel_all = np.concatenate(rel) if rel else np.zeros(0)
-        loc_stats["sparse_rel_err_median"] = float(np.median(rel_all)) if len(rel_all) else 0.0
-        loc_stats["sparse_rel_err_p90"] = float(np.percentile(rel_all, 90)) if len(rel_all) else 0.0
+    if source == "tracks":
+        loc_stats.update(_sparse_point_errors(data, frames, eligible))
     out = {
         "dataset": "kitti78",
         "points": source,
