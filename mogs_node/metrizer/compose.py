@@ -269,6 +269,37 @@ def fill_holes(
     return n_model, n_fill
 
 
+def apply_residual_field(
+    fr: Frame, depth: NDArray, used: NDArray | None, used_idx: NDArray, used_ratio: NDArray
+) -> None:
+    """Departure (docs/metrizer.md): a smooth multiplicative correction of the calibrated prior
+    ``depth`` (flat, in place) from its residuals at the model-output pixels (``used``) and at the
+    consistent features."""
+    p: MetrizerParams = fr.p
+    z, fpix = fr.z, fr.fpix
+    fok = fr.f_consistent & ~fr.sky[fr.feat_g]
+    if used is not None:
+        fok &= ~used[fpix]
+    idx = np.concatenate([used_idx, fpix[fok]])
+    val = np.concatenate([used_ratio, np.log(z[fok] / depth[fpix[fok]])])
+    wt = np.concatenate([np.full(len(used_idx), p.residual_model_weight), np.ones(int(fok.sum()))])
+    if not len(idx):
+        return
+    field = smooth_field(
+        (fr.H, fr.W),
+        idx,
+        val,
+        wt,
+        p.residual_sigma_frac,
+        exponentiate=True,
+        shrink=p.residual_shrink,
+    ).ravel()
+    if used is not None:
+        field[used] = 1.0
+    depth *= field
+    np.clip(depth, np.float32(p.d_min_m), f32_below(p.d_max_m), out=depth)
+
+
 def compose(
     fr: Frame, tm: StageTimer, models: ShapeModels, theta: F64, global_only: bool
 ) -> MetrizedDepth:
@@ -280,7 +311,6 @@ def compose(
     gobj, prior, conf, has_prior = fr.gobj, fr.prior, fr.conf, fr.has_prior
     kind, theta0, sky = fr.prior_kind, fr.theta0, fr.sky
     kind_g, conf_g, n_feat_g, stats = models.kind, models.conf, fr.n_feat_g, fr.stats
-    z, fpix = fr.z, fr.fpix
 
     if global_only:
         q_g = np.full(G, 0.3)
@@ -311,30 +341,7 @@ def compose(
     tm.lap("model_output")
 
     if p.residual_field and not global_only:
-        # departure (docs/metrizer.md): smooth multiplicative correction of the calibrated prior
-        # from its residuals at the model-output pixels and at the consistent features
-        fok = fr.f_consistent & ~sky[fr.feat_g]
-        if used is not None:
-            fok &= ~used[fpix]
-        idx = np.concatenate([used_idx, fpix[fok]])
-        val = np.concatenate([used_ratio, np.log(z[fok] / depth[fpix[fok]])])
-        wt = np.concatenate(
-            [np.full(len(used_idx), p.residual_model_weight), np.ones(int(fok.sum()))]
-        )
-        if len(idx):
-            field = smooth_field(
-                (H, W),
-                idx,
-                val,
-                wt,
-                p.residual_sigma_frac,
-                exponentiate=True,
-                shrink=p.residual_shrink,
-            ).ravel()
-            if used is not None:
-                field[used] = 1.0
-            depth *= field
-            np.clip(depth, np.float32(p.d_min_m), f32_below(p.d_max_m), out=depth)
+        apply_residual_field(fr, depth, used, used_idx, used_ratio)
     n_fallback = 0
     if p.fallback_global and not global_only:
         thin = stats["n_features_global"] < p.fallback_min_features
