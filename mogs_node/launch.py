@@ -1,25 +1,5 @@
-"""Launch files and the launcher: the broker and every node as separate OS processes.
-
-A launch file (YAML)::
-
-    name: demo                      # names the default ipc endpoints
-    bus:                            # optional; default: ipc endpoints in /tmp/mogs-$UID
-      pub_endpoint: tcp://127.0.0.1:7700
-      sub_endpoint: tcp://127.0.0.1:7701
-      allow_remote: false           # listen on non-loopback addresses only if true
-      curve: {server_public_key: keys/broker.key, client_secret_key: keys/client.key_secret,
-              server_secret_key: keys/broker.key_secret, authorized_keys_dir: keys/authorized}
-    exit_when: [source]             # stop everything once these nodes have exited with code 0
-    preset: balanced                # fast | balanced | quality (mogs_node/presets.py; --preset wins)
-    nodes:
-      - name: source
-        class: mogs_node.demo_nodes:SyntheticSource   # module:Class, a Node subclass
-        params: {rate_hz: 10}
-        respawn: on_failure         # never | on_failure | always
-        max_respawns: 5
-        host: localhost             # only localhost is started by this launcher
-        nice: 0                     # CPU priority 0..19 (real-time files: the mapper below the
-        cpus: []                    #   keyframe chain); CPUs it may use (empty: all; Linux)
+"""The launcher: the broker and every node of a launch file (:mod:`mogs_node.launch_file`, its
+format) as separate OS processes.
 
 The launcher prefixes each child's log lines with its name, respawns crashed nodes by policy, and
 on SIGINT/SIGTERM stops every child (SIGINT, then SIGKILL after a grace period) and exits 0.
