@@ -84,7 +84,10 @@ def make_row(outcome: dict[str, Any], *, resumed: bool = False) -> dict[str, Any
 def comparable_figures(summary: dict[str, Any]) -> dict[str, Any]:
     """The figures of a run's summary.json that must not depend on how the run was started
     (``mogs launch`` or a batch, which worker, which bus, how loaded the machine): what the
-    mapping produced. A drive reproduces them bit for bit (tests/test_fleet_drives.py)."""
+    mapping produced. A drive reproduces them bit for bit (tests/test_fleet_drives.py), the map
+    itself by its digest; its PSNRs to 9 significant digits: the report renders and averages with
+    as many threads as the process may use (Ray sets ``OMP_NUM_THREADS`` to a task's CPUs), and
+    the summation order moves the last bits (seen: 18.81440672419527 against ...273)."""
     m = summary.get("map", {})
     return {
         "keyframes": summary.get("keyframes"),
@@ -96,9 +99,13 @@ def comparable_figures(summary: dict[str, Any]) -> dict[str, Any]:
         "trajectory": summary.get("trajectory"),
         "gaussians": m.get("gaussians"),
         "map_digest": m.get("digest"),
-        "heldout_psnr_db": m.get("heldout_psnr_db"),
-        "keyframe_psnr_db": m.get("keyframe_psnr_db"),
+        "heldout_psnr_db": _significant(m.get("heldout_psnr_db")),
+        "keyframe_psnr_db": _significant(m.get("keyframe_psnr_db")),
     }
+
+
+def _significant(v: Any, digits: int = 9) -> Any:
+    return float(f"{v:.{digits}g}") if isinstance(v, float) else v
 
 
 def _cell(v: Any, digits: int = 3) -> str:
