@@ -68,6 +68,7 @@ from bridges.sources import camera_info_of, open_sequence
 from mogs_node import msgs
 from mogs_node.datasets import Sequence
 from mogs_node.errors import DatasetError
+from mogs_node.heartbeat import other_node_busy
 from mogs_node.node import CATCH_UP_ENV, Node
 
 __all__ = ["PlayerNode", "PlayerParams"]
@@ -275,8 +276,7 @@ class PlayerNode(Node):
         self.reschedule(self._tick_timer, 0.0)
 
     def _on_heartbeat(self, msg: msgs.Message) -> None:
-        busy = getattr(msg, "counters", {}).get("busy_s", 0.0)
-        if busy > 0 and getattr(msg, "node", self.name) != self.name and self._blocked_since:
+        if self._blocked_since and other_node_busy(msg, self.name):
             self._blocked_since = max(self._blocked_since, time.monotonic())
 
     def _may_send_image(self, now: float) -> bool:

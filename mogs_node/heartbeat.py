@@ -28,7 +28,7 @@ import zmq
 from mogs_node import msgs
 from mogs_node.bus import BusConfig, Publisher, Subscriber
 
-__all__ = ["Heartbeat", "Progress", "diagnostics_message", "topic_stats"]
+__all__ = ["Heartbeat", "Progress", "diagnostics_message", "other_node_busy", "topic_stats"]
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
@@ -215,3 +215,12 @@ def diagnostics_message(
         counters=dict(c),
         topics=stats,
     )
+
+
+def other_node_busy(msg: msgs.Message, own_name: str) -> bool:
+    """Whether a ``/diagnostics`` heartbeat says another (running) node is inside a handler
+    (``busy_s`` > 0): the pipeline works, so a node waiting for it waits on (the player's
+    acknowledgement timeout, the prior's wait for metrized depth)."""
+    if getattr(msg, "node", own_name) == own_name or getattr(msg, "status", "") == "stopped":
+        return False
+    return (getattr(msg, "counters", None) or {}).get("busy_s", 0.0) > 0

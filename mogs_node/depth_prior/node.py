@@ -33,7 +33,7 @@ from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import PinholeCamera
-from mogs_node.heartbeat import DIAGNOSTICS_TOPIC
+from mogs_node.heartbeat import DIAGNOSTICS_TOPIC, other_node_busy
 from mogs_node.keyframe_chain import failed_prior
 from mogs_node.node import Node, parse_params
 from mogs_node.worker_budget import ScaleBudget, ScaleBudgetParams
@@ -210,9 +210,7 @@ class DepthPriorNode(Node):
     def on_heartbeat(self, msg: msgs.Message) -> None:
         """Another node busy in a handler (``busy_s`` > 0, mogs_node/heartbeat.py): the
         pipeline works, so a keyframe's wait for the metrized depth goes on."""
-        if getattr(msg, "node", self.name) == self.name or getattr(msg, "status", "") == "stopped":
-            return
-        if (getattr(msg, "counters", None) or {}).get("busy_s", 0.0) > 0:
+        if other_node_busy(msg, self.name):
             self._busy_seen_s = time.monotonic()
 
     def _on_wait_timer(self) -> None:
