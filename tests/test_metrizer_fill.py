@@ -36,10 +36,17 @@ def test_fills_holes_of_a_plane_exactly(nx: float, ny: float, dist: float, hole_
     depth[hole] = 0
     conf = np.where(hole, 0.0, 0.8).astype(np.float32)
     objects = np.zeros((H, W), np.int32)
-    n_filled = complete_planar_masks(depth, conf, objects, 1, extrapolation=10.0)
-    assert n_filled == hole.sum()
-    np.testing.assert_allclose(depth[hole], truth[hole], rtol=1e-4)
-    assert np.all((conf[hole] > 0) & (conf[hole] <= 0.4 + 1e-6))
+    max_depth_m = 72.0
+    n_filled = complete_planar_masks(
+        depth, conf, objects, 1, extrapolation=10.0, max_depth_m=max_depth_m
+    )
+    # every hole pixel whose plane depth is within the fill's range gets it; beyond (a steep plane
+    # towards its horizon) the hole stays empty
+    fill = hole & (truth <= max_depth_m)
+    assert n_filled == fill.sum()
+    np.testing.assert_allclose(depth[fill], truth[fill], rtol=1e-4)
+    assert np.all((conf[fill] > 0) & (conf[fill] <= 0.4 + 1e-6))
+    assert np.all(depth[hole & ~fill] == 0)
 
 
 def test_two_surfaces_in_one_mask_are_not_filled():
