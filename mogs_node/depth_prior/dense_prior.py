@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -45,11 +45,19 @@ from mogs_node.depth_prior.flow_prior import (
     _grey,
     _pixel_rays,
     compute_flow_prior,
+    ground_depth_bound,
+)
+from mogs_node.depth_prior.ground_height import (
+    fit_ground_height,
+    ground_height_m,
+    refine_ground_height,
 )
 from mogs_node.depth_prior.road import RoadPriorParams, project_depth, road_prior, up_in_camera
 from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import check_array, se3_inverse
+
+AUTO_HEIGHT_MEASUREMENTS = 10  # road.auto_height: keyframes measured before the height is settled
 
 __all__ = [
     "SOURCES",
@@ -289,14 +297,15 @@ def _road(
     references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
     road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
     flow: FlowPrior,
-    flow_params: FlowPriorParams,
+    height_m: float,
+    up: NDArray[np.float64],
     road_params: RoadPriorParams,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """The road plane verified against each reference (the flow ones with their DIS flow, the
-    extra ``road_references`` photometrically only): road where any reference verifies it (a
-    reference may have seen the road hidden behind something that has since been passed)."""
+    """The road plane ``height_m`` below the camera (``up``: camera frame) verified against each
+    reference (the flow ones with their DIS flow, the extra ``road_references`` photometrically
+    only): road where any reference verifies it (a reference may have seen the road hidden
+    behind something that has since been passed)."""
     H, W = grey.shape
-    up = up_in_camera(Tk, road_params.up_world, flow_params.ground_up_cam)
     _, _, rays = _pixel_rays(K, H, W)
     refs: list = []
     for i, (img, T_r) in enumerate(list(references) + list(road_references)):
@@ -313,11 +322,59 @@ def _road(
     depth = np.zeros((H, W), np.float32)
     err = np.full((H, W), np.inf, np.float32)
     for ref in refs or [None]:
-        road = road_prior(grey, K, rays, up, flow_params.camera_height_m, road_params, ref)
+        road = road_prior(grey, K, rays, up, height_m, road_params, ref)
         better = road.rel_err < err
         depth = np.where(better, road.depth_m, depth)
         err = np.where(better, road.rel_err, err)
     return depth, err
+
+
+def _measured_height(
+    grey: NDArray[np.uint8],
+    K: NDArray[np.float64],
+    Tk: NDArray[np.float64],
+    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    flow: FlowPrior,
+    up: NDArray[np.float64],
+    road_params: RoadPriorParams,
+    earlier_m: Sequence[float],
+) -> tuple[float, float]:
+    """The camera height measured on this keyframe (NaN: none) and the height to use (0: none
+    yet): around the earlier measurements' median, or the flow depth's ground band for the first,
+    refined by the road plane's tests against the nearest reference (ground_height.py). After
+    ``AUTO_HEIGHT_MEASUREMENTS`` measurements the height is settled and costs nothing more."""
+    H, W = grey.shape
+    rays = _pixel_rays(K, H, W)[2]
+    centre = ground_height_m(earlier_m)
+    if len(earlier_m) >= AUTO_HEIGHT_MEASUREMENTS or not references or not flow.pairs:
+        return float("nan"), centre
+    if centre <= 0:
+        fit = fit_ground_height(
+            flow.depth_m, flow.confidence, rays, up, road_params.auto_height_range_m
+        )
+        if fit is None:
+            return float("nan"), 0.0
+        centre = fit[0]
+    img_r, T_r = references[0]
+    pair = flow.pairs[0]
+    ref = (
+        _grey(img_r, "references[0].image"),
+        se3_inverse(T_r) @ Tk,
+        pair.flow_px,
+        pair.fb_error_px,
+    )
+    lo, hi = road_params.auto_height_range_m
+    meas = refine_ground_height(
+        centre,
+        lambda h: (
+            int(road_prior(grey, K, rays, up, h, road_params, ref).verified.sum())
+            if lo <= h <= hi
+            else 0
+        ),
+    )
+    if meas is None:
+        return float("nan"), ground_height_m(earlier_m)
+    return meas[0], ground_height_m([*earlier_m, meas[0]])
 
 
 def _warped(
@@ -373,6 +430,7 @@ def compute_dense_prior(
     flow_params: FlowPriorParams | None = None,
     road_params: RoadPriorParams | None = None,
     params: FusionParams | None = None,
+    ground_heights_m: Sequence[float] = (),
 ) -> DensePrior:
     """Dense prior of keyframe ``k`` (module docstring).
 
@@ -390,6 +448,9 @@ def compute_dense_prior(
             is verified against (photometrically), besides ``references``.
         flow_params, road_params, params: the sources' and the fusion's parameters (None:
             defaults).
+        ground_heights_m: earlier keyframes' measurements of the camera height (``road.auto_height``
+            with no ``flow.camera_height_m`` given); this keyframe's own is in the stats
+            (``ground_height_fit_m``, NaN: none) and the height used in ``ground_height_m``.
     """
     flow_params = flow_params or FlowPriorParams()
     road_params = road_params or RoadPriorParams()
@@ -399,12 +460,29 @@ def compute_dense_prior(
     K = check_array("K", K, shape=(3, 3), finite=True)
     Tk = check_array("T_world_cam_k", T_world_cam_k, shape=(4, 4), finite=True)
     flow = compute_flow_prior(grey, K, Tk, references, flow_params)
+    stats: dict[str, float] = {}
+    height_m = flow_params.camera_height_m
+    if road_params.enabled:
+        up = up_in_camera(Tk, road_params.up_world, flow_params.ground_up_cam)
+    if road_params.enabled and road_params.auto_height and height_m <= 0:
+        fit_m, height_m = _measured_height(
+            grey, K, Tk, references, flow, up, road_params, ground_heights_m
+        )
+        stats.update(ground_height_fit_m=fit_m, ground_height_m=height_m)
+        if height_m > 0:  # the flow depth's bound at the ground, as a given height sets it
+            bound = ground_depth_bound(K, H, W, replace(flow_params, camera_height_m=height_m))
+            beyond = flow.depth_m > bound
+            flow = replace(
+                flow,
+                depth_m=np.where(beyond, 0.0, flow.depth_m).astype(np.float32),
+                confidence=np.where(beyond, 0.0, flow.confidence).astype(np.float32),
+            )
     cands_d = [flow.depth_m]
     cands_e = [error_from_confidence(flow.confidence, flow_params.rel_err_ref)]
     names = ["flow"]
-    if road_params.enabled and flow_params.camera_height_m > 0:
+    if road_params.enabled and height_m > 0:
         road_d, road_e = _road(
-            grey, K, Tk, references, road_references, flow, flow_params, road_params
+            grey, K, Tk, references, road_references, flow, height_m, up, road_params
         )
         # the plane checked against the flow depth as the warped sources are (a wrong up direction
         # or a poor pose moves the whole plane): the local disagreement raises its error
@@ -412,7 +490,6 @@ def compute_dense_prior(
         cands_d.append(road_d)
         cands_e.append(road_e)
         names.append("road")
-    stats: dict[str, float] = {}
     if len(names) > 1:
         stats["road_disagreement"] = r_road
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)

@@ -161,9 +161,13 @@ class DepthPriorNode(Node):
             self._process(self._lfm_waiting.popleft())
 
     def on_camera_info(self, msg: msgs.CameraInfo) -> None:
-        """The camera height of the source's calibration (finite: known), unless typed."""
+        """The camera height of the source's calibration (finite: known), unless typed (a typed
+        0 with ``road.auto_height`` means "measure it", so a known height is taken instead)."""
         h = float(msg.camera_height_m)
-        if "camera_height_m" in self.params.flow or not np.isfinite(h):
+        typed = self.params.flow.get("camera_height_m")
+        if typed is not None and (float(typed) > 0 or not self.sequence.road.auto_height):
+            return
+        if not np.isfinite(h) or h <= 0:
             return
         if h != self.flow_params.camera_height_m:
             self.log.info("camera %.3f m above the road (from %s)", h, msg.source or "camera info")
@@ -293,6 +297,13 @@ class DepthPriorNode(Node):
                 self.budget.scale,
             )
         self.counters["prior_scale"] = scale
+        h = prior.stats.get("ground_height_m", 0.0)
+        if h > 0 and self.counters.get("ground_height_m", 0.0) <= 0:
+            self.log.info(
+                "keyframe %d: camera %.3f m above the ground (measured)", kf.keyframe_id, h
+            )
+        if "ground_height_m" in prior.stats:  # road.auto_height: in the diagnostics and report
+            self.counters["ground_height_m"] = round(h, 4)
         extra: dict[str, Any] = dict(prior.stats)
         extra["references"] = refs
         if len(kf.feature_xyz_cam_m):  # diagnostic: robust scale of the prior vs sparse points

@@ -73,6 +73,10 @@ class RoadPriorParams:
     image_only: bool = False  # without a reference: flood fill from the car (unverifiable)
     extra_references: int = 1  # earlier keyframes besides the flow references to verify against
     fill_px: int = 3  # holes in the verified road up to about this radius are closed
+    # no camera height given (flow.camera_height_m 0): measure it from the flow depth
+    # (mogs_node/depth_prior/ground_height.py), the ground searched within this range of drops
+    auto_height: bool = False
+    auto_height_range_m: tuple[float, float] = (0.8, 3.5)
 
     def __post_init__(self) -> None:
         if self.up_world is not None and (
@@ -87,6 +91,11 @@ class RoadPriorParams:
             raise ConfigError("road: normal_sigma_deg and height_rel_err must be >= 0")
         if min(self.max_flow_residual_px, self.max_shift_px, self.min_texture) <= 0:
             raise ConfigError("road: flow/photometric thresholds and min_texture must be > 0")
+        lo, hi = self.auto_height_range_m
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+            raise ConfigError(
+                f"road.auto_height_range_m: need 0 < low < high, got {self.auto_height_range_m}"
+            )
         if self.photo_window_px < 1 or min(self.unverified_factor, self.image_only_factor) < 1:
             raise ConfigError("road: need photo_window_px >= 1 and error factors >= 1")
 

@@ -23,6 +23,9 @@ from mogs_node.depth_prior.road import RoadPriorParams
 __all__ = ["PriorSequence"]
 
 
+GROUND_HEIGHTS_KEPT = 50  # camera-height measurements whose median is used
+
+
 @dataclass
 class _Past:
     keyframe_id: int
@@ -47,6 +50,8 @@ class PriorSequence:
         self.history: deque[_Past] = deque(maxlen=self.flow.history)
         self._K: NDArray[np.float64] | None = None
         self._pending: dict[int, tuple[NDArray, NDArray]] = {}  # metrized before its keyframe
+        # the keyframes' measurements of the camera height (road.auto_height), latest kept
+        self.ground_heights_m: deque[float] = deque(maxlen=GROUND_HEIGHTS_KEPT)
 
     def _check_camera(self, K: NDArray[np.float64], shape: tuple[int, ...]) -> None:
         """Another camera or resolution makes the old keyframes unusable: forget them."""
@@ -129,7 +134,11 @@ class PriorSequence:
             flow_params=self.flow,
             road_params=self.road,
             params=self.fusion,
+            ground_heights_m=self.ground_heights_m,
         )
+        fit = prior.stats.get("ground_height_fit_m", float("nan"))
+        if np.isfinite(fit):
+            self.ground_heights_m.append(fit)
         self.remember(keyframe_id, grey, K, T_world_cam)
         self.history[-1].prior = (prior.depth_m, prior.confidence)
         return prior, [past[j].keyframe_id for j in refs]
