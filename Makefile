@@ -35,8 +35,8 @@ test-all: $(STAMP)
 # whole pipeline (mono8, rgb8, jpeg) and the other encodings; .ci/run runs them where ROS 1 is
 # installed (README "On a ROS 1 robot").
 test-ros1: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow -p no:cacheprovider tests/test_bridges_ros1.py \
-		tests/test_bridges_ros1_pipeline.py
+	$(BIN)/python -m pytest -q -m slow -p no:cacheprovider tests/bridges/test_bridges_ros1.py \
+		tests/bridges/test_bridges_ros1_pipeline.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check mogs_node bridges tests bench

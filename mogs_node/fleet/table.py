@@ -84,7 +84,7 @@ def make_row(outcome: dict[str, Any], *, resumed: bool = False) -> dict[str, Any
 def comparable_figures(summary: dict[str, Any]) -> dict[str, Any]:
     """The figures of a run's summary.json that must not depend on how the run was started
     (``mogs launch`` or a batch, which worker, which bus, how loaded the machine): what the
-    mapping produced. A drive reproduces them bit for bit (tests/test_fleet_drives.py), the map
+    mapping produced. A drive reproduces them bit for bit (tests/fleet/test_fleet_drives.py), the map
     itself by its digest; its PSNRs to 9 significant digits: the report renders and averages with
     as many threads as the process may use (Ray sets ``OMP_NUM_THREADS`` to a task's CPUs), and
     the summation order moves the last bits (seen: 18.81440672419527 against ...273)."""

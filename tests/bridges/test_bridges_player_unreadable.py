@@ -15,7 +15,7 @@ import yaml
 
 from mogs_node.launch import load_launch_file
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 from _reliability_harness import REPO, cli_argv  # noqa: E402
 from test_bridges_player import play_to_end  # noqa: E402
 

@@ -5,7 +5,7 @@ still writes ``map.ply`` with every keyframe.
 Each case is the launch file as a user runs it (the shared EuRoC and KITTI excerpts, a short sim
 drive written as a rosbag2 for the bag), on a private bus, with fewer mapper iterations and no
 final refinement (a mapper killed after the source stopped would not see its stop again, as in
-``tests/test_reliability_kill.py``, whose ``Run`` drives the launcher here).
+``tests/integration/test_reliability_kill.py``, whose ``Run`` drives the launcher here).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from test_reliability_kill import Run
 
 from mogs_node.mapper.ply import read_gaussian_ply
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TIMEOUT_S = 2400  # a pipeline run takes 3-10 min on 2 shared cores
 
 

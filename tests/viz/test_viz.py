@@ -316,7 +316,7 @@ def test_demo_viz_launch_file_is_the_demo_plus_a_viz_node() -> None:
     from mogs_node.launch import load_launch_file
     from mogs_node.viz.node import VizNode
 
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[2]
     demo = yaml.safe_load((repo / "launch/demo.yaml").read_text())
     viz = yaml.safe_load((repo / "launch/demo_viz.yaml").read_text())
     extra = [n for n in viz["nodes"] if n["name"] == "viz"]

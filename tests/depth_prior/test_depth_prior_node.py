@@ -14,7 +14,7 @@ from mogs_node.depth_prior.node import DepthPriorNode
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import make_T, so3_exp
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 from _two_view_scene import CAM, render  # noqa: E402
 
 

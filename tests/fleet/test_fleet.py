@@ -1,7 +1,7 @@
 """``mogs batch`` (mogs_node/fleet): the pure parts (drive list, ids, resume, overrides, table) and
 the Ray path on a tiny graph (player + report: seconds, not minutes), with a drive with a wrong
 path, a crashing graph that Ray retries, and resume. The whole pipeline on three sim drives:
-tests/test_fleet_drives.py (slow)."""
+tests/fleet/test_fleet_drives.py (slow)."""
 
 from __future__ import annotations
 

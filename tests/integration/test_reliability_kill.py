@@ -41,7 +41,7 @@ from mogs_node.bus import BusConfig, Subscriber
 from mogs_node.geometry import se3_inverse
 from mogs_node.mapper.ply import read_gaussian_ply
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N_FRAMES = 48  # 2 s parked, then ~5 keyframes of driving
 TIMEOUT_S = 2400  # one pipeline run takes 3-10 min on 2 shared cores
 #: a killed run's depth equals the clean run's to this (metres, on every pixel)

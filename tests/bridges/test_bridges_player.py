@@ -23,7 +23,7 @@ from mogs_node.demo_nodes import make_keyframe
 from mogs_node.node import Node
 
 # node processes import this module (its test node classes) without tests/ on their path
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 from _reliability_harness import cli_process, receive_for, start_node, stop_process  # noqa: E402
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.filterwarnings(
     "ignore::DeprecationWarning", "ignore::UserWarning", "ignore:torch.tensor results"
 )
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 import _tiny_onnx as _tiny_sam  # noqa: E402
 
 from mogs_node.errors import ModelError  # noqa: E402

@@ -15,7 +15,7 @@ from _reliability_harness import cli_argv
 from mogs_node.mapper.ply import read_gaussian_ply
 from mogs_node.report.views import map_digest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.slow

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from mogs_node.datasets.writers import write_sim_bag
 from mogs_node.sim import SimConfig, make_sequence
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def run_pipeline_on_bag(bag: Path, out: Path, timeout_s: float = 1500) -> dict:

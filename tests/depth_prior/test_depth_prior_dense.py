@@ -30,7 +30,7 @@ from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import make_T, se3_inverse, so3_exp
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 from _two_view_scene import CAM, render  # noqa: E402
 
 # The test scene's world is the first camera's frame (y down): "up" is -y.

@@ -4,7 +4,7 @@ wrong path. The three complete with the same summary.json figures as each drive 
 ``mogs launch``; the bad one is reported failed with its error; the table has four rows; a
 second run of the same batch does no work for the three finished drives.
 
-Minutes to tens of minutes on 2 shared cores: slow (the fast path: tests/test_fleet.py)."""
+Minutes to tens of minutes on 2 shared cores: slow (the fast path: tests/fleet/test_fleet.py)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from mogs_node.fleet.batch import BatchOptions, run_batch  # noqa: E402
 from mogs_node.fleet.drives import PATIENT_PLAYER, drive_id, write_sim_drives  # noqa: E402
 from mogs_node.fleet.table import comparable_figures  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 LAUNCH = REPO / "launch" / "bag.yaml"
 PATIENT = PATIENT_PLAYER  # the figures then do not depend on the machine's load
 

@@ -69,7 +69,7 @@ def test_sam_node_publishes_painted_masks(inproc_bus, wired_node, tmp_path) -> N
     import warnings
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).parent))
+    sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
     import _tiny_onnx
 
     with warnings.catch_warnings():

@@ -33,7 +33,7 @@ from mogs_node.eval.traj import trajectory_metrics
 from mogs_node.geometry import make_T, quat_wxyz_to_rotmat
 from mogs_node.sim import SimConfig, make_sequence
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N_FRAMES = 60
 #: a loaded 2-core machine: half real time (slower still on a machine shared with other runs,
 #: where the live frontend would drop frames: MOGS_ROS1_PLAY_RATE=0.25)

@@ -25,7 +25,7 @@ from mogs_node.depth_prior.depth_anything_onnx import (  # noqa: E402
 )
 from mogs_node.errors import ConfigError, ModelError  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 import _tiny_onnx  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore:torch.tensor results")

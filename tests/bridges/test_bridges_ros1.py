@@ -423,7 +423,7 @@ def test_rviz_config_shows_what_the_bridge_publishes() -> None:
 
     from bridges.ros_outputs import OUTPUT_TYPES, RosOutputParams
 
-    cfg = yaml.safe_load((Path(__file__).parents[1] / "launch" / "mogs.rviz").read_text())
+    cfg = yaml.safe_load((Path(__file__).parents[2] / "launch" / "mogs.rviz").read_text())
     shown = {
         d.get("Topic") or d.get("Image Topic"): d["Class"]
         for d in cfg["Visualization Manager"]["Displays"]

@@ -11,7 +11,7 @@ from mogs_node.datasets.euroc import read_euroc
 from mogs_node.datasets.kitti import read_kitti_oxts, read_kitti_raw
 from mogs_node.geometry import so3_log
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 KITTI78 = DATA / "kitti_raw_2011_09_26_78"
 OXTS = DATA / "kitti_raw_2011_09_26_drive_0001_oxts"
 EUROC = DATA / "euroc_v1_01_micro"

@@ -24,7 +24,7 @@ from mogs_node.launch import _child_setup, parse_launch, usable_cpus
 from mogs_node.metrizer.node import KeyframeMatcher
 from mogs_node.worker_budget import ScaleBudget, ScaleBudgetParams
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 from _two_view_scene import CAM, render  # noqa: E402
 
 
@@ -381,7 +381,7 @@ def test_a_child_runs_at_its_niceness_and_on_its_cpus():
 def test_real_time_launch_files_run_the_mapper_below_the_chain():
     from mogs_node.launch import load_launch_file
 
-    root = Path(__file__).parent.parent
+    root = Path(__file__).parents[2]
     for name in ("kitti.yaml", "euroc.yaml", "live.yaml", "ros1.yaml"):
         nodes = {n.name: n for n in load_launch_file(root / "launch" / name).nodes}
         chain = max(nodes[n].nice for n in ("frontend", "segmentation", "prior", "metrizer"))

@@ -33,7 +33,7 @@ from mogs_node.launch import load_launch_file
 from mogs_node.node import parse_params
 from mogs_node.presets import balanced_value
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _point(name: str, cpu: float, absrel: float, psnr: float, **kw) -> dict:
