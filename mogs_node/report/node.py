@@ -73,6 +73,8 @@ NODE_COUNTERS = (
     "match_stalled_inputs",
     # the prior node: keyframes whose wait for the previous one's metrized depth ran out
     "metrized_wait_timeouts",
+    # the prior node: the camera height it measured (road.auto_height; 0: none yet)
+    "ground_height_m",
 )
 
 
