@@ -290,15 +290,25 @@ def test_sim_lfm_backend_waits_for_the_truth_and_is_affine_in_inverse_depth(
         )
 
 
-@pytest.mark.parametrize("typed", [None, 1.65])
-def test_flow_camera_height_from_camera_info_unless_typed(inproc_bus, wired_node, typed) -> None:
+@pytest.mark.parametrize(
+    ("typed", "auto", "expect"),
+    [(None, False, 1.21), (1.65, False, 1.65), (0.0, False, 0.0), (0.0, True, 1.21)],
+)
+def test_flow_camera_height_from_camera_info_unless_typed(
+    inproc_bus, wired_node, typed, auto, expect
+) -> None:
     """The prior's road bound takes the camera height of the source's ``/camera/info`` (the
-    calibration typed once, for the player); a height in the launch file's ``flow`` wins; an
+    calibration typed once, for the player); a height in the launch file's ``flow`` wins (0: no
+    road), except a 0 with ``road.auto_height`` ("measure it": a known height is better); an
     unknown height (NaN) keeps the parameter's."""
     bus, ctx = inproc_bus
     flow = {} if typed is None else {"camera_height_m": typed}
     node = DepthPriorNode(
-        "prior", {"flow": flow, "metrized_topic": ""}, bus, context=ctx, diagnostics_period_s=0
+        "prior",
+        {"flow": flow, "road": {"auto_height": auto}, "metrized_topic": ""},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
     )
     w = wired_node(node, ("/frontend/keyframe", "/camera/info"), "/prior/depth")
     K = CAM.K
@@ -308,6 +318,5 @@ def test_flow_camera_height_from_camera_info_unless_typed(inproc_bus, wired_node
     kf, _ = keyframe(3, np.eye(4))
     w.pub.publish("/frontend/keyframe", kf)  # reliable topics: in order, the info first
     assert [m.keyframe_id for m in w.collect(1, 20)] == [3]
-    expect = 1.21 if typed is None else typed
     assert node.flow_params.camera_height_m == expect
     assert node.sequence.flow.camera_height_m == expect
