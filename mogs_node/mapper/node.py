@@ -92,6 +92,8 @@ class MapperNodeParams:
     submap_length_m: float = 50.0  # long drives: distance travelled per submap (submaps.py)
     offload_distance_m: float = 150.0  # a region left farther behind goes to disk (0: never)
     reload_distance_m: float = 100.0  # ... and comes back when the camera is this near again
+    max_gaussians_in_ram: int = 0  # ... also regions beyond reload_distance_m, the farthest
+    # first, while the map holds more Gaussians than this (0: no bound; submaps.py)
     submap_dir: str = ""  # offloaded regions ("": checkpoint_dir/submaps, else a temp folder)
     keyframe_topic: str = "/frontend/keyframe"  # input keyframes
     depth_topic: str = "/metrizer/depth"  # input metric depth
@@ -117,6 +119,7 @@ class MapperNodeParams:
             length_m=self.submap_length_m,
             offload_distance_m=self.offload_distance_m,
             reload_distance_m=self.reload_distance_m,
+            max_gaussians_in_ram=self.max_gaussians_in_ram,
         )
 
     def submap_folder(self) -> Path | None:
@@ -436,6 +439,7 @@ class MapperNode(Node):
                 "submaps_on_disk": len(self.submaps.offloaded),
                 "submap_offloads": self.submaps.counters["offloads"],
                 "submap_reloads": self.submaps.counters["reloads"],
+                "submap_offloads_for_count": self.submaps.counters["offloads_for_count"],
             }
         )
         if (

@@ -76,12 +76,21 @@ class SubmapParams:
     length_m: float = 50.0  # distance travelled per submap
     offload_distance_m: float = 150.0  # a closed submap farther than this leaves RAM (0: never)
     reload_distance_m: float = 100.0  # an offloaded one nearer than this comes back
+    # Gaussians kept in RAM at most (0: no bound): beyond it, closed submaps farther than
+    # reload_distance_m leave too, the farthest first (a dense stretch of road would otherwise
+    # hold several times a sparse one's Gaussians within offload_distance_m)
+    max_gaussians_in_ram: int = 0
 
     def __post_init__(self) -> None:
         if not (self.length_m > 0 and math.isfinite(self.length_m)):
             raise ConfigError(f"submaps.length_m: must be > 0, got {self.length_m}")
         if self.offload_distance_m < 0 or not math.isfinite(self.offload_distance_m):
             raise ConfigError("submaps.offload_distance_m: must be >= 0 (0: never offload)")
+        if self.max_gaussians_in_ram < 0:
+            raise ConfigError(
+                f"submaps.max_gaussians_in_ram: must be >= 0 (0: no bound), got "
+                f"{self.max_gaussians_in_ram}"
+            )
         if self.offload_distance_m and not (0 <= self.reload_distance_m < self.offload_distance_m):
             raise ConfigError(
                 "submaps: need 0 <= reload_distance_m < offload_distance_m (hysteresis), got "
@@ -176,7 +185,12 @@ class SubmapStore:
         self.counts: dict[int, int] = {}  # submap -> Gaussians in its file
         self._generation = 0
         self._pinned: set[str] = set()  # files the latest checkpoint refers to
-        self.counters = {"offloads": 0, "reloads": 0, "gaussians_offloaded": 0}
+        self.counters = {
+            "offloads": 0,
+            "offloads_for_count": 0,
+            "reloads": 0,
+            "gaussians_offloaded": 0,
+        }
 
     # -------------------------------------------------------------------- bookkeeping
     def submap_of(self, index: int) -> int:
@@ -207,20 +221,33 @@ class SubmapStore:
 
     # -------------------------------------------------------------------- offload / reload
     def offload_far(self, mapper: GaussianMapper, position: np.ndarray) -> list[int]:
-        """Offload every closed submap far from ``position`` [3] (see the module doc); returns
-        the submaps offloaded. Call between keyframes, after the map changes were drained."""
+        """Offload every closed submap far from ``position`` [3] (see the module doc), then, while
+        the map holds more than ``max_gaussians_in_ram``, the farthest closed ones beyond
+        ``reload_distance_m`` (nearer ones would come back at the next keyframe); returns the
+        submaps offloaded. Call between keyframes, after the map changes were drained."""
         p = self.params
         if not p.enabled or not self.path_m:
             return []
         current = self.submap_of(len(self.path_m) - 1)
         in_window = {self.submap_of(i) for i in mapper.window}
+        closed = [
+            (self._distance(kfs, position), s, kfs)
+            for s, kfs in sorted(self._members().items())
+            if s < current and s not in in_window and s not in self.offloaded
+        ]
         done = []
-        for s, kfs in sorted(self._members().items()):
-            if s >= current or s in in_window or s in self.offloaded:
-                continue
-            if self._distance(kfs, position) > p.offload_distance_m:
+        for d, s, kfs in closed:
+            if d > p.offload_distance_m:
                 self._offload(mapper, s, kfs)
                 done.append(s)
+        if p.max_gaussians_in_ram:
+            for d, s, kfs in sorted(closed, key=lambda c: -c[0]):
+                if len(mapper.map) <= p.max_gaussians_in_ram or d <= p.reload_distance_m:
+                    break
+                if s not in self.offloaded:
+                    self._offload(mapper, s, kfs)
+                    self.counters["offloads_for_count"] += 1
+                    done.append(s)
         if done:
             _trim_heap()
         return done
@@ -327,6 +354,7 @@ class SubmapStore:
                 "length_m": self.params.length_m,
                 "offload_distance_m": self.params.offload_distance_m,
                 "reload_distance_m": self.params.reload_distance_m,
+                "max_gaussians_in_ram": self.params.max_gaussians_in_ram,
             },
             "path_m": list(self.path_m),
             "centres": [c.tolist() for c in self.centres],

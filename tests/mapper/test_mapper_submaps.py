@@ -262,3 +262,31 @@ def test_mapper_node_offloads_streams_its_ply_and_resumes(inproc_bus, tmp_path) 
     assert resumed.mapper is not None and resumed.mapper.offloaded_kfs == node.mapper.offloaded_kfs
     resumed.close()
     assert (tmp_path / "map.ply").read_bytes() == first_ply
+
+
+@pytest.mark.parametrize(("cap_below", "gone"), [(1, [0]), (None, [0, 1])])
+def test_a_bound_on_gaussians_in_ram_offloads_the_farthest_regions_first(
+    tmp_path, cap_below, gone
+) -> None:
+    """Nothing is far enough to leave by distance (100 m); over the bound, the farthest closed
+    submap leaves first, then the next, never one within reload_distance_m or in the window."""
+    m = drive(6)
+    n = len(m.map)
+    cap = 1 if cap_below is None else n - cap_below
+    params = SubmapParams(
+        length_m=15.0, offload_distance_m=100.0, reload_distance_m=12.0, max_gaussians_in_ram=cap
+    )
+    store = SubmapStore(params, tmp_path)
+    for kf in m.keyframes:
+        store.add_keyframe(kf.index, make_T(np.eye(3), np.array([STEP_M * kf.index, 0.0, 0.0])))
+    # x = 50 m: submap 0 (0, 10 m) is 40 m away, submap 1 (20 m) 30 m, submap 2 (30, 40 m)
+    # holds the window's keyframe 4, submap 3 is the current one
+    assert store.offload_far(m, np.array([STEP_M * 5, 0.0, 0.0])) == gone
+    assert store.counters["offloads_for_count"] == len(gone)
+    assert len(m.map) + store.gaussians_on_disk == n
+    assert (len(m.map) <= cap) == (cap_below is not None)  # the window's and the current stay
+
+
+def test_the_bound_on_gaussians_in_ram_must_not_be_negative() -> None:
+    with pytest.raises(ConfigError, match="max_gaussians_in_ram"):
+        SubmapParams(max_gaussians_in_ram=-1)
