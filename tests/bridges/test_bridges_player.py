@@ -1,6 +1,6 @@
 """The player node as a real process: sim and KITTI streams, and flow control against slow consumers.
 
-The slow consumer nodes below are started as processes (``mogs node tests.test_bridges_player:...``).
+The slow consumer nodes below are started as processes (``mogs node tests.bridges.test_bridges_player:...``).
 """
 
 from __future__ import annotations
@@ -286,7 +286,7 @@ def _flow_run(
 ) -> tuple[dict, dict, str]:
     fe_sum, mz_sum = tmp_path / "fe.json", tmp_path / "mz.json"
     fe = start_node(
-        "tests.test_bridges_player:SlowFrontend",
+        "tests.bridges.test_bridges_player:SlowFrontend",
         "slow_frontend",
         {
             "delay_ms": frontend_delay_ms,
@@ -297,7 +297,7 @@ def _flow_run(
         bus,
     )
     mz = start_node(
-        "tests.test_bridges_player:SlowMetrizer",
+        "tests.bridges.test_bridges_player:SlowMetrizer",
         "slow_metrizer",
         {"delay_ms": metrizer_delay_ms, "summary_path": str(mz_sum)},
         bus,
