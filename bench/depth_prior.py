@@ -32,6 +32,7 @@ from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     run_priors,
     score_priors,
 )
+from mogs_node.eval.figures import save_figure  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
     demo_params,
     graph_masks,
@@ -63,10 +64,7 @@ def plot(bins: list[dict], path: Path, title: str) -> None:
     ax2.bar(mid, [b["share"] for b in rows], width=0.04, alpha=0.2, color="grey")
     ax2.set_ylabel("share of prior pixels")
     ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def markdown(fig: dict, command: str, png: str) -> str:
