@@ -24,11 +24,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from mogs_node import msgs
+from mogs_node.depth_kind import resample_metrized
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.keyframe_join import KeyframeJoin
 from mogs_node.mapper.checkpoint import (
@@ -147,14 +147,11 @@ class MapperNodeParams:
 def depth_for_keyframe(
     depth: msgs.DepthMap, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Metric depth and confidence at the keyframe's size (nearest-neighbour resampling)."""
+    """Metric depth and confidence at the keyframe's size (nearest: `mogs_node.depth_kind`)."""
     if depth.kind != "metric":
         raise ShapeError(f"depth.kind: the mapper needs metric depth, got {depth.kind!r}")
     d, c = np.asarray(depth.depth, np.float32), np.asarray(depth.confidence, np.float32)
-    if d.shape != (height, width):
-        d = cv2.resize(d, (width, height), interpolation=cv2.INTER_NEAREST)
-        c = cv2.resize(c, (width, height), interpolation=cv2.INTER_NEAREST)
-    return d, c
+    return resample_metrized(d, c, width, height)
 
 
 class MapperNode(Node):

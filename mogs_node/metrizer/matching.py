@@ -14,6 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mogs_node.depth_kind import DepthKind, resample_prior
 from mogs_node.keyframe_join import JoinedKeyframe, KeyframeJoin, WorkerPace
 from mogs_node.metrizer.inputs import MetrizerInputs
 
@@ -99,12 +100,12 @@ def metrizer_inputs(entry: MatchedKeyframe) -> MetrizerInputs:
         conf = np.asarray(entry.prior.confidence, dtype=np.float32)
         kind = entry.prior.kind
         if prior.shape != (H, W):
-            prior = cv2.resize(prior, (W, H), interpolation=cv2.INTER_LINEAR)
-            conf = cv2.resize(conf, (W, H), interpolation=cv2.INTER_LINEAR)
-        if kind in ("metric", "relative_depth"):
+            prior, conf = resample_prior(prior, conf, W, H)
+        if kind in (DepthKind.METRIC, DepthKind.RELATIVE_DEPTH):
             conf = np.where(prior > 0, conf, 0.0).astype(np.float32)  # 0 = no value
     else:
-        prior, conf, kind = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32), "metric"
+        prior, conf = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
+        kind = DepthKind.METRIC.value
     xyz = np.asarray(kf.feature_xyz_cam_m, dtype=np.float64)
     return MetrizerInputs(
         K=np.asarray(kf.K, dtype=np.float64),
