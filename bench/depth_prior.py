@@ -25,7 +25,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     calibration_bins,
     prior_params,
@@ -238,8 +242,7 @@ def main() -> None:
     plot(fig["calibration"], png if png.is_absolute() else REPO / png, "dense prior, demo drive")
     md = markdown(fig, command, Path(args.png).name if not png.is_absolute() else str(png))
     print(md)
-    if args.json:
-        Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
+    write_json(args.json, fig)
     if not args.no_docs:
         update_markdown_section("depth-prior", md)
 
