@@ -47,7 +47,7 @@ from bridges.ros_outputs import (
     RosOutputParams,
     RosOutputs,
 )
-from bridges.ros_shell import RosInputShell
+from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import ConfigError, MessageError, Ros1UnavailableError
 from mogs_node.node import Node
@@ -241,7 +241,7 @@ class _Inbox:
         os.close(self.wake_w)
 
 
-class Ros1Bridge(RosInputShell, Node):
+class Ros1Bridge(RosBridgeShell, Node):
     """The ``ros1`` node: see the module docstring."""
 
     Params = Ros1BridgeParams
@@ -272,12 +272,7 @@ class Ros1Bridge(RosInputShell, Node):
         self._pubs[out.diagnostics_topic] = self._publisher(
             out.diagnostics_topic, DIAGNOSTICS_TYPE, False
         )
-        self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
-        self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
-        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
-        self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
-        self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
-        self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
+        self._subscribe_outputs()
         self.add_reader(self.inbox.wake_r, self.drain)
         self.every(max(0.1, min(1.0, p.map_period_s)), self.flush_map)  # the map's last change
         self._inputs_started = False

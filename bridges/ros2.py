@@ -40,7 +40,7 @@ from bridges.ros_outputs import (
     RosOutputParams,
     RosOutputs,
 )
-from bridges.ros_shell import RosInputShell
+from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import MessageError, Ros2UnavailableError
 from mogs_node.node import Node
@@ -146,7 +146,7 @@ class Ros2MirrorParams:
         )
 
 
-class Ros2Mirror(RosInputShell, Node):
+class Ros2Mirror(RosBridgeShell, Node):
     """Mirrors the bus to and from ROS 2 through rclpy, with the conversions of
     :mod:`bridges.ros_convert` and the outputs of :mod:`bridges.ros_outputs` (shared with the
     ROS 1 node).
@@ -259,12 +259,7 @@ class Ros2Mirror(RosInputShell, Node):
         )
         for name, rtype in topics.items():
             self._out[name] = (self.rnode.create_publisher(get_message(rtype), name, 10), rtype)
-        self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
-        self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
-        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
-        self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
-        self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
-        self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
+        self._subscribe_outputs()
 
     def _send(self, triples: list[tuple[str, str, Any]]) -> None:
         for name, rtype, rmsg in triples:
