@@ -25,13 +25,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     calibration_bins,
     prior_params,
     run_priors,
     score_priors,
 )
+from mogs_node.eval.figures import save_figure  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
     demo_params,
     graph_masks,
@@ -63,10 +68,7 @@ def plot(bins: list[dict], path: Path, title: str) -> None:
     ax2.bar(mid, [b["share"] for b in rows], width=0.04, alpha=0.2, color="grey")
     ax2.set_ylabel("share of prior pixels")
     ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def markdown(fig: dict, command: str, png: str) -> str:
@@ -240,8 +242,7 @@ def main() -> None:
     plot(fig["calibration"], png if png.is_absolute() else REPO / png, "dense prior, demo drive")
     md = markdown(fig, command, Path(args.png).name if not png.is_absolute() else str(png))
     print(md)
-    if args.json:
-        Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
+    write_json(args.json, fig)
     if not args.no_docs:
         update_markdown_section("depth-prior", md)
 

@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
 from mogs_node.eval.depth_sim import make_cases  # noqa: E402
-from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams, metrize  # noqa: E402
+from mogs_node.metrizer.pipeline import MetrizerParams, metrize  # noqa: E402
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph  # noqa: E402
 
 AUTHORS_MS = 2900.0
@@ -58,22 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     cases = make_cases(args.frames, seed=0, size=(1242, 375), max_corners=args.points, masks=())
-    inputs = []
-    for c in cases:
-        lab = _masks_near(c.rgb, args.masks)
-        inputs.append(
-            MetrizerInputs(
-                K=c.K,
-                labels=lab,
-                feature_uv_px=c.uv,
-                feature_depth_m=c.z,
-                feature_weight=np.ones(len(c.z)),
-                prior=c.prior,
-                prior_confidence=np.ones_like(c.prior),
-                prior_kind="relative_inverse_depth",
-                image_rgb=c.rgb,
-            )
-        )
+    inputs = [c.metrizer_inputs(_masks_near(c.rgb, args.masks)) for c in cases]
     params = MetrizerParams()
     for kw in inputs:  # warm-up (imports, caches)
         metrize(kw, params)

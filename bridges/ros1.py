@@ -47,6 +47,7 @@ from bridges.ros_outputs import (
     RosOutputParams,
     RosOutputs,
 )
+from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import ConfigError, MessageError, Ros1UnavailableError
 from mogs_node.node import Node
@@ -240,10 +241,14 @@ class _Inbox:
         os.close(self.wake_w)
 
 
-class Ros1Bridge(Node):
+class Ros1Bridge(RosBridgeShell, Node):
     """The ``ros1`` node: see the module docstring."""
 
     Params = Ros1BridgeParams
+
+    @property
+    def bus_camera_info_topic(self) -> str:
+        return self.params.bus_camera_info_topic
 
     def setup(self) -> None:
         p: Ros1BridgeParams = self.params
@@ -267,12 +272,7 @@ class Ros1Bridge(Node):
         self._pubs[out.diagnostics_topic] = self._publisher(
             out.diagnostics_topic, DIAGNOSTICS_TYPE, False
         )
-        self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
-        self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
-        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
-        self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
-        self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
-        self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
+        self._subscribe_outputs()
         self.add_reader(self.inbox.wake_r, self.drain)
         self.every(max(0.1, min(1.0, p.map_period_s)), self.flush_map)  # the map's last change
         self._inputs_started = False
@@ -349,12 +349,6 @@ class Ros1Bridge(Node):
 
     # ------------------------------------------------------------ ROS -> bus (bus thread)
 
-    def _bad(self, what: str, err: Exception) -> None:
-        line = self.inputs.count_malformed(what, err)
-        self.counters["ros_malformed"] = self.inputs.malformed
-        if line is not None:
-            self.log.warning("%s", line)
-
     def drain(self) -> None:
         """Converts what the ROS callbacks queued and publishes it on the bus: IMU first (the
         frontend integrates it up to each image), then the images."""
@@ -401,22 +395,6 @@ class Ros1Bridge(Node):
             camera_fx_px=c.fx_px, camera_fy_px=c.fy_px, camera_cx_px=c.cx_px, camera_cy_px=c.cy_px
         )
         self.log.info(*calibration_line(cal, self.params.camera_info_topic))
-
-    def _calibration_due(self) -> None:
-        """The calibration on the bus once its T_imu_cam is known (:class:`RosInputs`)."""
-        due = self.inputs.calibration_due(time.monotonic())
-        if due is None:
-            return
-        self.log.info(
-            "calibration on %s: T_imu_cam %s",
-            self.params.bus_camera_info_topic,
-            f"from {due[1]}" if due[1] else "unknown (the frontend's launch value)",
-        )
-        self._republish_calibration()
-
-    def _republish_calibration(self) -> None:
-        if self.inputs.calibration_msg is not None:
-            self.publish(self.params.bus_camera_info_topic, self.inputs.calibration_msg)
 
     # ------------------------------------------------------------ bus -> ROS (bus thread)
 

@@ -40,6 +40,7 @@ from bridges.ros_outputs import (
     RosOutputParams,
     RosOutputs,
 )
+from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import MessageError, Ros2UnavailableError
 from mogs_node.node import Node
@@ -145,7 +146,7 @@ class Ros2MirrorParams:
         )
 
 
-class Ros2Mirror(Node):
+class Ros2Mirror(RosBridgeShell, Node):
     """Mirrors the bus to and from ROS 2 through rclpy, with the conversions of
     :mod:`bridges.ros_convert` and the outputs of :mod:`bridges.ros_outputs` (shared with the
     ROS 1 node).
@@ -155,6 +156,7 @@ class Ros2Mirror(Node):
     """
 
     Params = Ros2MirrorParams
+    bus_camera_info_topic = "/camera/info"
 
     def setup(self) -> None:
         rclpy = require_rclpy()
@@ -198,12 +200,6 @@ class Ros2Mirror(Node):
             self.every(0.2, self._calibration_due)
             self.every(p.camera_info_period_s, self._republish_calibration)
 
-    def _bad(self, what: str, err: Exception) -> None:
-        line = self.inputs.count_malformed(what, err)
-        self.counters["ros_malformed"] = self.inputs.malformed
-        if line is not None:
-            self.log.warning("%s", line)
-
     def _in_image(self, itype: str, raw: bytes) -> None:
         try:
             img = self.inputs.image(itype, raw)
@@ -239,19 +235,6 @@ class Ros2Mirror(Node):
         except MessageError as err:
             self._bad("tf_static", err)
 
-    def _calibration_due(self) -> None:
-        due = self.inputs.calibration_due(time.monotonic())
-        if due is not None:
-            self.log.info(
-                "calibration on /camera/info: T_imu_cam %s",
-                f"from {due[1]}" if due[1] else "unknown (the frontend's launch value)",
-            )
-            self._republish_calibration()
-
-    def _republish_calibration(self) -> None:
-        if self.inputs.calibration_msg is not None:
-            self.publish("/camera/info", self.inputs.calibration_msg)
-
     def _mirror_out(self) -> None:
         from rosidl_runtime_py.utilities import get_message
 
@@ -276,12 +259,7 @@ class Ros2Mirror(Node):
         )
         for name, rtype in topics.items():
             self._out[name] = (self.rnode.create_publisher(get_message(rtype), name, 10), rtype)
-        self.subscribe("/frontend/odometry", self.on_odometry, reliable=False, queue_size=64)
-        self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
-        self.subscribe("/frontend/refined_pose", self.on_keyframe_pose, msg_type=msgs.PoseStamped)
-        self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
-        self.subscribe("/mapper/gaussians", self.on_gaussians, msg_type=msgs.GaussianUpdate)
-        self.subscribe("/mapper/stats", self.on_stats, msg_type=msgs.MapStats)
+        self._subscribe_outputs()
 
     def _send(self, triples: list[tuple[str, str, Any]]) -> None:
         for name, rtype, rmsg in triples:

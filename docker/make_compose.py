@@ -27,29 +27,27 @@ def _json(d: dict[str, Any]) -> str:
     return "'" + json.dumps(d, separators=(", ", ": ")).replace("'", "''") + "'"
 
 
-def broker_bus() -> dict[str, Any]:
+def _bus(host: str, curve: dict[str, str]) -> dict[str, Any]:
     pub, sub = BROKER_PORTS
     return {
-        "pub_endpoint": f"tcp://0.0.0.0:{pub}",
-        "sub_endpoint": f"tcp://0.0.0.0:{sub}",
-        "curve": {
-            "server_public_key": "/keys/broker.key",
+        "pub_endpoint": f"tcp://{host}:{pub}",
+        "sub_endpoint": f"tcp://{host}:{sub}",
+        "curve": {"server_public_key": "/keys/broker.key", **curve},
+    }
+
+
+def broker_bus() -> dict[str, Any]:
+    return _bus(
+        "0.0.0.0",
+        {
             "server_secret_key": "/keys/broker.key_secret",
             "authorized_keys_dir": "/keys/authorized",
         },
-    }
+    )
 
 
 def client_bus(name: str) -> dict[str, Any]:
-    pub, sub = BROKER_PORTS
-    return {
-        "pub_endpoint": f"tcp://broker:{pub}",
-        "sub_endpoint": f"tcp://broker:{sub}",
-        "curve": {
-            "server_public_key": "/keys/broker.key",
-            "client_secret_key": f"/keys/{name}.key_secret",
-        },
-    }
+    return _bus("broker", {"client_secret_key": f"/keys/{name}.key_secret"})
 
 
 def container_params(params: dict[str, Any]) -> dict[str, Any]:

@@ -19,6 +19,15 @@ log = logging.getLogger(__name__)
 _SNDMORE = zmq.SNDMORE
 
 
+def _connect_client(sock: zmq.Socket, config: BusConfig, endpoint: str, what: str) -> None:
+    """Connect a client socket to the broker at ``endpoint``, with CURVE when the bus has it."""
+    _apply_client_curve(sock, config.curve, endpoint)
+    try:
+        sock.connect(endpoint)
+    except zmq.ZMQError as err:
+        raise BusError(f"cannot connect {what} to {endpoint}: {err}") from err
+
+
 class Publisher:
     """Publishes typed messages on topics; stamps per-topic sequence numbers.
 
@@ -40,11 +49,7 @@ class Publisher:
         self._sock.linger = config.linger_ms
         if config.socket_buffer_bytes:
             self._sock.sndbuf = config.socket_buffer_bytes
-        _apply_client_curve(self._sock, config.curve, config.pub_endpoint)
-        try:
-            self._sock.connect(config.pub_endpoint)
-        except zmq.ZMQError as err:
-            raise BusError(f"cannot connect publisher to {config.pub_endpoint}: {err}") from err
+        _connect_client(self._sock, config, config.pub_endpoint, "publisher")
         self._shm_min = config.shm_min_bytes if config.uses_shm else 0
         self._rings: dict[str, shm.ShmRing] = {}
         self.shm_published = 0  # messages whose arrays went through shared memory
@@ -226,11 +231,7 @@ class Subscriber:
         self._sock.linger = 0
         if config.socket_buffer_bytes:
             self._sock.rcvbuf = config.socket_buffer_bytes
-        _apply_client_curve(self._sock, config.curve, config.sub_endpoint)
-        try:
-            self._sock.connect(config.sub_endpoint)
-        except zmq.ZMQError as err:
-            raise BusError(f"cannot connect subscriber to {config.sub_endpoint}: {err}") from err
+        _connect_client(self._sock, config, config.sub_endpoint, "subscriber")
         self.topics: dict[str, bool] = {}  # topic -> reliable
         self.stats: dict[str, TopicStats] = {}
         self.malformed = 0  # frames that could not be attributed to a subscribed topic

@@ -11,13 +11,30 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera
 
-__all__ = ["Frame", "ImuSamples", "Sequence", "Trajectory"]
+__all__ = ["Frame", "ImuSamples", "Sequence", "Trajectory", "text_lines"]
+
+
+def text_lines(path: Path, what: str = "", *, comments: bool = False) -> list[tuple[int, str]]:
+    """The non-blank lines of a text file with their 1-based numbers (for errors naming
+    ``file:line``); with ``comments`` lines starting with ``#`` are skipped too. A file that cannot
+    be read raises :class:`DatasetError` naming it and ``what`` it should hold."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as err:
+        label = f" {what}" if what else ""
+        raise DatasetError(f"{path}: cannot read{label} ({err.strerror or err})") from err
+    return [
+        (i, line)
+        for i, line in enumerate(lines, 1)
+        if line.strip() and not (comments and line.lstrip().startswith("#"))
+    ]
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import yaml
 
-from mogs_node.datasets.base import Frame, Sequence, Trajectory
+from mogs_node.datasets.base import Frame, Sequence, Trajectory, text_lines
 from mogs_node.datasets.kitti import load_image, read_euroc_imu_csv
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, make_T, quat_wxyz_to_rotmat, se3_exp, se3_log
@@ -81,14 +81,8 @@ def _T_BS(data: dict, path: Path) -> np.ndarray:
 
 
 def _read_csv(path: Path, ncols: int) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as err:
-        raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from err
     t, v = [], []
-    for i, line in enumerate(lines, 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
+    for i, line in text_lines(path, comments=True):
         parts = line.split(",")
         if len(parts) < ncols:
             raise DatasetError(

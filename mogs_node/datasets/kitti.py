@@ -16,17 +16,19 @@ the devkit chain ``T_cam2_imu = T2 R_rect_00 T_cam0_velo T_velo_imu`` with ``T2`
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from mogs_node.datasets.base import Frame, ImuSamples, Sequence, Trajectory
+from mogs_node.datasets.base import Frame, ImuSamples, Sequence, Trajectory, text_lines
 from mogs_node.datasets.oxts import OXTS_FIELDS, oxts_to_poses, read_kitti_timestamps, read_oxts
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse
 
 __all__ = [
+    "image_file_frames",
     "kitti_raw_extrinsics",
     "load_image",
     "project_velodyne",
@@ -52,14 +54,8 @@ def read_calib_file(path: str | Path) -> dict[str, np.ndarray | str]:
     Non-numeric values are kept as strings only for the known text keys (``calib_time``).
     """
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except OSError as err:
-        raise DatasetError(f"{p}: cannot read calibration ({err.strerror or err})") from err
     out: dict[str, np.ndarray | str] = {}
-    for i, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
+    for i, line in text_lines(p, "calibration"):
         key, sep, rest = line.partition(":")
         if not sep:
             raise DatasetError(f"{p}:{i}: expected 'key: values', got {line!r}")
@@ -89,6 +85,32 @@ def load_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
     if img is None:
         raise DatasetError(f"{p}: missing or not a readable image")
     return img if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def image_file_frames(
+    files: list[Path],
+    stamps_ns: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    grey: bool,
+    poses: list[np.ndarray | None] | None = None,
+    depth_loader: Callable[[Path], Callable[[], np.ndarray] | None] | None = None,
+) -> tuple[Frame, ...]:
+    """One lazily loaded :class:`Frame` per image file: ``stamps_ns`` int ``[N]``, ``poses`` N
+    ``[4, 4]`` ``T_world_cam`` (or None), ``depth_loader(file)`` a loader of its depth or None."""
+    return tuple(
+        Frame(
+            i,
+            int(stamps_ns[i]),
+            camera,
+            (lambda f=f: load_image(f, grey=grey)),
+            "mono8" if grey else "rgb8",
+            None if poses is None else poses[i],
+            None if depth_loader is None else depth_loader(f),
+            str(f),
+        )
+        for i, f in enumerate(files)
+    )
 
 
 def read_depth_png(path: str | Path) -> np.ndarray:
@@ -189,14 +211,8 @@ def stamp_ns_of(text: str, where: str) -> int:
 def read_imu_text(path: str | Path) -> ImuSamples:
     """``t gx gy gz ax ay az`` per line (comma or space separated, ``t`` in ns or s)."""
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except OSError as err:
-        raise DatasetError(f"{p}: cannot read IMU log ({err.strerror or err})") from err
     t, vals = [], []
-    for i, line in enumerate(lines, 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
+    for i, line in text_lines(p, "IMU log", comments=True):
         parts = line.replace(",", " ").split()
         if len(parts) != 7:
             raise DatasetError(
@@ -342,32 +358,21 @@ def read_kitti_raw(
         return lambda: read_depth_png(f)
 
     grey = cam in (0, 1)  # image_00 / image_01 are the grey cameras
-    frames = tuple(
-        Frame(
-            i,
-            int(stamps[i]),
-            K_cam,
-            (lambda f=f: load_image(f, grey=grey)),
-            "mono8" if grey else "rgb8",
-            frame_poses[i],
-            depth_loader(f.stem),
-            str(f),
-        )
-        for i, f in enumerate(files)
+    frames = image_file_frames(
+        files,
+        stamps,
+        K_cam,
+        grey=grey,
+        poses=frame_poses,
+        depth_loader=lambda f: depth_loader(f.stem),
     )
     return Sequence(d.name, frames, imu, T_imu_cam, gt, None, meta)
 
 
 def _read_pose_lines(path: Path) -> np.ndarray:
     """KITTI odometry poses: one line of 12 numbers (3x4 row-major ``T_world_cam``) per frame."""
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as err:
-        raise DatasetError(f"{path}: cannot read poses ({err.strerror or err})") from err
     out = []
-    for i, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
+    for i, line in text_lines(path, "poses"):
         try:
             v = np.array([float(x) for x in line.split()])
         except ValueError as err:
@@ -424,19 +429,7 @@ def read_kitti_odometry(
     elif poses_file is not None:
         raise DatasetError(f"{poses_file}: missing")
     grey = camera in ("image_0", "image_1")
-    frames = tuple(
-        Frame(
-            i,
-            int(stamps[i]),
-            K_cam,
-            (lambda f=f: load_image(f, grey=grey)),
-            "mono8" if grey else "rgb8",
-            poses[i],
-            None,
-            str(f),
-        )
-        for i, f in enumerate(files)
-    )
+    frames = image_file_frames(files, stamps, K_cam, grey=grey, poses=poses)
     meta = {
         "calib": str(calib_path),
         "calibration": str(calib_path),

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mogs_node.datasets.base import text_lines
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import make_T, rotmat_from_rpy
 
@@ -89,14 +90,8 @@ def format_kitti_timestamps(stamps_ns: np.ndarray) -> str:
 def read_kitti_timestamps(path: str | Path) -> np.ndarray:
     """Read a KITTI ``timestamps.txt`` -> int64 ``[N]`` ns; errors name the file and line."""
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except OSError as err:
-        raise DatasetError(f"{p}: cannot read timestamps ({err.strerror or err})") from err
     out = []
-    for i, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
+    for i, line in text_lines(p, "timestamps"):
         try:
             out.append(parse_kitti_timestamp(line))
         except ValueError as err:

@@ -31,13 +31,13 @@ import cv2
 import numpy as np
 import yaml
 
-from mogs_node.datasets.base import Frame, Sequence, Trajectory
+from mogs_node.datasets.base import Sequence, Trajectory
 from mogs_node.datasets.euroc import (
     imu_noise_from_kalibr,
     interpolate_poses,
     read_euroc_groundtruth,
 )
-from mogs_node.datasets.kitti import load_image, read_depth_png, read_imu_text, stamp_ns_of
+from mogs_node.datasets.kitti import image_file_frames, read_depth_png, read_imu_text, stamp_ns_of
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, se3_inverse
 
@@ -213,18 +213,8 @@ def read_vi_folder(root: str | Path, *, camera: str = "cam0") -> Sequence:
         d = depth_dir / (f.stem + ".png")
         return (lambda: read_depth_png(d)) if d.exists() else None
 
-    frames = tuple(
-        Frame(
-            i,
-            int(stamps[i]),
-            cam,
-            (lambda f=f: load_image(f, grey=grey)),
-            "mono8" if grey else "rgb8",
-            poses[i],
-            depth_of(f),
-            str(f),
-        )
-        for i, (_, f) in enumerate(images)
+    frames = image_file_frames(
+        [f for _, f in images], stamps, cam, grey=grey, poses=poses, depth_loader=depth_of
     )
     meta: dict[str, object] = {
         "calibration": str(chain),

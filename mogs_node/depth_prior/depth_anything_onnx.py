@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_kind import DEPTH_KINDS as OUTPUT_KINDS
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
 from mogs_node.ort import check_signature, open_session
@@ -44,7 +45,6 @@ log = logging.getLogger(__name__)
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
-OUTPUT_KINDS = ("relative_inverse_depth", "relative_depth", "metric")
 # (input name, output name) of the export layouts users find.
 KNOWN_SIGNATURES = (("image", "depth"), ("pixel_values", "predicted_depth"))
 

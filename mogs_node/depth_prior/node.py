@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from mogs_node import msgs
+from mogs_node.depth_kind import resample_metrized
 from mogs_node.depth_prior.dense_prior import FusionParams
 from mogs_node.depth_prior.depth_anything_onnx import DepthAnythingOnnx, DepthAnythingParams
 from mogs_node.depth_prior.flow_prior import FlowPriorParams, fit_scale_huber
@@ -184,9 +185,8 @@ class DepthPriorNode(Node):
         hist, scale = self.sequence.history, self.budget.scale
         H, W = depth.shape[:2]
         size = hist[-1].grey.shape[::-1] if hist else (round(W * scale), round(H * scale))
-        if scale < 1.0 and depth.shape[::-1] != tuple(size):  # the prior works smaller
-            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
-            conf = cv2.resize(conf, size, interpolation=cv2.INTER_NEAREST)
+        if scale < 1.0:  # the prior works smaller
+            depth, conf = resample_metrized(depth, conf, *size)
         if not self.sequence.add_metrized(msg.keyframe_id, depth, conf):
             self.log.debug("metrized depth of keyframe %d not kept", msg.keyframe_id)
         self._release_waiting()

@@ -24,6 +24,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.eval.figures import write_titled_strip
+
 __all__ = ["evaluate", "write_strip"]
 
 log = logging.getLogger(__name__)
@@ -72,12 +74,7 @@ def write_strip(
         "ground truth",
         "AbsRel 0 (blue) .. 0.3 (red); grey: no depth",
     ]
-    for p, title in zip(panels, titles, strict=True):
-        (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
-        cv2.rectangle(p, (0, 0), (tw + 8, th + 8), (0, 0, 0), -1)
-        cv2.putText(p, title, (4, th + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), np.concatenate(panels, 0)[..., ::-1])
+    write_titled_strip(path, panels, titles)
 
 
 def _pool(scores: list) -> dict[str, float]:

@@ -51,6 +51,7 @@ from mogs_node.depth_prior.flow_prior import (
 )
 from mogs_node.errors import ConfigError, DatasetError
 from mogs_node.eval.bench_docs import machine_line, update_markdown_section
+from mogs_node.eval.figures import write_titled_strip
 from mogs_node.eval.metrics import depth_metrics, depth_metrics_by_range
 from mogs_node.frontend.track_points import TrackPointsParams
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse
@@ -308,15 +309,7 @@ def _viz(path: Path, rgb, labels, prior, prior_conf, depth, gt, gt_mask) -> None
         "metrized depth (full MOGS)",
         "AbsRel vs held-out LiDAR, 0 (blue) .. 0.3 (red)",
     ]
-    for img, title in zip(panels, titles, strict=True):
-        (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
-        cv2.rectangle(img, (0, 0), (tw + 12, th + 12), (0, 0, 0), -1)
-        cv2.putText(
-            img, title, (6, th + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA
-        )
-    strip = np.concatenate(panels, 0)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), strip[..., ::-1])
+    write_titled_strip(path, panels, titles, font_scale=0.6, margin_px=6, line_type=cv2.LINE_AA)
 
 
 def _score_methods(cat: dict[str, NDArray], g: NDArray) -> tuple[NDArray, dict[str, dict]]:

@@ -40,6 +40,23 @@ class SimDepthCase:
         self.masks = {"oracle": oracle, "graph": graph}
         self.uv, self.z, self.prior = uv, z, prior
 
+    def metrizer_inputs(self, labels: np.ndarray):
+        """The metrizer's inputs for this keyframe with ``labels`` (the simulated LFM prior at full
+        confidence, every sparse point at weight 1)."""
+        from mogs_node.metrizer.pipeline import MetrizerInputs
+
+        return MetrizerInputs(
+            K=self.K,
+            labels=labels,
+            feature_uv_px=self.uv,
+            feature_depth_m=self.z,
+            feature_weight=np.ones(len(self.z)),
+            prior=self.prior,
+            prior_confidence=np.ones_like(self.prior),
+            prior_kind="relative_inverse_depth",
+            image_rgb=self.rgb,
+        )
+
 
 def make_cases(
     n_frames: int = 20,
@@ -109,21 +126,10 @@ def run_methods(
 ):
     """Depth per method ``{name: MetrizedDepth}`` for one case and mask source."""
     from mogs_node.metrizer.baselines import BASELINES as REGISTRY
-    from mogs_node.metrizer.pipeline import MetrizerInputs, MetrizerParams, metrize
+    from mogs_node.metrizer.pipeline import MetrizerParams, metrize
 
     params = params or MetrizerParams()
-    labels = case.masks[mask_source]
-    inputs = MetrizerInputs(
-        K=case.K,
-        labels=labels,
-        feature_uv_px=case.uv,
-        feature_depth_m=case.z,
-        feature_weight=np.ones(len(case.z)),
-        prior=case.prior,
-        prior_confidence=np.ones_like(case.prior),
-        prior_kind="relative_inverse_depth",
-        image_rgb=case.rgb,
-    )
+    inputs = case.metrizer_inputs(case.masks[mask_source])
     out = {}
     for m in methods:
         if m in EQ6_ONLY:

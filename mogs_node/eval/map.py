@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section
+from mogs_node.eval.figures import save_figure
 
 __all__ = ["MapEvalConfig", "evaluate", "run_init"]
 
@@ -257,10 +258,7 @@ def plot_curves(results: dict[str, Any], target_db: float, path: Path) -> None:
     a2.set_xlabel("iteration")
     a2.set_ylabel("fixed held-out view PSNR [dB]")
     a1.legend()
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def evaluate(args: argparse.Namespace) -> dict[str, Any]:

@@ -1,8 +1,8 @@
 """Mapper node: keyframes + metrized depth -> Gaussian map (DESIGN.md sections 1, 2).
 
 Subscribes (reliable) to ``/frontend/keyframe`` and ``/metrizer/depth`` and pairs them by
-``keyframe_id`` (:class:`KeyframeDepthPairs`, pure); each complete pair goes to the pure
-:class:`~mogs_node.mapper.mapper.GaussianMapper` (insertion + ``iters_per_keyframe`` window
+``keyframe_id`` (:class:`~mogs_node.keyframe_join.KeyframeJoin`, pure); each complete pair goes to
+the pure :class:`~mogs_node.mapper.mapper.GaussianMapper` (insertion + ``iters_per_keyframe`` window
 iterations). After each keyframe it publishes ``/mapper/stats`` (:class:`~mogs_node.msgs.MapStats`),
 ``/mapper/render`` (the map rendered at the keyframe pose) and ``/mapper/gaussians``
 (:class:`~mogs_node.msgs.GaussianUpdate`: only the Gaussians added or changed since the previous
@@ -20,17 +20,17 @@ from __future__ import annotations
 
 import os
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from mogs_node import msgs
+from mogs_node.depth_kind import resample_metrized
 from mogs_node.errors import ConfigError, ShapeError
+from mogs_node.keyframe_join import KeyframeJoin
 from mogs_node.mapper.checkpoint import (
     CHECKPOINT_NAME,
     CheckpointError,
@@ -46,7 +46,7 @@ from mogs_node.mapper.rasterizer import RasterParams
 from mogs_node.mapper.submaps import SubmapError, SubmapParams, SubmapStore, write_map_ply
 from mogs_node.node import CATCH_UP_ENV, Node
 
-__all__ = ["KeyframeDepthPairs", "MapperNode", "MapperNodeParams"]
+__all__ = ["MapperNode", "MapperNodeParams"]
 
 
 @dataclass(frozen=True)
@@ -147,45 +147,14 @@ class MapperNodeParams:
         )
 
 
-class KeyframeDepthPairs:
-    """Pairs keyframes with their depth by id; at most ``max_pending`` incomplete entries.
-
-    ``add`` returns the completed ``(keyframe, depth)`` pair or None; beyond ``max_pending`` the
-    oldest incomplete entry is evicted and counted in ``counters["evicted"]``.
-    """
-
-    def __init__(self, max_pending: int) -> None:
-        self.max_pending = max_pending
-        self._pending: OrderedDict[int, dict[str, Any]] = OrderedDict()
-        self.counters = {"paired": 0, "evicted": 0}
-
-    def __len__(self) -> int:
-        return len(self._pending)
-
-    def add(self, slot: str, keyframe_id: int, msg: Any) -> tuple[Any, Any] | None:
-        entry = self._pending.setdefault(keyframe_id, {})
-        entry[slot] = msg
-        if "keyframe" in entry and "depth" in entry:
-            del self._pending[keyframe_id]
-            self.counters["paired"] += 1
-            return entry["keyframe"], entry["depth"]
-        while len(self._pending) > self.max_pending:
-            self._pending.popitem(last=False)
-            self.counters["evicted"] += 1
-        return None
-
-
 def depth_for_keyframe(
     depth: msgs.DepthMap, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Metric depth and confidence at the keyframe's size (nearest-neighbour resampling)."""
+    """Metric depth and confidence at the keyframe's size (nearest: `mogs_node.depth_kind`)."""
     if depth.kind != "metric":
         raise ShapeError(f"depth.kind: the mapper needs metric depth, got {depth.kind!r}")
     d, c = np.asarray(depth.depth, np.float32), np.asarray(depth.confidence, np.float32)
-    if d.shape != (height, width):
-        d = cv2.resize(d, (width, height), interpolation=cv2.INTER_NEAREST)
-        c = cv2.resize(c, (width, height), interpolation=cv2.INTER_NEAREST)
-    return d, c
+    return resample_metrized(d, c, width, height)
 
 
 class MapperNode(Node):
@@ -198,7 +167,9 @@ class MapperNode(Node):
         if p.threads:
             torch.set_num_threads(p.threads)
         resolve_device(p.device)  # a missing GPU fails here, with one clear ConfigError
-        self.pairs = KeyframeDepthPairs(p.max_pending)
+        # keyframe + metrized depth by id; no time bound (a keyframe waits for its depth), the
+        # oldest incomplete dropped beyond max_pending and counted (pair_* counters)
+        self.pairs = KeyframeJoin(("depth",), max_pending=p.max_pending, release_partial=False)
         self.mapper: GaussianMapper | None = None
         self.integrated_keyframe_ids: set[int] = set()  # keyframes in the map (restart catch-up)
         self.submaps = SubmapStore(p.submap_params(), p.submap_folder())
@@ -359,16 +330,18 @@ class MapperNode(Node):
     def on_keyframe(self, msg: msgs.Keyframe) -> None:
         if self._integrated(msg.keyframe_id):
             return
-        pair = self.pairs.add("keyframe", msg.keyframe_id, msg)
-        if pair is not None:
-            self.process(*pair)
+        self._pair("keyframe", msg)
 
     def on_depth(self, msg: msgs.DepthMap) -> None:
         if self._integrated(msg.keyframe_id):
             return
-        pair = self.pairs.add("depth", msg.keyframe_id, msg)
-        if pair is not None:
-            self.process(*pair)
+        self._pair("depth", msg)
+
+    def _pair(self, slot: str, msg: msgs.Keyframe | msgs.DepthMap) -> None:
+        for entry in self.pairs.add(slot, msg.keyframe_id, msg):
+            self.process(entry.keyframe, entry.get("depth"))
+        for k, v in self.pairs.counters.items():
+            self.counters[f"pair_{k}"] = v
 
     def process(self, kf: msgs.Keyframe, depth: msgs.DepthMap) -> None:
         p: MapperNodeParams = self.params

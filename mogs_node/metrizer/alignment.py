@@ -11,15 +11,17 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_kind import DEPTH_KINDS, DepthKind
+
 __all__ = ["PRIOR_KINDS", "depth_from_space", "fit_global_affine", "space_from_depth"]
 
 F64 = NDArray[np.float64]
-PRIOR_KINDS = ("relative_inverse_depth", "relative_depth", "metric")
+PRIOR_KINDS = DEPTH_KINDS  # every kind can be a prior (mogs_node.depth_kind.DepthKind)
 
 
 def space_from_depth(depth_m: F64, kind: str) -> F64:
     """Depth ``[...]`` (> 0) into the prior's fitting space (inverse depth or depth)."""
-    return 1.0 / depth_m if kind == "relative_inverse_depth" else depth_m
+    return 1.0 / depth_m if kind == DepthKind.RELATIVE_INVERSE_DEPTH else depth_m
 
 
 def depth_from_space(y: F64, kind: str, d_min_m: float, d_max_m: float) -> F64:
@@ -29,7 +31,7 @@ def depth_from_space(y: F64, kind: str, d_min_m: float, d_max_m: float) -> F64:
     maps to ``d_min_m``. Non-finite values map to ``d_max_m``. The result is always finite.
     """
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        if kind == "relative_inverse_depth":
+        if kind == DepthKind.RELATIVE_INVERSE_DEPTH:
             d = np.where(y > 0, 1.0 / np.where(y > 0, y, 1.0), d_max_m)
         else:
             d = y

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_kind import DepthKind
 from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.params import MetrizerParams
@@ -154,7 +155,7 @@ class StageTimer:
 
 def far_and_norm(y: F64, kind: str, p: MetrizerParams) -> tuple[NDArray[np.bool_], F64]:
     """Globally aligned values ``y`` -> (far mask, positive normaliser in the same space)."""
-    if kind == "relative_inverse_depth":
+    if kind == DepthKind.RELATIVE_INVERSE_DEPTH:
         return y <= 1.0 / (p.sky_depth_frac * p.d_max_m), np.clip(
             y, 1.0 / p.d_max_m, 1.0 / p.d_min_m
         )
@@ -219,7 +220,7 @@ def prior_edges(
 
 def to_depth_inplace(y: NDArray, kind: str, p: MetrizerParams) -> NDArray:
     """In-place :func:`depth_from_space` for large float32 arrays (finite input)."""
-    if kind == "relative_inverse_depth":
+    if kind == DepthKind.RELATIVE_INVERSE_DEPTH:
         np.maximum(y, np.float32(1.0 / p.d_max_m), out=y)
         np.reciprocal(y, out=y)
     np.clip(y, np.float32(p.d_min_m), f32_below(p.d_max_m), out=y)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_kind import DepthKind
 from mogs_node.errors import ConfigError, GeometryError
 from mogs_node.geometry import check_array
 from mogs_node.metrizer.alignment import PRIOR_KINDS
@@ -109,7 +110,7 @@ def sanitise(
         good = np.isfinite(prior) & np.isfinite(conf)
         conf = np.where(good, np.clip(conf, 0.0, 1.0), 0.0).astype(np.float32)
         prior = np.where(good & (conf > 0), prior, 0.0).astype(np.float32)
-    if kind in ("relative_depth", "metric") and prior.min(initial=1.0) <= 0:
+    if kind in (DepthKind.RELATIVE_DEPTH, DepthKind.METRIC) and prior.min(initial=1.0) <= 0:
         conf = np.where(prior > 0, conf, 0.0).astype(np.float32)
     uv = uv.astype(np.float64)
     z = z.astype(np.float64)

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_kind import DepthKind
 from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.absorption import absorb_groups
@@ -244,8 +245,8 @@ def _align_global(
     theta0, n_global = fit_global_affine(
         fx, ft, w * fc, prior_kind, p.global_huber, shift_prior=p.global_shift_prior
     )
-    unanchored = prior_kind != "metric" and 0 < n_global < p.min_anchor_features
-    if prior_kind != "metric" and n_global < p.min_anchor_features:
+    unanchored = prior_kind != DepthKind.METRIC and 0 < n_global < p.min_anchor_features
+    if prior_kind != DepthKind.METRIC and n_global < p.min_anchor_features:
         conf = np.zeros_like(conf)
         fc = np.zeros_like(fc)
         theta0, n_global = np.array([1.0, 0.0]), 0

@@ -11,6 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from mogs_node.depth_kind import DEPTH_KINDS
 from mogs_node.errors import MessageError
 from mogs_node.msgs.fields import (
     MAX_DIM,
@@ -196,7 +197,7 @@ class DepthMap(Message):
         "object_labels": ArraySpec(_I32, (("H", "W"),), optional=True),
         "object_model": ArraySpec(_I8, (("M",),), optional=True),
     }
-    KINDS: ClassVar[tuple[str, ...]] = ("metric", "relative_depth", "relative_inverse_depth")
+    KINDS: ClassVar[tuple[str, ...]] = DEPTH_KINDS  # mogs_node.depth_kind.DepthKind
 
     stamp_ns: int
     frame_id: str

@@ -28,6 +28,18 @@ _EDGES = np.array(
 _SUN = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])
 
 
+class _Yawed:
+    """A primitive turned by ``yaw_rad`` about the world z axis."""
+
+    yaw_rad: float
+
+    @property
+    def R(self) -> np.ndarray:
+        """[3, 3] rotation local -> world."""
+        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def _shade(albedo: np.ndarray, normal: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Lambert with a fixed sun; the normal is flipped to face the viewer (two-sided surfaces)."""
     flip = np.where(np.einsum("ij,ij->i", normal, dirs) > 0, -1.0, 1.0)
@@ -205,7 +217,7 @@ class Cylinder:
 
 
 @dataclass(frozen=True)
-class Ellipsoid:
+class Ellipsoid(_Yawed):
     """Ellipsoid ``|diag(1/r) R^T (x - c)| = 1`` with a yaw rotation ``R`` about z."""
 
     center: np.ndarray  # [3] m
@@ -215,11 +227,6 @@ class Ellipsoid:
     seed: int = 0
     kind: int = KIND_ELLIPSOID
     color: tuple[float, float, float] = (0.3, 0.45, 0.2)
-
-    @property
-    def R(self) -> np.ndarray:
-        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
-        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
     @property
     def A(self) -> np.ndarray:
@@ -271,7 +278,7 @@ class Ellipsoid:
 
 
 @dataclass(frozen=True)
-class Box:
+class Box(_Yawed):
     """Box with a yaw about z: centre, half sizes along its local x, y, z."""
 
     center: np.ndarray  # [3] m
@@ -281,11 +288,6 @@ class Box:
     seed: int = 0
     kind: int = KIND_BOX
     color: tuple[float, float, float] = (0.5, 0.5, 0.45)
-
-    @property
-    def R(self) -> np.ndarray:
-        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
-        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
     def corners(self) -> np.ndarray:
         s = np.array(

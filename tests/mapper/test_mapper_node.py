@@ -11,7 +11,7 @@ from mogs_node import msgs
 from mogs_node.bus import Publisher, Subscriber
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T
-from mogs_node.mapper.node import KeyframeDepthPairs, MapperNode
+from mogs_node.mapper.node import MapperNode
 from mogs_node.mapper.ply import read_gaussian_ply
 
 W, H = 48, 24
@@ -44,17 +44,6 @@ def messages(kid: int, x_m: float) -> tuple[msgs.Keyframe, msgs.DepthMap]:
         source="test",
     )
     return kf, depth
-
-
-def test_pairs_match_by_id_in_any_order_and_bound_pending() -> None:
-    p = KeyframeDepthPairs(max_pending=2)
-    assert p.add("depth", 3, "d3") is None
-    assert p.add("keyframe", 1, "k1") is None
-    assert p.add("keyframe", 3, "k3") == ("k3", "d3")
-    assert p.add("keyframe", 4, "k4") is None
-    assert p.add("keyframe", 5, "k5") is None  # evicts keyframe 1
-    assert p.counters == {"paired": 1, "evicted": 1} and len(p) == 2
-    assert p.add("depth", 1, "d1") is None  # its keyframe is gone
 
 
 def test_mapper_node_publishes_stats_render_and_incremental_updates(inproc_bus, tmp_path) -> None:
