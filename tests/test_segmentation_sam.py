@@ -71,7 +71,11 @@ def test_preprocess_resize_normalise_pad(sam) -> None:
     assert np.all(x[0, :, h:, :] == 0) and np.all(x[0, :, :, w:] == 0)  # zero padding
 
 
-def test_decoder_mask_aligned_to_prompt(sam) -> None:
+def test_decoder_mask_aligned_to_prompt(sam, models) -> None:
+    from mogs_node.ort import open_session
+
+    assert sam.adapted and not sam.batched  # pruned; the tiny graph reads the first prompt only
+    exported = open_session(models[1])  # the file's decoder, with its full-size `masks` output
     emb = sam.embed(np.zeros((H, W, 3), np.uint8))
     assert emb.shape == (1, 256, 64, 64)
     scale = 1024 / max(H, W)
@@ -80,7 +84,7 @@ def test_decoder_mask_aligned_to_prompt(sam) -> None:
         assert low.shape == (1, 4, 256, 256) and iou.shape == (1, 4)
         np.testing.assert_allclose(iou[0], _tiny_sam.IOUS, atol=1e-3)
         coords = sam.to_model_coords(np.array([pt, [0.0, 0.0]]), H, W)[None].astype(np.float32)
-        (full,) = sam.decoder.run(
+        (full,) = exported.run(
             ["masks"],
             {
                 "image_embeddings": emb,
