@@ -141,6 +141,8 @@ def test_missing_malformed_and_mismatched_models(tmp_path, dyn_model) -> None:
         DepthAnythingOnnx(DepthAnythingParams(model_path=dyn_model, provider="tpu"))
     with pytest.raises(ConfigError, match="output_kind"):
         DepthAnythingParams(output_kind="disparity")
+    with pytest.raises(ConfigError, match="resize_method.*'minimal'"):
+        DepthAnythingParams(resize_method="minimal")
 
 
 def test_known_layouts_recognised_and_unknown_refused(tmp_path) -> None:
