@@ -125,7 +125,7 @@ def real_size_latency(
             continue
         prompts = SAM_PROMPTS if sam_prompts is None else sam_prompts
         sam = SamOnnx(SamParams(**paths, threads=threads, provider=provider, **prompts))
-        enc_walls, _, _ = _timed(lambda sam=sam: sam.embed(rgb), 1)
+        enc_walls, enc_cpus, _ = _timed(lambda sam=sam: sam.embed(rgb), 1)
         walls, cpus, res = _timed(lambda sam=sam: sam.generate(rgb), repeats)
         out[f"{key}_ms"] = float(np.median(walls))
         out[f"{key}_model_ms"] = float(np.median([r.stats["model_ms"] for r in res]))
@@ -134,6 +134,7 @@ def real_size_latency(
         )
         out[f"{key}_cpu_s"] = float(np.median(cpus))
         out[f"{key}_encoder_ms"] = float(enc_walls[0])
+        out[f"{key}_encoder_cpu_s"] = float(enc_cpus[0])
         for stat in ("n_prompts", "n_prompts_run", "n_decoder_calls", "n_masks", "coverage"):
             out[f"{key}_{stat}"] = float(res[-1].stats[stat])
         out[f"{key}_decoder_batched"] = float(sam.batched)
@@ -172,7 +173,12 @@ def markdown(fig: dict[str, float], command: str, machine: str) -> str:
             label += (
                 f" ({fig[f'{k}_n_prompts_run']:.0f} of {fig[f'{k}_n_prompts']:.0f} prompts run, "
                 f"{fig[f'{k}_n_decoder_calls']:.0f} decoder calls; encoder "
-                f"{fig[f'{k}_encoder_ms']:.0f} ms)"
+                f"{fig[f'{k}_encoder_ms']:.0f} ms"
+                + (
+                    f", {fig[f'{k}_encoder_cpu_s']:.2f} CPU-s)"
+                    if f"{k}_encoder_cpu_s" in fig
+                    else ")"
+                )
             )
         lines.append(
             f"| {label} | {fig[f'{k}_ms']:.0f} | {fig[f'{k}_model_ms']:.0f} | "

@@ -21,11 +21,16 @@ from pathlib import Path
 
 from mogs_node.errors import ConfigError, ModelError
 
-__all__ = ["PROVIDERS", "check_signature", "open_session"]
+__all__ = ["PROVIDERS", "check_signature", "model_path", "open_session"]
 
 log = logging.getLogger(__name__)
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "auto": ""}
+
+
+def model_path(path: str | Path) -> Path:
+    """``path`` with ``~`` and ``$VAR`` expanded (launch files may say either)."""
+    return Path(os.path.expandvars(str(path))).expanduser()
 
 
 def open_session(
@@ -45,7 +50,7 @@ def open_session(
 
     if provider not in PROVIDERS:
         raise ConfigError(f"provider: expected one of {sorted(PROVIDERS)}, got {provider!r}")
-    p = Path(os.path.expandvars(str(path))).expanduser()  # launch files may say ~ or $VAR
+    p = model_path(path)
     if not str(path) or not p.is_file():
         raise ModelError(f"model file not found: {str(path)!r}")
     name = PROVIDERS[provider]

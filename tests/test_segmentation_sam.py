@@ -250,3 +250,18 @@ def test_prompt_budget_bounds_decoder_work(models) -> None:
     assert np.ptp(pts[:, 0]) > 0.6 * W and np.ptp(pts[:, 1]) > 0.6 * H
     with pytest.raises(Exception, match="max_prompts"):
         SamParams(max_prompts=-1)
+
+
+def test_model_paths_with_variables_and_home(models, monkeypatch) -> None:
+    """Launch files name models as ~/... or $VAR/...: both the session and the decoder's
+    adaptation (which reads the file with the onnx package) expand them."""
+    enc, dec = models
+    folder = str(Path(dec).parent)
+    monkeypatch.setenv("MOGS_TEST_MODELS", folder)
+    monkeypatch.setenv("HOME", folder)
+    sam = SamOnnx(
+        SamParams(
+            encoder_path="$MOGS_TEST_MODELS/" + Path(enc).name, decoder_path="~/" + Path(dec).name
+        )
+    )
+    assert sam.adapted

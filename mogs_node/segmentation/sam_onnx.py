@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
-from mogs_node.ort import check_signature, open_session
+from mogs_node.ort import check_signature, model_path, open_session
 
 __all__ = [
     "SamMasks",
@@ -254,7 +254,7 @@ def adapt_decoder(path: str) -> bytes | None:
     except ImportError:
         log.info("%s: the onnx package is missing: decoder run as exported", path)
         return None
-    model = onnx.load(str(path))
+    model = onnx.load(str(model_path(path)))
     inputs = [i.name for i in model.graph.input]
     model = Extractor(model).extract_model(inputs, ["iou_predictions", "low_res_masks"])
     for inp in model.graph.input:
