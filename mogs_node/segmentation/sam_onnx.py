@@ -319,23 +319,28 @@ class SamOnnx:
         emb = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
         pts, H, W = np.array([[100.0, 80.0], [400.0, 200.0]]), 300, 500
         one = [self.decode(emb, pt[None], H, W) for pt in pts]  # the file's decoder, batch 1
-        self.decoder, batched = fast, self.batched
-        self.batched = True
-        try:
-            low, iou = self.decode(emb, pts, H, W)
-            same = all(
-                np.allclose(low[b], one[b][0][0], atol=1e-4)
-                and np.allclose(iou[b], one[b][1][0], atol=1e-4)
-                for b in range(2)
+        file_decoder, batched = self.decoder, self.batched
+
+        def same_as_file(n: int) -> bool:
+            low, iou = self.decode(emb, pts[:n], H, W)
+            return all(
+                np.allclose(low[b], one[b][0][0], rtol=1e-3, atol=1e-3)
+                and np.allclose(iou[b], one[b][1][0], rtol=1e-3, atol=1e-3)
+                for b in range(n)
             )
+
+        self.decoder, self.batched = fast, True
+        try:
+            same = same_as_file(2)
         except Exception as err:  # onnxruntime's own error types: the graph is batch-1 only
             log.debug("%s: batched prompts failed (%s)", p.decoder_path, err)
             same = False
         self.batched = same or batched
-        if not same:  # the pruned copy one prompt at a time still skips the full-size masks
-            low, iou = self.decode(emb, pts[:1], H, W)
-            if not (np.allclose(low, one[0][0], atol=1e-4) and np.allclose(iou, one[0][1])):
-                raise ModelError(f"{p.decoder_path}: the pruned decoder differs from the file's")
+        # without a batch the pruned copy still skips the full-size masks, one prompt a call
+        if not (same or same_as_file(1)):
+            log.warning("%s: the pruned decoder differs from the file's: not used", p.decoder_path)
+            self.decoder, self.batched = file_decoder, batched
+            return
         self.adapted = True
         self.model_ms = 0.0
         log.info(
