@@ -14,6 +14,7 @@ import pytest
 
 from mogs_node.depth_prior.depth_anything_onnx import DepthAnythingOnnx, DepthAnythingParams
 from mogs_node.errors import ModelError
+from mogs_node.ort import open_session
 from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
 
 pytestmark = [
@@ -92,9 +93,10 @@ def test_sam_real_size(name: str, rgb: np.ndarray) -> None:
     emb = sam.embed(rgb)
     pts = sam.prompt_points(rgb)[:3]
     low, iou = sam.decode(emb, pts, H, W)
-    plain = SamOnnx(SamParams(**_paths(name), threads=2, adapt_decoder=False))
-    assert not plain.adapted and not plain.batched
-    low1, iou1 = plain.decode(emb, pts, H, W)  # one call per prompt
+    adapted = sam.decoder
+    sam.decoder, sam.batched = open_session(params.decoder_path, threads=2), False  # the file's
+    low1, iou1 = sam.decode(emb, pts, H, W)  # one call per prompt
+    sam.decoder, sam.batched = adapted, True
     assert low.shape == low1.shape == (3, 4, 256, 256) and iou.shape == (3, 4)
     np.testing.assert_allclose(low, low1, atol=1e-4)
     np.testing.assert_allclose(iou, iou1, atol=1e-5)
