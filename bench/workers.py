@@ -13,6 +13,7 @@
 3. With ``--real-size`` instead: the learned workers at real model sizes with random weights
    (bench/workers_real_size.py; Depth Anything V2 Small/Base, SAM ViT-B, MobileSAM), split into
    network time and ours, on ``--threads`` onnxruntime threads; section ``workers-real-size``.
+   ``python bench/workers.py --real-size --json -`` takes about 4 CPU-minutes (2 repeats).
 
 Usage: ``python bench/workers.py [--real-size [--threads N]] [--json PATH] [--repeats N]
 [--frames N]``. Prints the figures, writes them to ``--json`` (a flat object, units in the names;
@@ -222,7 +223,9 @@ def _markdown(fig: dict[str, float], args: argparse.Namespace) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=None, metavar="PATH")
-    ap.add_argument("--repeats", type=int, default=5, help="timed runs per backend")
+    ap.add_argument(
+        "--repeats", type=int, default=None, help="timed runs per backend (5; --real-size 2)"
+    )
     ap.add_argument("--frames", type=int, default=8, help="keyframes per baseline")
     ap.add_argument("--data", default=None, help="KITTI excerpt folder")
     ap.add_argument("--real-size", action="store_true", help="real-size learned models only")
@@ -231,7 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write-docs", action="store_true", help="update docs/benchmarks.md")
     args = ap.parse_args(argv)
     if args.real_size:
+        args.repeats = 2 if args.repeats is None else args.repeats
         return _main_real_size(args, argv)
+    args.repeats = 5 if args.repeats is None else args.repeats
 
     from mogs_node.eval.depth_kitti78 import DEFAULT_DIR, load_kitti78, localise_pnp
 

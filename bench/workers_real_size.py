@@ -69,14 +69,27 @@ def _timed(fn, repeats: int) -> tuple[list[float], list[float], list]:
     return walls, cpus, outs
 
 
+# (key suffix, input_size, resize_method, models): ours first (the longer side at 518, aspect
+# kept: 154x518 for 1242x375), then the reference pre-processing (the shorter side at 518:
+# 518x1722, 4551 tokens) for Small only: Base there holds 12 GB (its attention matrices), more
+# than a shared 23 GB machine should give one benchmark
+DA_CONFIGS = (
+    ("", 518, "upper_bound", tuple(DA_MODELS)),
+    ("_lb518", 518, "lower_bound", ("depth_anything_vits",)),
+)
+# the prompts of launch/learned.yaml: a square-cell grid, 16 along the longer side (16x5 on
+# 1242x375), run coarse to fine, covered prompts skipped, at most 16 per keyframe
+SAM_PROMPTS = dict(points_per_side=16, square_cells=True, max_prompts=16)
+
+
 def real_size_latency(
     rgb: np.ndarray,
     *,
     repeats: int = 2,
     threads: int = 2,
     provider: str = "cpu",
-    da_input_sizes: tuple[int, ...] = (518, 266),
-    sam_points_per_side: int = 16,
+    da_configs: tuple[tuple[str, int, str, tuple[str, ...]], ...] = DA_CONFIGS,
+    sam_prompts: dict | None = None,
 ) -> dict[str, float]:
     """Figures per model (see the module docstring); ``rgb`` ``[375, 1242, 3]`` uint8."""
     out: dict[str, float] = {"real_size_threads": float(threads)}
@@ -84,14 +97,20 @@ def real_size_latency(
         path = _paths(name).get("model_path")
         if path is None:
             continue
-        for size in da_input_sizes:
+        for suffix, size, method, models in da_configs:
+            if key not in models:
+                continue
             net = DepthAnythingOnnx(
                 DepthAnythingParams(
-                    model_path=path, threads=threads, provider=provider, input_size=size
+                    model_path=path,
+                    threads=threads,
+                    provider=provider,
+                    input_size=size,
+                    resize_method=method,
                 )
             )
             walls, cpus, res = _timed(lambda net=net: net.infer(rgb), repeats)
-            k = key if size == da_input_sizes[0] else f"{key}_{size}"
+            k = key + suffix
             model = float(np.median([r.model_ms for r in res]))
             out[f"{k}_ms"] = float(np.median(walls))
             out[f"{k}_model_ms"] = model
@@ -99,16 +118,14 @@ def real_size_latency(
             out[f"{k}_cpu_s"] = float(np.median(cpus))
             out[f"{k}_net_h"], out[f"{k}_net_w"] = map(float, res[0].net_hw)
             assert res[0].value.shape == rgb.shape[:2] and res[0].value.dtype == np.float32
+            log.info("%s: %.0f ms, %.2f CPU-s", k, out[f"{k}_ms"], out[f"{k}_cpu_s"])
     for key, name in SAM_MODELS.items():
         paths = _paths(name)
         if not paths:
             continue
-        sam = SamOnnx(
-            SamParams(
-                **paths, threads=threads, provider=provider, points_per_side=sam_points_per_side
-            )
-        )
-        enc_walls, _, _ = _timed(lambda sam=sam: sam.embed(rgb), 1)
+        prompts = SAM_PROMPTS if sam_prompts is None else sam_prompts
+        sam = SamOnnx(SamParams(**paths, threads=threads, provider=provider, **prompts))
+        enc_walls, enc_cpus, _ = _timed(lambda sam=sam: sam.embed(rgb), 1)
         walls, cpus, res = _timed(lambda sam=sam: sam.generate(rgb), repeats)
         out[f"{key}_ms"] = float(np.median(walls))
         out[f"{key}_model_ms"] = float(np.median([r.stats["model_ms"] for r in res]))
@@ -117,9 +134,12 @@ def real_size_latency(
         )
         out[f"{key}_cpu_s"] = float(np.median(cpus))
         out[f"{key}_encoder_ms"] = float(enc_walls[0])
+        out[f"{key}_encoder_cpu_s"] = float(enc_cpus[0])
         for stat in ("n_prompts", "n_prompts_run", "n_decoder_calls", "n_masks", "coverage"):
             out[f"{key}_{stat}"] = float(res[-1].stats[stat])
         out[f"{key}_decoder_batched"] = float(sam.batched)
+        out[f"{key}_decoder_adapted"] = float(sam.adapted)
+        log.info("%s: %.0f ms, %.2f CPU-s", key, out[f"{key}_ms"], out[f"{key}_cpu_s"])
     return out
 
 
@@ -138,10 +158,10 @@ def markdown(fig: dict[str, float], command: str, machine: str) -> str:
         "| --- | --- | --- | --- | --- | --- |",
     ]
     names = {
-        "depth_anything_vits": "Depth Anything V2 Small, 518 px (net {h}x{w})",
-        "depth_anything_vits_266": "Depth Anything V2 Small, 266 px (net {h}x{w})",
-        "depth_anything_vitb": "Depth Anything V2 Base, 518 px (net {h}x{w})",
-        "depth_anything_vitb_266": "Depth Anything V2 Base, 266 px (net {h}x{w})",
+        "depth_anything_vits": "Depth Anything V2 Small, longer side 518 (net {h}x{w})",
+        "depth_anything_vits_lb518": "Depth Anything V2 Small, shorter side 518 (net {h}x{w})",
+        "depth_anything_vitb": "Depth Anything V2 Base, longer side 518 (net {h}x{w})",
+        "depth_anything_vitb_lb518": "Depth Anything V2 Base, shorter side 518 (net {h}x{w})",
         "sam_small": "MobileSAM automatic masks",
         "sam_vit_b": "SAM ViT-B automatic masks",
     }
@@ -153,13 +173,26 @@ def markdown(fig: dict[str, float], command: str, machine: str) -> str:
             label += (
                 f" ({fig[f'{k}_n_prompts_run']:.0f} of {fig[f'{k}_n_prompts']:.0f} prompts run, "
                 f"{fig[f'{k}_n_decoder_calls']:.0f} decoder calls; encoder "
-                f"{fig[f'{k}_encoder_ms']:.0f} ms)"
+                f"{fig[f'{k}_encoder_ms']:.0f} ms"
+                + (
+                    f", {fig[f'{k}_encoder_cpu_s']:.2f} CPU-s)"
+                    if f"{k}_encoder_cpu_s" in fig
+                    else ")"
+                )
             )
         lines.append(
             f"| {label} | {fig[f'{k}_ms']:.0f} | {fig[f'{k}_model_ms']:.0f} | "
             f"{fig[f'{k}_ours_ms']:.0f} | {fig[f'{k}_ours_ms'] / fig[f'{k}_ms']:.1%} | "
             f"{fig[f'{k}_cpu_s']:.2f} |"
         )
+    lines += [
+        "",
+        "Prompts (SAM rows): a square-cell grid 16 along the longer side (16x5 here), run coarse "
+        "to fine, covered prompts skipped, at most 16 per keyframe (launch/learned.yaml); the "
+        "decoder pruned of its full-size masks output and fed 8 prompts per call "
+        '(docs/workers.md "Cost"). A CPU-only user: MobileSAM and Depth Anything V2 Small '
+        "with the longer side at 518 (docs/workers.md).",
+    ]
     return "\n".join(lines)
 
 

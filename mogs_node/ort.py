@@ -21,18 +21,27 @@ from pathlib import Path
 
 from mogs_node.errors import ConfigError, ModelError
 
-__all__ = ["PROVIDERS", "check_signature", "open_session"]
+__all__ = ["PROVIDERS", "check_signature", "model_path", "open_session"]
 
 log = logging.getLogger(__name__)
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "auto": ""}
 
 
-def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
+def model_path(path: str | Path) -> Path:
+    """``path`` with ``~`` and ``$VAR`` expanded (launch files may say either)."""
+    return Path(os.path.expandvars(str(path))).expanduser()
+
+
+def open_session(
+    path: str | Path, *, provider: str = "cpu", threads: int = 0, model: bytes | None = None
+):
     """An ``onnxruntime.InferenceSession`` for the model at ``path`` on ``provider``.
 
     Args:
         path: ONNX file.
+        model: serialised ONNX model to run instead of the file's (an adapted copy of it, see
+            :func:`mogs_node.segmentation.sam_onnx.adapt_decoder`); ``path`` names it in messages.
         provider: ``"cpu"``, ``"cuda"`` (must be available: no fallback to CPU) or ``"auto"``
             (CUDA when available, else CPU).
         threads: intra-op threads (0 = onnxruntime's default).
@@ -41,7 +50,7 @@ def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
 
     if provider not in PROVIDERS:
         raise ConfigError(f"provider: expected one of {sorted(PROVIDERS)}, got {provider!r}")
-    p = Path(os.path.expandvars(str(path))).expanduser()  # launch files may say ~ or $VAR
+    p = model_path(path)
     if not str(path) or not p.is_file():
         raise ModelError(f"model file not found: {str(path)!r}")
     name = PROVIDERS[provider]
@@ -61,7 +70,8 @@ def open_session(path: str | Path, *, provider: str = "cpu", threads: int = 0):
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
-        sess = ort.InferenceSession(str(p), sess_options=opts, providers=[name])
+        src = str(p) if model is None else model
+        sess = ort.InferenceSession(src, sess_options=opts, providers=[name])
     except Exception as err:  # onnxruntime raises its own exception types on bad files
         raise ModelError(f"{p}: cannot load ONNX model ({err})") from err
     log.info("loaded %s on %s", p, name)

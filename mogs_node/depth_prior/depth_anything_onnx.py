@@ -11,7 +11,8 @@ refused with a message naming what the model has and what is known, unless ``inp
 
 Pre-processing as the reference implementation: RGB to [0, 1], resize so that the shorter side is
 ``input_size`` keeping the aspect ratio with both sides rounded to a multiple of 14 (bicubic),
-ImageNet normalisation. A model with static spatial input dimensions is fed exactly that size.
+ImageNet normalisation; or, with ``resize_method: upper_bound``, the longer side (the cost is
+quadratic in the ViT tokens: docs/workers.md "Cost"). A model with static spatial input dimensions is fed exactly that size.
 Post-processing: the output is resized back to the image (bilinear), so pixel ``(u, v)`` of the
 result belongs to pixel ``(u, v)`` of the input. The output kind is declared by the user
 (``relative_inverse_depth`` for Depth Anything V2 relative models, ``metric`` for its metric
@@ -45,6 +46,7 @@ log = logging.getLogger(__name__)
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+RESIZE_METHODS = ("lower_bound", "upper_bound")
 # (input name, output name) of the export layouts users find.
 KNOWN_SIGNATURES = (("image", "depth"), ("pixel_values", "predicted_depth"))
 
@@ -56,7 +58,8 @@ class DepthAnythingParams:
     model_path: str = ""  # ONNX file (required)
     provider: str = "cpu"  # onnxruntime execution provider: cpu | cuda | auto (CUDA when present)
     threads: int = 0  # intra-op threads (0 = onnxruntime default)
-    input_size: int = 518  # shorter side fed to the network (for dynamic-size models)
+    input_size: int = 518  # shorter (lower_bound) or longer (upper_bound) side fed to the net
+    resize_method: str = "lower_bound"  # lower_bound (the reference's) | upper_bound (cheaper)
     multiple_of: int = 14  # both sides rounded to a multiple of this (ViT patch size)
     output_kind: str = "relative_inverse_depth"  # what the model outputs (declared, not guessed)
     input_name: str = ""  # model input name ("" = recognise a known export layout)
@@ -66,6 +69,10 @@ class DepthAnythingParams:
         if self.output_kind not in OUTPUT_KINDS:
             raise ConfigError(
                 f"output_kind: expected one of {OUTPUT_KINDS}, got {self.output_kind!r}"
+            )
+        if self.resize_method not in RESIZE_METHODS:
+            raise ConfigError(
+                f"resize_method: expected one of {RESIZE_METHODS}, got {self.resize_method!r}"
             )
         if self.input_size < self.multiple_of or self.multiple_of < 1:
             raise ConfigError("input_size must be >= multiple_of >= 1")
@@ -82,22 +89,37 @@ class MonoDepth:
     model_ms: float = 0.0  # time spent inside the network
 
 
-def preprocess_size(H: int, W: int, input_size: int, multiple_of: int) -> tuple[int, int]:
-    """Network input ``(h, w)``: shorter side ~``input_size``, aspect kept, multiples of 14.
+def preprocess_size(
+    H: int, W: int, input_size: int, multiple_of: int, method: str = "lower_bound"
+) -> tuple[int, int]:
+    """Network input ``(h, w)``, aspect kept, both sides multiples of ``multiple_of`` (14).
 
-    As Depth Anything's ``Resize(keep_aspect_ratio=True, resize_method="lower_bound")``: the scale
-    makes the shorter side ``input_size``; each side is rounded to the nearest multiple and raised
-    to at least ``input_size`` rounded up.
+    As Depth Anything's ``Resize(keep_aspect_ratio=True, resize_method=method)``:
+    ``lower_bound`` (the reference's default) scales the shorter side to ``input_size``, each side
+    rounded to the nearest multiple and raised to at least ``input_size`` rounded up;
+    ``upper_bound`` scales the longer side to ``input_size``, each side rounded to the nearest
+    multiple and lowered to at most ``input_size`` (a 1242x375 frame at 518: 154x518, 407 ViT
+    tokens, instead of 518x1722, 4551 tokens).
     """
+    if method == "upper_bound":
+        scale = input_size / max(H, W)
+
+        def fit(x: float) -> int:
+            y = int(round(x / multiple_of) * multiple_of)
+            if y > input_size:
+                y = int(np.floor(x / multiple_of) * multiple_of)
+            return max(y, multiple_of)
+
+        return fit(H * scale), fit(W * scale)
     scale = input_size / min(H, W)
 
-    def fit(x: float) -> int:
+    def fit_lower(x: float) -> int:
         y = int(round(x / multiple_of) * multiple_of)
         if y < input_size:
             y = int(np.ceil(x / multiple_of) * multiple_of)
         return max(y, multiple_of)
 
-    return fit(H * scale), fit(W * scale)
+    return fit_lower(H * scale), fit_lower(W * scale)
 
 
 def _signature(sess, params: DepthAnythingParams) -> tuple[str, str]:
@@ -154,7 +176,8 @@ class DepthAnythingOnnx:
     def net_size(self, H: int, W: int) -> tuple[int, int]:
         if self.static_hw is not None:
             return self.static_hw
-        return preprocess_size(H, W, self.params.input_size, self.params.multiple_of)
+        p = self.params
+        return preprocess_size(H, W, p.input_size, p.multiple_of, p.resize_method)
 
     def preprocess(self, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
         """``[H, W, 3]`` uint8 RGB -> ``[1, 3, h, w]`` float32, resized and ImageNet-normalised."""

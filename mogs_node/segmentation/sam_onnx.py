@@ -35,14 +35,17 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
-from mogs_node.ort import check_signature, open_session
+from mogs_node.ort import check_signature, model_path, open_session
 
 __all__ = [
     "SamMasks",
     "SamOnnx",
     "SamParams",
+    "adapt_decoder",
     "box_nms",
+    "coarse_to_fine",
     "grid_points",
+    "grid_shape",
     "paint_masks",
     "stability_score",
 ]
@@ -83,7 +86,10 @@ class SamParams:
     skip_covered_prompts: bool = True  # skip a prompt that already lies in a kept mask
     flat_prompt_stride: int = 2  # in cells without structure keep every n-th prompt (1 = all)
     flat_gradient_thresh: float = 2.0  # mean Sobel magnitude [grey levels/px] below = flat cell
-    max_batch: int = 64  # prompts per decoder call when the decoder takes a batch
+    square_cells: bool = False  # grid of square cells: points_per_side along the longer side
+    max_prompts: int = 0  # at most this many decoder prompts per image (0 = no cap)
+    max_batch: int = 8  # prompts per decoder call when the decoder takes a batch
+    adapt_decoder: bool = True  # prune the unused full-size output, free the batch axis (onnx)
 
     def __post_init__(self) -> None:
         if self.points_per_side < 1 or self.image_size < 16:
@@ -92,8 +98,10 @@ class SamParams:
             raise ConfigError("SamParams: pred_iou_thresh and stability_score_thresh in [0, 1]")
         if not 0 < self.box_nms_thresh <= 1 or self.stability_score_offset < 0:
             raise ConfigError("SamParams: box_nms_thresh in (0, 1], stability_score_offset >= 0")
-        if self.flat_prompt_stride < 1 or self.max_batch < 1:
-            raise ConfigError("SamParams: flat_prompt_stride >= 1 and max_batch >= 1 required")
+        if self.flat_prompt_stride < 1 or self.max_batch < 1 or self.max_prompts < 0:
+            raise ConfigError(
+                "SamParams: flat_prompt_stride >= 1, max_batch >= 1 and max_prompts >= 0 required"
+            )
 
 
 @dataclass
@@ -117,15 +125,45 @@ def resized_hw(H: int, W: int, long_side: int) -> tuple[int, int]:
     return int(H * scale + 0.5), int(W * scale + 0.5)
 
 
-def grid_points(H: int, W: int, points_per_side: int) -> NDArray[np.float64]:
-    """Prompt grid in original pixels ``[n*n, 2]`` (u, v): cell centres, row-major.
+def grid_shape(H: int, W: int, points_per_side: int, square_cells: bool) -> tuple[int, int]:
+    """Prompt grid ``(rows, cols)``: ``n x n`` as SAM, or with ``square_cells`` ``n`` along the
+    longer side and as many along the shorter one as keep the cells about square (a 1242x375
+    KITTI frame: 16 x 5 instead of 16 x 16 cells of 78x23 px)."""
+    n = points_per_side
+    if not square_cells:
+        return n, n
+    short = max(1, int(round(n * min(H, W) / max(H, W))))
+    return (short, n) if W >= H else (n, short)
+
+
+def grid_points(
+    H: int, W: int, points_per_side: int, square_cells: bool = False
+) -> NDArray[np.float64]:
+    """Prompt grid in original pixels ``[rows*cols, 2]`` (u, v): cell centres, row-major.
 
     As ``build_point_grid``: normalised ``(i + 0.5) / n`` scaled by the image width/height.
     """
-    off = 1.0 / (2 * points_per_side)
-    side = np.linspace(off, 1 - off, points_per_side)
-    u, v = np.meshgrid(side * W, side * H)
+    rows, cols = grid_shape(H, W, points_per_side, square_cells)
+    u, v = np.meshgrid((np.arange(cols) + 0.5) / cols * W, (np.arange(rows) + 0.5) / rows * H)
     return np.stack([u.ravel(), v.ravel()], -1)
+
+
+def coarse_to_fine(points: NDArray[np.floating]) -> NDArray[np.int64]:
+    """Order of ``points`` ``[N, 2]`` by farthest-point sampling from their centroid: each next
+    point is the one farthest from those before it, so any prefix is spread over the image (a
+    coarse grid first, refined by the later points where earlier masks left the image uncovered;
+    ties to the lower index)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros(0, np.int64)
+    order = np.empty(len(pts), np.int64)
+    d = np.sum((pts - pts.mean(0)) ** 2, axis=1)
+    order[0] = int(np.argmin(d))
+    d = np.sum((pts - pts[order[0]]) ** 2, axis=1)
+    for k in range(1, len(pts)):
+        order[k] = int(np.argmax(d))
+        d = np.minimum(d, np.sum((pts - pts[order[k]]) ** 2, axis=1))
+    return order
 
 
 def stability_score(logits: NDArray[np.floating], threshold: float, offset: float) -> NDArray:
@@ -199,6 +237,32 @@ def paint_masks(
     return labels, order
 
 
+def adapt_decoder(path: str) -> bytes | None:
+    """The official decoder export without its ``masks`` output, with a free prompt-batch axis.
+
+    ONNX Runtime computes every node of a graph whatever outputs are asked for: the export's
+    ``masks`` (low-res logits upsampled to 1024x1024, cropped, resized to ``orig_im_size``) cost
+    ~10 % of a decoder call and are not used here (:meth:`SamOnnx.upsample` resizes only the
+    masks that survive the filters). The export declares ``point_coords`` ``[1, N, 2]``; its graph
+    repeats the image embedding per prompt (``predict_masks``), so a batch axis works when
+    declared free (checked by :class:`SamOnnx` before use). ``None`` when the ``onnx`` package
+    is missing (a core dependency; an install without it runs the file as it is).
+    """
+    try:
+        import onnx
+        from onnx.utils import Extractor
+    except ImportError:
+        log.info("%s: the onnx package is missing: decoder run as exported", path)
+        return None
+    model = onnx.load(str(model_path(path)))
+    inputs = [i.name for i in model.graph.input]
+    model = Extractor(model).extract_model(inputs, ["iou_predictions", "low_res_masks"])
+    for inp in model.graph.input:
+        if inp.name in ("point_coords", "point_labels"):
+            inp.type.tensor_type.shape.dim[0].dim_param = "prompts"
+    return model.SerializeToString()
+
+
 # ------------------------------------------------------------------------------ the model
 
 
@@ -231,13 +295,59 @@ class SamOnnx:
         # The official export fixes the prompt batch at 1; an export with a free batch axis
         # takes up to max_batch prompts per call.
         self.batched = not isinstance(shapes["point_coords"][0], int)
-        self.batch = params.max_batch if self.batched else 1
         mh, mw = shapes["mask_input"][2:]
         self.mask_input_hw = (
             mh if isinstance(mh, int) else 256,
             mw if isinstance(mw, int) else 256,
         )
         self.model_ms = 0.0  # time spent inside the two networks (running total)
+        self.adapted = False
+        if params.adapt_decoder:
+            self._adapt(shapes)
+        self.batch = params.max_batch if self.batched else 1
+
+    def _adapt(self, shapes: dict) -> None:
+        """Swap in :func:`adapt_decoder`'s copy of the decoder when it gives the same outputs as
+        the file's for two prompts run one by one (checked here, at start-up)."""
+        p = self.params
+        model = adapt_decoder(p.decoder_path)
+        if model is None:
+            return
+        fast = open_session(p.decoder_path, provider=p.provider, threads=p.threads, model=model)
+        shape = shapes["image_embeddings"]
+        shape = shape if all(isinstance(d, int) for d in shape) else (1, 256, 64, 64)
+        emb = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
+        pts, H, W = np.array([[100.0, 80.0], [400.0, 200.0]]), 300, 500
+        one = [self.decode(emb, pt[None], H, W) for pt in pts]  # the file's decoder, batch 1
+        file_decoder, batched = self.decoder, self.batched
+
+        def same_as_file(n: int) -> bool:
+            low, iou = self.decode(emb, pts[:n], H, W)
+            return all(
+                np.allclose(low[b], one[b][0][0], rtol=1e-3, atol=1e-3)
+                and np.allclose(iou[b], one[b][1][0], rtol=1e-3, atol=1e-3)
+                for b in range(n)
+            )
+
+        self.decoder, self.batched = fast, True
+        try:
+            same = same_as_file(2)
+        except Exception as err:  # onnxruntime's own error types: the graph is batch-1 only
+            log.debug("%s: batched prompts failed (%s)", p.decoder_path, err)
+            same = False
+        self.batched = same or batched
+        # without a batch the pruned copy still skips the full-size masks, one prompt a call
+        if not (same or same_as_file(1)):
+            log.warning("%s: the pruned decoder differs from the file's: not used", p.decoder_path)
+            self.decoder, self.batched = file_decoder, batched
+            return
+        self.adapted = True
+        self.model_ms = 0.0
+        log.info(
+            "%s: decoder without the full-size masks output%s",
+            p.decoder_path,
+            ", prompts batched" if self.batched else "",
+        )
 
     def preprocess(self, rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
         """``[H, W, 3]`` uint8 RGB -> ``[1, 3, S, S]``: resize longest side, normalise, pad."""
@@ -284,6 +394,8 @@ class SamOnnx:
             "has_mask_input": np.zeros(1, np.float32),
             "orig_im_size": np.array([H, W], np.float32),
         }
+        names = {i.name for i in self.decoder.get_inputs()}
+        feeds = {k: v for k, v in feeds.items() if k in names}
         t0 = time.perf_counter()
         iou, low = self.decoder.run(["iou_predictions", "low_res_masks"], feeds)
         self.model_ms += (time.perf_counter() - t0) * 1e3
@@ -304,20 +416,23 @@ class SamOnnx:
         return cv2.resize(up, (W, H), interpolation=cv2.INTER_LINEAR)
 
     def prompt_points(self, rgb: NDArray[np.uint8]) -> NDArray[np.float64]:
-        """Grid prompts ``[N, 2]`` (u, v), thinned to every ``flat_prompt_stride``-th row and
-        column in cells whose mean Sobel magnitude is below ``flat_gradient_thresh``."""
+        """Grid prompts ``[N, 2]`` (u, v) in the order they are run (:func:`coarse_to_fine`),
+        thinned to every ``flat_prompt_stride``-th row and column in cells whose mean Sobel
+        magnitude is below ``flat_gradient_thresh``."""
         p = self.params
         H, W = rgb.shape[:2]
-        n = p.points_per_side
-        pts = grid_points(H, W, n)
-        if p.flat_prompt_stride == 1:
-            return pts
-        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
-        mag = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
-        cell = cv2.resize(mag / 8.0, (n, n), interpolation=cv2.INTER_AREA)  # mean per grid cell
-        i, j = np.divmod(np.arange(n * n), n)
-        on_coarse = (i % p.flat_prompt_stride == 0) & (j % p.flat_prompt_stride == 0)
-        return pts[(cell.ravel() >= p.flat_gradient_thresh) | on_coarse]
+        pts = grid_points(H, W, p.points_per_side, p.square_cells)
+        if p.flat_prompt_stride > 1:
+            rows, cols = grid_shape(H, W, p.points_per_side, p.square_cells)
+            grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+            mag = cv2.magnitude(
+                cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)
+            )
+            cell = cv2.resize(mag / 8.0, (cols, rows), interpolation=cv2.INTER_AREA)  # cell mean
+            i, j = np.divmod(np.arange(rows * cols), cols)
+            on_coarse = (i % p.flat_prompt_stride == 0) & (j % p.flat_prompt_stride == 0)
+            pts = pts[(cell.ravel() >= p.flat_gradient_thresh) | on_coarse]
+        return pts[coarse_to_fine(pts)] if p.skip_covered_prompts or p.max_prompts else pts
 
     def _filter(
         self, low: NDArray[np.float32], iou: NDArray[np.float32], H: int, W: int
@@ -350,8 +465,10 @@ class SamOnnx:
         boxes, crops, keep_iou, keep_stab, keep_pts = [], [], [], [], []
         n_total = n_calls = n_run = 0
         pending = np.arange(len(pts))
-        while pending.size:
-            batch, pending = pending[: self.batch], pending[self.batch :]
+        budget = p.max_prompts or len(pts)
+        while pending.size and n_run < budget:
+            take = min(self.batch, budget - n_run)
+            batch, pending = pending[:take], pending[take:]
             low, iou = self.decode(emb, pts[batch], H, W)
             n_calls += 1 if self.batched else len(batch)
             n_run += len(batch)

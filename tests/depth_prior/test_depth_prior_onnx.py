@@ -53,6 +53,11 @@ def test_preprocess_size_multiple_of_14() -> None:
     assert h == 518 and abs(w / h - 1242 / 375) < 0.02
     h, w = preprocess_size(480, 640, 518, 14)
     assert (h, w) == (518, 686)  # 518 * 4/3 = 690.7 -> nearest multiple of 14 is 686
+    # upper_bound: the longer side is input_size, the shorter one rounded to a multiple of 14
+    assert preprocess_size(375, 1242, 518, 14, "upper_bound") == (154, 518)  # 156.4 -> 154
+    assert preprocess_size(188, 621, 518, 14, "upper_bound") == (154, 518)  # 156.8 -> 154
+    assert preprocess_size(480, 640, 518, 14, "upper_bound") == (392, 518)  # 388.5 -> 392
+    assert preprocess_size(1242, 375, 518, 14, "upper_bound") == (518, 154)
 
 
 def test_normalisation_exact_on_constant_image(dyn_model) -> None:
@@ -136,6 +141,8 @@ def test_missing_malformed_and_mismatched_models(tmp_path, dyn_model) -> None:
         DepthAnythingOnnx(DepthAnythingParams(model_path=dyn_model, provider="tpu"))
     with pytest.raises(ConfigError, match="output_kind"):
         DepthAnythingParams(output_kind="disparity")
+    with pytest.raises(ConfigError, match="resize_method.*'minimal'"):
+        DepthAnythingParams(resize_method="minimal")
 
 
 def test_known_layouts_recognised_and_unknown_refused(tmp_path) -> None:

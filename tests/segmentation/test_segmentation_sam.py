@@ -71,7 +71,11 @@ def test_preprocess_resize_normalise_pad(sam) -> None:
     assert np.all(x[0, :, h:, :] == 0) and np.all(x[0, :, :, w:] == 0)  # zero padding
 
 
-def test_decoder_mask_aligned_to_prompt(sam) -> None:
+def test_decoder_mask_aligned_to_prompt(sam, models) -> None:
+    from mogs_node.ort import open_session
+
+    assert sam.adapted and not sam.batched  # pruned; the tiny graph reads the first prompt only
+    exported = open_session(models[1])  # the file's decoder, with its full-size `masks` output
     emb = sam.embed(np.zeros((H, W, 3), np.uint8))
     assert emb.shape == (1, 256, 64, 64)
     scale = 1024 / max(H, W)
@@ -80,7 +84,7 @@ def test_decoder_mask_aligned_to_prompt(sam) -> None:
         assert low.shape == (1, 4, 256, 256) and iou.shape == (1, 4)
         np.testing.assert_allclose(iou[0], _tiny_sam.IOUS, atol=1e-3)
         coords = sam.to_model_coords(np.array([pt, [0.0, 0.0]]), H, W)[None].astype(np.float32)
-        (full,) = sam.decoder.run(
+        (full,) = exported.run(
             ["masks"],
             {
                 "image_embeddings": emb,
@@ -208,3 +212,56 @@ def test_prompt_cuts_fewer_decoder_calls_same_coverage(models) -> None:
     assert full.stats["n_decoder_calls"] == 64
     assert full.stats["coverage"] == 1.0 and res.stats["coverage"] > 0.9
     assert res.labels.dtype == np.int32 and res.labels.shape == (H, W)
+
+
+def test_square_cell_grid_and_coarse_to_fine_order() -> None:
+    from mogs_node.segmentation.sam_onnx import coarse_to_fine, grid_shape
+
+    assert grid_shape(375, 1242, 16, True) == (5, 16)  # 16 * 375 / 1242 = 4.8 rows
+    assert grid_shape(1242, 375, 16, True) == (16, 5) and grid_shape(375, 1242, 16, False) == (
+        16,
+        16,
+    )
+    pts = grid_points(375, 1242, 16, square_cells=True)
+    assert pts.shape == (80, 2)
+    np.testing.assert_allclose(np.unique(pts[:, 1]), (np.arange(5) + 0.5) * 75.0)
+    order = coarse_to_fine(pts)
+    np.testing.assert_array_equal(np.sort(order), np.arange(80))  # a permutation
+    centre = np.argmin(np.sum((pts - pts.mean(0)) ** 2, 1))
+    assert order[0] == centre
+    # Farthest-point order: each point is at least as far from those before it as any later one.
+    for k in range(1, 80):
+        d = np.min(np.linalg.norm(pts[order[k:], None] - pts[order[:k]][None], axis=2), axis=1)
+        assert d[0] == pytest.approx(d.max())
+    assert coarse_to_fine(np.zeros((0, 2))).shape == (0,)
+
+
+def test_prompt_budget_bounds_decoder_work(models) -> None:
+    enc, dec = models
+    rgb = np.random.default_rng(1).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    capped = SamOnnx(
+        SamParams(encoder_path=enc, decoder_path=dec, points_per_side=8, max_prompts=5, **EXACT_AMG)
+    )
+    res = capped.generate(rgb)
+    assert res.stats["n_prompts"] == 64 and res.stats["n_prompts_run"] == 5
+    assert res.stats["n_decoder_calls"] == 5  # the tiny decoder reads one prompt per call
+    # The 5 prompts run are the first of the coarse-to-fine order: spread over the image.
+    pts = capped.prompt_points(rgb)[:5]
+    assert np.ptp(pts[:, 0]) > 0.6 * W and np.ptp(pts[:, 1]) > 0.6 * H
+    with pytest.raises(Exception, match="max_prompts"):
+        SamParams(max_prompts=-1)
+
+
+def test_model_paths_with_variables_and_home(models, monkeypatch) -> None:
+    """Launch files name models as ~/... or $VAR/...: both the session and the decoder's
+    adaptation (which reads the file with the onnx package) expand them."""
+    enc, dec = models
+    folder = str(Path(dec).parent)
+    monkeypatch.setenv("MOGS_TEST_MODELS", folder)
+    monkeypatch.setenv("HOME", folder)
+    sam = SamOnnx(
+        SamParams(
+            encoder_path="$MOGS_TEST_MODELS/" + Path(enc).name, decoder_path="~/" + Path(dec).name
+        )
+    )
+    assert sam.adapted
