@@ -106,11 +106,16 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
 
 
 def with_overrides(params: FrontendParams, sets: list[str]) -> FrontendParams:
-    """``GROUP.FIELD=VALUE`` (VALUE as YAML) applied to ``params``'s dataclass groups."""
+    """``GROUP.FIELD=VALUE`` (VALUE as YAML) applied to ``params``'s dataclass groups, or
+    ``FIELD=VALUE`` to a top-level field."""
     import yaml
 
     for item in sets:
         key, _, value = item.partition("=")
+        if "." not in key and key in params.__dataclass_fields__:  # a top-level field
+            val = yaml.safe_load(value)
+            params = replace(params, **{key: val})
+            continue
         group, _, name = key.partition(".")
         sub = getattr(params, group, None)
         if not _ or not name or sub is None or name not in sub.__dataclass_fields__:

@@ -26,6 +26,7 @@ from mogs_node.frontend.initialization import (
     static_init,
 )
 from mogs_node.frontend.keyframes import (
+    KeyframeParams,
     StandstillKeyframes,
     is_keyframe,
     omega_weight,
@@ -275,7 +276,7 @@ class Frontend:
                     tr.ids,
                     tr.uv_px,
                     imu,
-                    is_keyframe=make_kf or p.window_every_frame,
+                    is_keyframe=make_kf or self._window_keeps(t_ns, tr.ids, tr.uv_px),
                     stationary=still,
                     track_len=tr.track_len,
                 )
@@ -329,6 +330,27 @@ class Frontend:
             },
             stats=stats,
         )
+
+    def _window_keeps(self, t_ns: int, ids: NDArray, uv_px: NDArray) -> bool:
+        """Whether a frame that is no published keyframe stays in the window (after the next
+        frame comes): every frame, or VINS-Mono's rule with the window's own thresholds: the
+        window's interval passed since the last frame kept, or the view moved (parallax, lost
+        tracks: a head turn keeps frames close together, a slow walk spreads them in time)."""
+        p = self.params
+        if not p.window_every_frame:
+            return False
+        interval = p.window_interval_s
+        kept = [f for f in self.estimator.frames if f.is_keyframe]
+        if interval <= 0 or not kept:
+            return True
+        rule = KeyframeParams(
+            min_parallax_px=p.window_parallax_px,
+            min_tracked_ratio=p.window_tracked_ratio,
+            min_tracked=0,
+            max_interval_s=max(interval - 1e-3, 1e-6),  # stamps jitter
+        )
+        dt_s = (t_ns - kept[-1].t_ns) * 1e-9
+        return is_keyframe(rule, kept[-1].ids, kept[-1].uv_px, ids, uv_px, dt_s)[0]
 
     def window_keyframe_poses(self) -> list[tuple[int, NDArray[np.float64]]]:
         """``(camera stamp, T_world_cam [4, 4])`` of the published keyframes still in the
