@@ -64,7 +64,9 @@ def run_one(seq, images, params: FrontendParams) -> dict:
                     "path_length_m",
                     "ate_se3_rmse_m",
                     "ate_se3_percent_of_path",
+                    "ate_sim3_rmse_m",
                     "scale_error",
+                    "rpe_rot_deg",
                     "first_pose_s",
                 )
             }
