@@ -47,6 +47,15 @@ def run_one(seq, images, params: FrontendParams) -> dict:
     )
     wall = time.perf_counter() - t0
     figs = fe.figures()
+    if os.environ.get("MOGS_TRAJ_NPZ"):  # per-frame poses and truth, for a look at the drift
+        posed = [(i, o) for i, o in enumerate(outs) if o.T_world_cam is not None]
+        np.savez(
+            os.environ["MOGS_TRAJ_NPZ"],
+            index=np.array([i for i, _ in posed]),
+            keyframe=np.array([o.keyframe is not None for _, o in posed]),
+            est=np.stack([o.T_world_cam for _, o in posed]),
+            gt=np.asarray(seq.T_world_cam)[[i for i, _ in posed]],
+        )
     out = {
         "time_offset_ms": figs["time_offset_ms"],
         "time_offset_sigma_ms": figs["time_offset_sigma_ms"],

@@ -340,6 +340,8 @@ class Frontend:
         if not p.window_every_frame:
             return False
         interval = p.window_interval_s
+        if interval is None:
+            interval = self.profile.window_interval_s
         kept = [f for f in self.estimator.frames if f.is_keyframe]
         if interval <= 0 or not kept:
             return True
