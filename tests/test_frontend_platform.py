@@ -13,6 +13,7 @@ from mogs_node.errors import ConfigError
 from mogs_node.eval.frontend_runs import run_frontend
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.keyframes import keeps_in_window
 from mogs_node.frontend.platform import (
     PLATFORMS,
     PlatformBounds,
@@ -283,3 +284,14 @@ def test_window_interval_from_the_platform() -> None:
     assert platform_profile("handheld").window_interval_s > 0.0
     hand = platform_profile("handheld", PlatformBounds(window_interval_s=0.0))
     assert hand.window_interval_s == 0.0
+
+
+def test_keeps_in_window_rule() -> None:
+    """Interval, parallax and track loss each keep a frame; none of them: dropped."""
+    ids = np.arange(100)
+    uv = np.random.default_rng(0).uniform(0, 600, (100, 2))
+    rule = (0.2, 10.0, 0.7)
+    assert not keeps_in_window(*rule, ids, uv, ids, uv + 2.0, 0.1)  # 2.8 px, all tracks, 0.1 s
+    assert keeps_in_window(*rule, ids, uv, ids, uv + 2.0, 0.2)  # the interval
+    assert keeps_in_window(*rule, ids, uv, ids, uv + 8.0, 0.1)  # 11.3 px of parallax
+    assert keeps_in_window(*rule, ids, uv, ids[:60], uv[:60] + 2.0, 0.1)  # 60 % of the tracks

@@ -26,9 +26,9 @@ from mogs_node.frontend.initialization import (
     static_init,
 )
 from mogs_node.frontend.keyframes import (
-    KeyframeParams,
     StandstillKeyframes,
     is_keyframe,
+    keeps_in_window,
     omega_weight,
 )
 from mogs_node.frontend.platform import (
@@ -333,9 +333,7 @@ class Frontend:
 
     def _window_keeps(self, t_ns: int, ids: NDArray, uv_px: NDArray) -> bool:
         """Whether a frame that is no published keyframe stays in the window (after the next
-        frame comes): every frame, or VINS-Mono's rule with the window's own thresholds: the
-        window's interval passed since the last frame kept, or the view moved (parallax, lost
-        tracks: a head turn keeps frames close together, a slow walk spreads them in time)."""
+        frame comes): every frame, or one per the window's interval or view change."""
         p = self.params
         if not p.window_every_frame:
             return False
@@ -345,14 +343,9 @@ class Frontend:
         kept = [f for f in self.estimator.frames if f.is_keyframe]
         if interval <= 0 or not kept:
             return True
-        rule = KeyframeParams(
-            min_parallax_px=p.window_parallax_px,
-            min_tracked_ratio=p.window_tracked_ratio,
-            min_tracked=0,
-            max_interval_s=max(interval - 1e-3, 1e-6),  # stamps jitter
-        )
-        dt_s = (t_ns - kept[-1].t_ns) * 1e-9
-        return is_keyframe(rule, kept[-1].ids, kept[-1].uv_px, ids, uv_px, dt_s)[0]
+        last = kept[-1]
+        rule = (interval, p.window_parallax_px, p.window_tracked_ratio)
+        return keeps_in_window(*rule, last.ids, last.uv_px, ids, uv_px, (t_ns - last.t_ns) * 1e-9)
 
     def window_keyframe_poses(self) -> list[tuple[int, NDArray[np.float64]]]:
         """``(camera stamp, T_world_cam [4, 4])`` of the published keyframes still in the
