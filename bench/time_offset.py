@@ -47,6 +47,15 @@ def run_one(seq, images, params: FrontendParams) -> dict:
     )
     wall = time.perf_counter() - t0
     figs = fe.figures()
+    if os.environ.get("MOGS_TRAJ_NPZ"):  # per-frame poses and truth, for a look at the drift
+        posed = [(i, o) for i, o in enumerate(outs) if o.T_world_cam is not None]
+        np.savez(
+            os.environ["MOGS_TRAJ_NPZ"],
+            index=np.array([i for i, _ in posed]),
+            keyframe=np.array([o.keyframe is not None for _, o in posed]),
+            est=np.stack([o.T_world_cam for _, o in posed]),
+            gt=np.asarray(seq.T_world_cam)[[i for i, _ in posed]],
+        )
     out = {
         "time_offset_ms": figs["time_offset_ms"],
         "time_offset_sigma_ms": figs["time_offset_sigma_ms"],
@@ -64,7 +73,9 @@ def run_one(seq, images, params: FrontendParams) -> dict:
                     "path_length_m",
                     "ate_se3_rmse_m",
                     "ate_se3_percent_of_path",
+                    "ate_sim3_rmse_m",
                     "scale_error",
+                    "rpe_rot_deg",
                     "first_pose_s",
                 )
             }
@@ -106,11 +117,16 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
 
 
 def with_overrides(params: FrontendParams, sets: list[str]) -> FrontendParams:
-    """``GROUP.FIELD=VALUE`` (VALUE as YAML) applied to ``params``'s dataclass groups."""
+    """``GROUP.FIELD=VALUE`` (VALUE as YAML) applied to ``params``'s dataclass groups, or
+    ``FIELD=VALUE`` to a top-level field."""
     import yaml
 
     for item in sets:
         key, _, value = item.partition("=")
+        if "." not in key and key in params.__dataclass_fields__:  # a top-level field
+            val = yaml.safe_load(value)
+            params = replace(params, **{key: val})
+            continue
         group, _, name = key.partition(".")
         sub = getattr(params, group, None)
         if not _ or not name or sub is None or name not in sub.__dataclass_fields__:

@@ -75,6 +75,10 @@ class VioEstimator:
             gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k),
             gtsam.noiseModel.Isotropic.Sigma(2, params.pixel_sigma_px),
         )
+        self._prior_proj_noise = gtsam.noiseModel.Robust.Create(  # keep_visual_prior's weight
+            gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, params.pixel_sigma_px * params.visual_prior_sigma),
+        )
         zs = np.r_[[params.zero_motion_sigma_rad] * 3, [params.zero_motion_sigma_m] * 3]
         self._zero_noise = gtsam.noiseModel.Diagonal.Sigmas(zs)
         self._zero_vel_noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
@@ -493,7 +497,7 @@ class VioEstimator:
                 if lid in lid_set or (keep_visual and lid in mature):
                     g.add(
                         gtsam.GenericProjectionFactorCal3_S2(
-                            m, self._proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam
+                            m, self._prior_proj_noise, X(f.seq), L(lid), self._cal, self._body_P_cam
                         )
                     )
         lin = g.linearize(self.values)

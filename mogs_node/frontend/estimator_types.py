@@ -85,6 +85,8 @@ class EstimatorParams:
     # marginalisation prior with their landmarks kept as variables (exact Schur complement; a
     # landmark is marginalised out of the prior when it leaves the window). False: they are dropped
     # and the window's scale drifts (docs/frontend.md, "Investigation")
+    visual_prior_sigma: float = 1.0  # their pixel sigma there, times pixel_sigma_px (> 1: a
+    # weaker visual prior that lets the window's scale follow the IMU; docs/frontend.md round 9)
     visual_prior_min_obs: int = 4  # only landmarks seen by at least this many window frames go
     # into the prior (a fresh two-view landmark is linearised far from its converged position)
     zero_motion_sigma_m: float = 2e-3  # translation sigma of a zero-motion factor
@@ -99,8 +101,15 @@ class EstimatorParams:
     max_speed_m_s: float = 80.0
 
     def __post_init__(self) -> None:
-        if self.window_size < 2 or self.lm_iterations < 1 or self.pixel_sigma_px <= 0:
-            raise ConfigError("estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px > 0")
+        if (
+            self.window_size < 2
+            or self.lm_iterations < 1
+            or min(self.pixel_sigma_px, self.visual_prior_sigma) <= 0
+        ):
+            raise ConfigError(
+                "estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px and "
+                "visual_prior_sigma > 0"
+            )
 
 
 @dataclass

@@ -28,6 +28,7 @@ from mogs_node.frontend.initialization import (
 from mogs_node.frontend.keyframes import (
     StandstillKeyframes,
     is_keyframe,
+    keeps_in_window,
     omega_weight,
 )
 from mogs_node.frontend.platform import (
@@ -275,7 +276,7 @@ class Frontend:
                     tr.ids,
                     tr.uv_px,
                     imu,
-                    is_keyframe=make_kf or p.window_every_frame,
+                    is_keyframe=make_kf or self._window_keeps(t_ns, tr.ids, tr.uv_px),
                     stationary=still,
                     track_len=tr.track_len,
                 )
@@ -329,6 +330,22 @@ class Frontend:
             },
             stats=stats,
         )
+
+    def _window_keeps(self, t_ns: int, ids: NDArray, uv_px: NDArray) -> bool:
+        """Whether a frame that is no published keyframe stays in the window (after the next
+        frame comes): every frame, or one per the window's interval or view change."""
+        p = self.params
+        if not p.window_every_frame:
+            return False
+        interval = p.window_interval_s
+        if interval is None:
+            interval = self.profile.window_interval_s
+        kept = [f for f in self.estimator.frames if f.is_keyframe]
+        if interval <= 0 or not kept:
+            return True
+        last = kept[-1]
+        rule = (interval, p.window_parallax_px, p.window_tracked_ratio)
+        return keeps_in_window(*rule, last.ids, last.uv_px, ids, uv_px, (t_ns - last.t_ns) * 1e-9)
 
     def window_keyframe_poses(self) -> list[tuple[int, NDArray[np.float64]]]:
         """``(camera stamp, T_world_cam [4, 4])`` of the published keyframes still in the

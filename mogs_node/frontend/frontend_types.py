@@ -51,6 +51,13 @@ class FrontendParams:
     init_mode: str = "auto"  # 'auto' (static when still, else dynamic), 'static' or 'dynamic'
     window_every_frame: bool = True  # every frame enters the estimator's window (not only the
     # published keyframes): shorter window span, more IMU-vision coupling, better accuracy
+    window_interval_s: float | None = None  # with window_every_frame: a frame that is no
+    # published keyframe stays in the window only when this long after the previous window frame,
+    # or when its view moved (the two thresholds below; the newest frame is always on top): a
+    # longer window span for the same window_size, which a slow walk's metric scale needs
+    # (docs/frontend.md, round 9). 0: every frame stays; None: the platform profile's value
+    window_parallax_px: float = 10.0  # ... mean parallax to the previous window frame
+    window_tracked_ratio: float = 0.7  # ... fewer of its tracks than this fraction
     time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns (camera-IMU time offset): the
     # prior of the estimate (time_offset.enabled), the value used as it is otherwise
     time_offset: TimeOffsetParams = field(default_factory=TimeOffsetParams)  # its estimation
@@ -66,6 +73,8 @@ class FrontendParams:
     def __post_init__(self) -> None:
         if self.init_mode not in INIT_MODES:
             raise ConfigError(f"frontend.init_mode: {self.init_mode!r} not in {INIT_MODES}")
+        if self.window_interval_s is not None and self.window_interval_s < 0:
+            raise ConfigError(f"frontend.window_interval_s: {self.window_interval_s} < 0")
         if self.max_imu_gap_s <= 0 or self.max_pending_frames < 1:
             raise ConfigError("frontend: max_imu_gap_s > 0 and max_pending_frames >= 1")
 

@@ -21,6 +21,7 @@ __all__ = [
     "KeyframeParams",
     "StandstillKeyframes",
     "is_keyframe",
+    "keeps_in_window",
     "landmark_covariance",
     "omega_weight",
     "triangulate_midpoint",
@@ -75,6 +76,30 @@ def is_keyframe(
     return bool(
         parallax >= params.min_parallax_px or few or dt_s >= params.max_interval_s
     ), parallax
+
+
+def keeps_in_window(
+    interval_s: float,
+    parallax_px: float,
+    tracked_ratio: float,
+    last_ids: NDArray,
+    last_uv_px: NDArray,
+    ids: NDArray,
+    uv_px: NDArray,
+    dt_s: float,
+) -> bool:
+    """Whether a frame stays in the estimator's window beside the published keyframes
+    (docs/frontend.md, round 9): VINS-Mono's keyframe rule with the window's own thresholds,
+    against the last window frame (``last_*``, ``dt_s`` ago): ``interval_s`` passed, or the view
+    moved (mean parallax >= ``parallax_px``, fewer than ``tracked_ratio`` of its tracks left).
+    A head turn keeps frames close together, a slow walk spreads them in time."""
+    rule = KeyframeParams(
+        min_parallax_px=parallax_px,
+        min_tracked_ratio=tracked_ratio,
+        min_tracked=0,
+        max_interval_s=max(interval_s - 1e-3, 1e-6),  # stamps jitter
+    )
+    return is_keyframe(rule, last_ids, last_uv_px, ids, uv_px, dt_s)[0]
 
 
 class StandstillKeyframes:

@@ -41,6 +41,8 @@ class PlatformProfile:
     max_angular_rate_rad_s: float  # mean angular rate between two window frames
     max_vertical_speed_m_s: float  # |v_z|
     keyframe_min_interval_s: float  # at most one keyframe per this long (the mapper's rate)
+    window_interval_s: float = 0.0  # the estimator window's frame spacing when the view does
+    # not move (FrontendParams.window_interval_s; 0: every frame stays in the window)
 
     def __post_init__(self) -> None:
         vals = (
@@ -49,7 +51,7 @@ class PlatformProfile:
             self.max_angular_rate_rad_s,
             self.max_vertical_speed_m_s,
         )
-        if min(vals) <= 0 or self.keyframe_min_interval_s < 0:
+        if min(vals) <= 0 or self.keyframe_min_interval_s < 0 or self.window_interval_s < 0:
             raise ConfigError(f"platform {self.name!r}: bounds must be positive")
 
 
@@ -58,7 +60,7 @@ class PlatformProfile:
 #: drone: a multicopter (EuRoC's MAV) - fast rotations and vertical motion
 PLATFORMS: dict[str, PlatformProfile] = {
     "car": PlatformProfile("car", 70.0, 15.0, 2.0, 8.0, 0.09),
-    "handheld": PlatformProfile("handheld", 4.0, 20.0, 8.0, 2.0, 0.5),
+    "handheld": PlatformProfile("handheld", 4.0, 20.0, 8.0, 2.0, 0.5, window_interval_s=0.2),
     "drone": PlatformProfile("drone", 20.0, 25.0, 8.0, 8.0, 0.25),
 }
 
@@ -72,6 +74,7 @@ class PlatformBounds:
     max_angular_rate_rad_s: float | None = None
     max_vertical_speed_m_s: float | None = None
     keyframe_min_interval_s: float | None = None
+    window_interval_s: float | None = None
 
 
 def platform_profile(name: str, bounds: PlatformBounds | None = None) -> PlatformProfile:

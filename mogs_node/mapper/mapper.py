@@ -308,7 +308,10 @@ class GaussianMapper:
         ``should_stop`` is polled before each iteration (a node's time budget or shutdown)."""
         if downsample < 1:
             raise ConfigError(f"refine: downsample must be >= 1, got {downsample}")
-        if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
+        # an offloaded region's keyframes hold empty placeholders (their data is in the submap
+        # file): the refinement runs over the keyframes in RAM
+        live = [k.index for k in self.keyframes if k.index not in self.offloaded_kfs]
+        if not live or n_iters <= 0 or len(self.map) == 0:
             return self.stats()
         p = self.params
         lrs = self._lrs()
@@ -316,11 +319,11 @@ class GaussianMapper:
         for it in range(n_iters):
             if should_stop is not None and should_stop():
                 break
-            i = (self._refine_next + it) % len(self.keyframes)
+            i = live[(self._refine_next + it) % len(live)]
             self._train_step(
                 i, fixed, lrs, factor=downsample, refine_pose=False, ssim_w=p.refine_lambda_ssim
             )
-        self._refine_next = (self._refine_next + n_iters) % len(self.keyframes)
+        self._refine_next = (self._refine_next + n_iters) % len(live)
         self._prune()
         return self.stats()
 

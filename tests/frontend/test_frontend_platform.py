@@ -13,6 +13,7 @@ from mogs_node.errors import ConfigError
 from mogs_node.eval.frontend_runs import run_frontend
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.keyframes import keeps_in_window
 from mogs_node.frontend.platform import (
     PLATFORMS,
     PlatformBounds,
@@ -242,3 +243,55 @@ def test_auto_platform_in_the_frontend_on_the_sim_walk() -> None:
         )
         assert fe.profile.name == expect and fe._dyn_init.profile.name == expect
         assert fe.figures()["platform_walk_detected"] == float(expect == "handheld")
+
+
+@pytest.mark.parametrize("interval", [0.0, 0.3])
+def test_window_spacing(car_drive, interval: float) -> None:
+    """``window_interval_s``: the frames between published keyframes stay in the window one per
+    interval (parallax and track loss not triggering here); 0 keeps every frame."""
+    seq, images = car_drive
+    params = FrontendParams(
+        platform="car",
+        init_mode="dynamic",
+        time_offset=TimeOffsetParams(enabled=False),
+        bounds=PlatformBounds(keyframe_min_interval_s=1.5),
+        window_interval_s=interval,
+        window_parallax_px=1e9,
+        window_tracked_ratio=0.0,
+    )
+    fe = Frontend(params, CameraModel(seq.camera), seq.T_imu_cam)
+    outs = run_frontend(
+        fe, seq.stamps_ns, images, seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2
+    )
+    published = {o.stamp_ns for o in outs if o.keyframe is not None}
+    frames = fe.estimator.frames[:-1]  # the newest frame is always on top
+    assert len(frames) == fe.params.estimator.window_size
+    dt = np.diff([f.t_ns for f in frames]) * 1e-9
+    later = [f.t_ns in published for f in frames[1:]]
+    if interval == 0.0:
+        assert np.allclose(dt, 0.1, atol=2e-3)
+    else:
+        assert all(d >= interval - 2e-3 or kf for d, kf in zip(dt, later, strict=True))
+        assert dt.max() < interval + 0.1 + 2e-3  # the first frame past the interval stays
+        assert sum(not kf for kf in later) >= 3
+
+
+def test_window_interval_from_the_platform() -> None:
+    """None takes the profile's spacing: the handheld walk spreads its window, car and drone
+    keep every frame."""
+    assert platform_profile("car").window_interval_s == 0.0
+    assert platform_profile("drone").window_interval_s == 0.0
+    assert platform_profile("handheld").window_interval_s > 0.0
+    hand = platform_profile("handheld", PlatformBounds(window_interval_s=0.0))
+    assert hand.window_interval_s == 0.0
+
+
+def test_keeps_in_window_rule() -> None:
+    """Interval, parallax and track loss each keep a frame; none of them: dropped."""
+    ids = np.arange(100)
+    uv = np.random.default_rng(0).uniform(0, 600, (100, 2))
+    rule = (0.2, 10.0, 0.7)
+    assert not keeps_in_window(*rule, ids, uv, ids, uv + 2.0, 0.1)  # 2.8 px, all tracks, 0.1 s
+    assert keeps_in_window(*rule, ids, uv, ids, uv + 2.0, 0.2)  # the interval
+    assert keeps_in_window(*rule, ids, uv, ids, uv + 8.0, 0.1)  # 11.3 px of parallax
+    assert keeps_in_window(*rule, ids, uv, ids[:60], uv[:60] + 2.0, 0.1)  # 60 % of the tracks

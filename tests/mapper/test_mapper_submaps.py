@@ -290,3 +290,16 @@ def test_a_bound_on_gaussians_in_ram_offloads_the_farthest_regions_first(
 def test_the_bound_on_gaussians_in_ram_must_not_be_negative() -> None:
     with pytest.raises(ConfigError, match="max_gaussians_in_ram"):
         SubmapParams(max_gaussians_in_ram=-1)
+
+
+def test_final_refinement_skips_the_offloaded_keyframes(tmp_path) -> None:
+    """The end-of-run refinement over a map with offloaded regions trains the keyframes in RAM
+    only (an offloaded keyframe's image is an empty placeholder: it failed on it before)."""
+    store = SubmapStore(PARAMS, tmp_path)
+    m = drive(6, store)
+    store.offload_far(m, np.array([STEP_M * 5, 0.0, 0.0]))
+    assert m.offloaded_kfs == {0, 1, 2}
+    before = {k.index: k.iterations for k in m.keyframes}
+    m.refine(6)
+    gained = {k.index: k.iterations - before[k.index] for k in m.keyframes}
+    assert gained == {0: 0, 1: 0, 2: 0, 3: 2, 4: 2, 5: 2}
