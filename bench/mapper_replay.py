@@ -253,7 +253,11 @@ def main(argv: list[str] | None = None) -> int:
         while done < p.final_refine_iters:
             n = min(step, p.final_refine_iters - done)
             c1 = time.process_time()
-            mapper.refine(n, p.final_refine_downsample)
+            chunk = max(p.final_refine_chunk, 1)  # as the node runs it: pruning after each chunk
+            for k in range(0, n, chunk):
+                mapper.refine(
+                    min(chunk, n - k), p.final_refine_downsample, total_iters=p.final_refine_iters
+                )
             cpu_refine += time.process_time() - c1
             done += n
             if done < p.final_refine_iters:

@@ -87,6 +87,7 @@ class GaussianMapper:
         self.n_densified = 0
         self._rng = np.random.default_rng(params.seed)
         self._refine_next = 0  # the keyframe the next refinement iteration starts from
+        self.refine_done = 0  # refinement iterations run so far (its learning-rate schedule)
         self._grad_accum = torch.zeros(0, device=self.device)
         self._grad_count = torch.zeros(0, device=self.device)
 
@@ -299,27 +300,42 @@ class GaussianMapper:
         n_iters: int,
         downsample: int = 1,
         should_stop: Callable[[], bool] | None = None,
+        total_iters: int = 0,
     ) -> dict[str, float]:
         """Final refinement of the whole map (MonoGS's colour refinement at the end of a run):
         ``n_iters`` iterations, one view each, over **every** keyframe in turn (keyframe order,
         round-robin: deterministic, and each keyframe gets its share), at 1/``downsample`` of the
         resolution (1: full resolution, which sharpens what half-resolution training blurred),
-        then pruning. Same loss, learning rates and exposure as :meth:`optimize`; poses stay.
+        then pruning. Same loss and exposure as :meth:`optimize` (depth weight
+        ``refine_lambda_depth``, D-SSIM weight ``refine_lambda_ssim``); poses stay. The map's
+        learning rates are ``refine_lr_scale`` x :meth:`optimize`'s, decayed exponentially to
+        ``refine_lr_final`` of that over ``total_iters`` refinement iterations (a caller running
+        the refinement in chunks passes the whole count; 0: this call's ``n_iters``).
         ``should_stop`` is polled before each iteration (a node's time budget or shutdown)."""
         if downsample < 1:
             raise ConfigError(f"refine: downsample must be >= 1, got {downsample}")
         if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
             return self.stats()
         p = self.params
-        lrs = self._lrs()
+        total = max(total_iters, n_iters, 1)
         fixed = -1  # no window pose refinement here: -1 is no keyframe index
         for it in range(n_iters):
             if should_stop is not None and should_stop():
                 break
+            frac = min(self.refine_done / total, 1.0)
+            gain = p.refine_lr_scale * p.refine_lr_final**frac
+            lrs = {k: v * gain for k, v in self._lrs().items()}
             i = (self._refine_next + it) % len(self.keyframes)
             self._train_step(
-                i, fixed, lrs, factor=downsample, refine_pose=False, ssim_w=p.refine_lambda_ssim
+                i,
+                fixed,
+                lrs,
+                factor=downsample,
+                refine_pose=False,
+                ssim_w=p.refine_lambda_ssim,
+                depth_w=p.lambda_depth if p.refine_lambda_depth < 0 else p.refine_lambda_depth,
             )
+            self.refine_done += 1
         self._refine_next = (self._refine_next + n_iters) % len(self.keyframes)
         self._prune()
         return self.stats()
@@ -386,12 +402,15 @@ class GaussianMapper:
         factor: int | None = None,
         refine_pose: bool = True,
         ssim_w: float | None = None,
+        depth_w: float | None = None,
     ) -> float:
         """One iteration on keyframe ``i`` at 1/``factor`` resolution (default
-        ``train_downsample``) with D-SSIM weight ``ssim_w`` (default ``lambda_ssim``); returns
-        its L1 photometric error (after exposure)."""
+        ``train_downsample``) with D-SSIM weight ``ssim_w`` (default ``lambda_ssim``) and depth
+        weight ``depth_w`` (default ``lambda_depth``); returns its L1 photometric error (after
+        exposure)."""
         p = self.params
         ssim_w = p.lambda_ssim if ssim_w is None else ssim_w
+        depth_w = p.lambda_depth if depth_w is None else depth_w
         f = p.train_downsample if factor is None else factor
         K_f, (W, H) = (
             (self.train_K, self.train_size) if f == p.train_downsample else (self._train_camera(f))
@@ -428,11 +447,11 @@ class GaussianMapper:
         if ssim_w > 0:  # 3DGS eq. 7
             d_ssim = 1 - ssim_torch(color, image.to(color.dtype))
             l_photo = (1 - ssim_w) * l_rgb + ssim_w * d_ssim
-        total = (1 - p.lambda_depth) * l_photo
+        total = (1 - depth_w) * l_photo
         dmask = depth_m > 0
-        if p.lambda_depth > 0 and bool(dmask.any()):
+        if depth_w > 0 and bool(dmask.any()):
             rel = (out.depth - depth_m).abs() / depth_m.clamp_min(1e-3)
-            total = total + p.lambda_depth * (conf * rel)[dmask].mean()
+            total = total + depth_w * (conf * rel)[dmask].mean()
         ls = leaves["log_scales"]
         if p.lambda_iso > 0 and len(rows):
             total = total + p.lambda_iso * (ls - ls.mean(1, keepdim=True)).abs().mean()
