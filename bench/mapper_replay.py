@@ -15,6 +15,13 @@ scoring PSNR and SSIM (:mod:`mogs_node.mapper.image_metrics`). ``--profile`` pri
 table (cumulative) of the whole replay.
 
     .venv/bin/python bench/mapper_replay.py runs/<ts>/journal/journal.log --json /tmp/replay.json
+
+Refinement trials: replay the drive once and keep its online map (``--save-online``), then refine
+that map under other settings without replaying (``--from-online``, same ``--set`` overrides)::
+
+    mapper_replay.py JOURNAL --threads 1 --save-online /tmp/online.ckpt --refine-step 100
+    mapper_replay.py JOURNAL --threads 1 --from-online /tmp/online.ckpt --refine-step 100 \
+        --set refine_lr_scale=3 --set refine_lr_final=0.1
 """
 
 from __future__ import annotations
@@ -39,6 +46,7 @@ from mogs_node import msgs
 from mogs_node.eval.bench_docs import REPO_ROOT, write_json
 from mogs_node.journal.store import JournalStore
 from mogs_node.launch import load_launch_file
+from mogs_node.mapper.checkpoint import load_checkpoint, save_checkpoint
 from mogs_node.mapper.image_metrics import psnr_db, ssim
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply
 from mogs_node.mapper.node import MapperNodeParams, depth_for_keyframe
@@ -218,6 +226,14 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="every keyframe inserted with no iteration, the owed ones run after (kitti.yaml)",
     )
+    ap.add_argument(
+        "--save-online", default=None, help="save the online map (before refining) as a checkpoint"
+    )
+    ap.add_argument(
+        "--from-online",
+        default=None,
+        help="start from such a checkpoint instead of replaying the drive (refinement trials)",
+    )
     ap.add_argument("--profile", action="store_true", help="print the cProfile table")
     ap.add_argument("--json", default=None)
     ap.add_argument("--ply", default=None, help="also write the final map here (3DGS PLY)")
@@ -240,10 +256,16 @@ def main(argv: list[str] | None = None) -> int:
     c0 = time.process_time()
     if prof:
         prof.enable()
-    mapper, per_kf = replay(data, p, args.max_keyframes, core, behind=args.behind)
+    if args.from_online:  # the saved online map under this run's parameters
+        mapper = load_checkpoint(args.from_online, params=core_params(p, core))
+        per_kf = [{"insert_cpu_s": 0.0, "optimize_cpu_s": 0.0} for _ in mapper.keyframes]
+    else:
+        mapper, per_kf = replay(data, p, args.max_keyframes, core, behind=args.behind)
     if prof:
         prof.disable()
     cpu_total = time.process_time() - c0
+    if args.save_online:
+        save_checkpoint(mapper, args.save_online)
     refine: dict[str, float] = {}
     if p.final_refine_iters > 0:  # the end of the drive: the node's final refinement
         q0 = score(mapper, data)
@@ -253,7 +275,11 @@ def main(argv: list[str] | None = None) -> int:
         while done < p.final_refine_iters:
             n = min(step, p.final_refine_iters - done)
             c1 = time.process_time()
-            mapper.refine(n, p.final_refine_downsample)
+            chunk = max(p.final_refine_chunk, 1)  # as the node runs it: pruning after each chunk
+            for k in range(0, n, chunk):
+                mapper.refine(
+                    min(chunk, n - k), p.final_refine_downsample, total_iters=p.final_refine_iters
+                )
             cpu_refine += time.process_time() - c1
             done += n
             if done < p.final_refine_iters:

@@ -95,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
 
     image_t: dict[int, float] = {}  # stamp -> arrival
     kf_stamp: dict[int, int] = {}  # keyframe id -> stamp
+    kf_t: dict[int, float] = {}  # keyframe id -> arrival of the frontend's keyframe
     depth_t: dict[int, float] = {}
     stats_t: dict[int, float] = {}
     final_t: float | None = None  # the mapper's final (refined) map, when it refines
@@ -112,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                 image_t.setdefault(m.stamp_ns, now)
             elif isinstance(m, msgs.Keyframe):
                 kf_stamp[m.keyframe_id] = m.stamp_ns
+                kf_t.setdefault(m.keyframe_id, now)
             elif env.topic == "/metrizer/depth":
                 depth_t.setdefault(m.keyframe_id, now)
             elif env.topic == "/mapper/stats":
@@ -178,6 +180,15 @@ def main(argv: list[str] | None = None) -> int:
         "final_refine_s": round(final_t - max(stats_t.values()), 2)
         if final_t is not None and stats_t
         else 0.0,
+    }
+    # where each keyframe's time goes: seconds after the first image at which its image, its
+    # keyframe, its metrized depth and its mapper stats arrived (the critical path of the drive)
+    figures["timeline_s"] = {
+        str(k): [
+            round(t - first, 3) if t is not None else None
+            for t in (image_t.get(s), kf_t.get(k), depth_t.get(k), stats_t.get(k))
+        ]
+        for k, s in sorted(kf_stamp.items())
     }
     for name in cpu:
         figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(cpu[name]), 1)

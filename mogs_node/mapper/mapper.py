@@ -53,6 +53,7 @@ from mogs_node.mapper.mapper_params import MapperParams, resolve_device
 from mogs_node.mapper.ply import export_ply
 from mogs_node.mapper.projection import cull_gaussians, se3_exp_torch
 from mogs_node.mapper.rasterizer import GaussianTensors, RenderOutput, render
+from mogs_node.mapper.support import blending_contribution, rows_of
 from mogs_node.mapper.window import update_window
 
 __all__ = ["GaussianMapper", "KeyframeState", "MapperParams", "export_ply", "resolve_device"]
@@ -87,6 +88,7 @@ class GaussianMapper:
         self.n_densified = 0
         self._rng = np.random.default_rng(params.seed)
         self._refine_next = 0  # the keyframe the next refinement iteration starts from
+        self.refine_done = 0  # refinement iterations run so far (its learning-rate schedule)
         self._grad_accum = torch.zeros(0, device=self.device)
         self._grad_count = torch.zeros(0, device=self.device)
 
@@ -299,12 +301,17 @@ class GaussianMapper:
         n_iters: int,
         downsample: int = 1,
         should_stop: Callable[[], bool] | None = None,
+        total_iters: int = 0,
     ) -> dict[str, float]:
         """Final refinement of the whole map (MonoGS's colour refinement at the end of a run):
         ``n_iters`` iterations, one view each, over **every** keyframe in turn (keyframe order,
         round-robin: deterministic, and each keyframe gets its share), at 1/``downsample`` of the
         resolution (1: full resolution, which sharpens what half-resolution training blurred),
-        then pruning. Same loss, learning rates and exposure as :meth:`optimize`; poses stay.
+        then pruning. Same loss and exposure as :meth:`optimize` (depth weight
+        ``refine_lambda_depth``, D-SSIM weight ``refine_lambda_ssim``); poses stay. The map's
+        learning rates are ``refine_lr_scale`` x :meth:`optimize`'s, decayed exponentially to
+        ``refine_lr_final`` of that over ``total_iters`` refinement iterations (a caller running
+        the refinement in chunks passes the whole count; 0: this call's ``n_iters``).
         ``should_stop`` is polled before each iteration (a node's time budget or shutdown)."""
         if downsample < 1:
             raise ConfigError(f"refine: downsample must be >= 1, got {downsample}")
@@ -314,15 +321,25 @@ class GaussianMapper:
         if not live or n_iters <= 0 or len(self.map) == 0:
             return self.stats()
         p = self.params
-        lrs = self._lrs()
+        total = max(total_iters, n_iters, 1)
         fixed = -1  # no window pose refinement here: -1 is no keyframe index
         for it in range(n_iters):
             if should_stop is not None and should_stop():
                 break
+            frac = min(self.refine_done / total, 1.0)
+            gain = p.refine_lr_scale * p.refine_lr_final**frac
+            lrs = {k: v * gain for k, v in self._lrs().items()}
             i = live[(self._refine_next + it) % len(live)]
             self._train_step(
-                i, fixed, lrs, factor=downsample, refine_pose=False, ssim_w=p.refine_lambda_ssim
+                i,
+                fixed,
+                lrs,
+                factor=downsample,
+                refine_pose=False,
+                ssim_w=p.refine_lambda_ssim,
+                depth_w=p.lambda_depth if p.refine_lambda_depth < 0 else p.refine_lambda_depth,
             )
+            self.refine_done += 1
         self._refine_next = (self._refine_next + n_iters) % len(live)
         self._prune()
         return self.stats()
@@ -389,12 +406,15 @@ class GaussianMapper:
         factor: int | None = None,
         refine_pose: bool = True,
         ssim_w: float | None = None,
+        depth_w: float | None = None,
     ) -> float:
         """One iteration on keyframe ``i`` at 1/``factor`` resolution (default
-        ``train_downsample``) with D-SSIM weight ``ssim_w`` (default ``lambda_ssim``); returns
-        its L1 photometric error (after exposure)."""
+        ``train_downsample``) with D-SSIM weight ``ssim_w`` (default ``lambda_ssim``) and depth
+        weight ``depth_w`` (default ``lambda_depth``); returns its L1 photometric error (after
+        exposure)."""
         p = self.params
         ssim_w = p.lambda_ssim if ssim_w is None else ssim_w
+        depth_w = p.lambda_depth if depth_w is None else depth_w
         f = p.train_downsample if factor is None else factor
         K_f, (W, H) = (
             (self.train_K, self.train_size) if f == p.train_downsample else (self._train_camera(f))
@@ -431,11 +451,11 @@ class GaussianMapper:
         if ssim_w > 0:  # 3DGS eq. 7
             d_ssim = 1 - ssim_torch(color, image.to(color.dtype))
             l_photo = (1 - ssim_w) * l_rgb + ssim_w * d_ssim
-        total = (1 - p.lambda_depth) * l_photo
+        total = (1 - depth_w) * l_photo
         dmask = depth_m > 0
-        if p.lambda_depth > 0 and bool(dmask.any()):
+        if depth_w > 0 and bool(dmask.any()):
             rel = (out.depth - depth_m).abs() / depth_m.clamp_min(1e-3)
-            total = total + p.lambda_depth * (conf * rel)[dmask].mean()
+            total = total + depth_w * (conf * rel)[dmask].mean()
         ls = leaves["log_scales"]
         if p.lambda_iso > 0 and len(rows):
             total = total + p.lambda_iso * (ls - ls.mean(1, keepdim=True)).abs().mean()
@@ -498,46 +518,13 @@ class GaussianMapper:
         self.n_densified += len(pick)
 
     def _rows_of(self, ids: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rows of the Gaussians with ``ids`` that are still in the map, and which ids those are."""
-        t = torch.as_tensor(ids, dtype=torch.long, device=self.device)
-        if len(self.map) == 0 or len(t) == 0:
-            return t[:0], torch.zeros(len(t), dtype=torch.bool, device=self.device)
-        rows = torch.searchsorted(self.map.ids, t).clamp_max(len(self.map) - 1)
-        ok = self.map.ids[rows] == t
-        return rows[ok], ok
+        return rows_of(self.map, ids)
 
     def _contribution(self, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-Gaussian summed blending weight ``sum_p alpha_i T_i`` [N] over the latest renders
-        of keyframes ``indices`` (full-resolution pixels), and whether it can be judged [N] bool:
-        its centre lies in front of and inside at least one of those views whose render came
-        after the Gaussian's birth (an occluded Gaussian there has weight 0)."""
-        n = len(self.map)
-        contrib = torch.zeros(n, device=self.device)
-        judged = torch.zeros(n, dtype=torch.bool, device=self.device)
-        prm = self.map.params
-        fx, fy, cx, cy = self.K
-        for i in indices:
-            kf = self.keyframes[i]
-            if kf.weights_next_id == 0:
-                continue
-            rows, ok = self._rows_of(kf.visible_ids)
-            if len(kf.visible_weights) == len(kf.visible_ids):
-                w = torch.as_tensor(kf.visible_weights, device=self.device)[ok]
-                contrib.index_add_(0, rows, w.to(contrib.dtype))
-            T = kf.T_cam_world.to(device=self.device, dtype=prm["means"].dtype)
-            p_cam = prm["means"] @ T[:3, :3].T + T[:3, 3]
-            z = p_cam[:, 2]
-            zs = z.clamp_min(1e-6)
-            u, v = fx * p_cam[:, 0] / zs + cx, fy * p_cam[:, 1] / zs + cy
-            in_view = (
-                (z > self.params.raster.near_m)
-                & (u >= 0)
-                & (u < self.width)
-                & (v >= 0)
-                & (v < self.height)
-            )
-            judged |= in_view & (self.map.ids < kf.weights_next_id)
-        return contrib, judged
+        """Blending weight and judgeability per Gaussian over ``indices``' views (support.py)."""
+        kfs = [self.keyframes[i] for i in indices]
+        size = (self.width, self.height)
+        return blending_contribution(self.map, kfs, self.K, size, self.params.raster.near_m)
 
     def _record_support(self) -> None:
         """``n_obs``: the most window keyframes that have seen each Gaussian at once (their

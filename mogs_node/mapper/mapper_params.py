@@ -38,6 +38,12 @@ class MapperParams:
     # (1 - l) L1 + l (1 - SSIM); 3DGS and MonoGS's colour refinement use 0.2)
     refine_lambda_ssim: float = 0.0  # ... in the final refinement (:meth:`refine`; MonoGS's
     # colour refinement uses 0.2 there and none while mapping)
+    refine_lr_scale: float = 1.0  # the final refinement's map learning rates at its start ...
+    refine_lr_final: float = 1.0  # ... decay exponentially to this fraction of that at its end
+    # (3DGS decays its position step 100x over training: large steps early, a settled map last)
+    refine_lambda_depth: float = (
+        -1.0
+    )  # depth-loss weight in the final refinement (-1: lambda_depth)
     lr_means_m: float = 0.002  # Adam step size of positions (metres)
     lr_colors: float = 0.01  # of colours
     lr_opacity: float = 0.05  # of opacity logits
@@ -72,6 +78,10 @@ class MapperParams:
             raise ConfigError(
                 "MapperParams: lambda_depth, lambda_ssim, refine_lambda_ssim must be in [0, 1]"
             )
+        if self.refine_lr_scale <= 0 or self.refine_lr_final <= 0:
+            raise ConfigError("MapperParams: refine_lr_scale and refine_lr_final must be > 0")
+        if not (self.refine_lambda_depth == -1.0 or 0 <= self.refine_lambda_depth <= 1):
+            raise ConfigError("MapperParams.refine_lambda_depth: -1 or in [0, 1]")
         if self.train_downsample < 1 or self.converge_rel < 0 or self.min_iters < 1:
             raise ConfigError(
                 "MapperParams: train_downsample >= 1, converge_rel >= 0, min_iters >= 1"

@@ -71,6 +71,11 @@ class MapperNodeParams:
     exposure_gauge: bool = False  # ... except the first keyframe's (MapperParams.exposure_gauge)
     lambda_ssim: float = 0.0  # weight of the D-SSIM term of the photometric loss
     refine_lambda_ssim: float = 0.0  # ... in the final refinement
+    refine_lambda_depth: float = (
+        -1.0
+    )  # depth-loss weight in the final refinement (-1: lambda_depth)
+    refine_lr_scale: float = 1.0  # the final refinement's learning rates: this x the drive's ...
+    refine_lr_final: float = 1.0  # ... decayed exponentially to this fraction of that at its end
     refine_poses: bool = False  # optimise window keyframe poses
     densify: bool = False  # gradient-based cloning
     background_depth_m: float = 0.0  # far-sphere Gaussians where the depth has none (0: off)
@@ -141,6 +146,9 @@ class MapperNodeParams:
             exposure_gauge=self.exposure_gauge,
             lambda_ssim=self.lambda_ssim,
             refine_lambda_ssim=self.refine_lambda_ssim,
+            refine_lambda_depth=self.refine_lambda_depth,
+            refine_lr_scale=self.refine_lr_scale,
+            refine_lr_final=self.refine_lr_final,
             refine_poses=self.refine_poses,
             densify=self.densify,
             insertion=InsertionParams(background_depth_m=self.background_depth_m),
@@ -302,7 +310,12 @@ class MapperNode(Node):
             )
         n = min(p.final_refine_chunk, self.refine_left)
         st = (
-            m.refine(n, p.final_refine_downsample, should_stop=lambda: self.stopping)
+            m.refine(
+                n,
+                p.final_refine_downsample,
+                should_stop=lambda: self.stopping,
+                total_iters=p.final_refine_iters,
+            )
             if n > 0
             else m.stats()
         )

@@ -433,6 +433,28 @@ def test_final_refinement_visits_every_keyframe_and_sharpens_at_full_resolution(
     assert kf.targets(2)[0].shape == (H // 2, W // 2, 3)
 
 
+def test_final_refinement_decays_its_learning_rates_over_the_whole_refinement() -> None:
+    """refine_lr_scale x the drive's rates at the start, decayed exponentially to refine_lr_final
+    of that at the end of ``total_iters``, also when the node runs it in chunks; the depth weight
+    is refine_lambda_depth's."""
+    img, depth = plane_view()
+    m = _mapper(n_random_past=0, refine_lr_scale=4.0, refine_lr_final=0.25, refine_lambda_depth=0.0)
+    m.add_keyframe(0, img, np.eye(4), depth, np.ones_like(depth))
+    seen: list[tuple[float, float | None]] = []
+    step = m._train_step
+    m._train_step = lambda i, f, lrs, **kw: (  # type: ignore[method-assign]
+        seen.append((lrs["means"] / m.params.lr_means_m, kw["depth_w"])) or step(i, f, lrs, **kw)
+    )
+    m.refine(2, total_iters=4)
+    m.refine(2, total_iters=4)
+    gains = [g for g, _ in seen]
+    np.testing.assert_allclose(gains, [4.0 * 0.25 ** (k / 4) for k in range(4)], rtol=1e-12)
+    assert {w for _, w in seen} == {0.0}
+    for bad in ({"refine_lr_scale": 0.0}, {"refine_lr_final": -1.0}, {"refine_lambda_depth": 2}):
+        with pytest.raises(ConfigError, match="refine_"):
+            MapperParams(**bad)
+
+
 def test_mapper_optimises_only_what_the_window_sees() -> None:
     img, depth = plane_view()
     m = _mapper(n_random_past=0, window_size=1)
