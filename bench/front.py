@@ -68,7 +68,7 @@ KNOBS: tuple[tuple[str, tuple[Any, ...]], ...] = (
     ("prior.flow.dis_preset", ("fast",)),  # the prior's flow [medium]
     ("segmentation.graph.scale", (0.5,)),  # segmentation resolution [1.0]
     ("mapper.iters_per_keyframe", (4, 20)),  # [8]
-    ("mapper.final_refine_iters", (0, 600)),  # after the drive, full resolution [300]
+    ("mapper.final_refine_iters", (0, 300)),  # after the drive, full resolution [600]
     ("mapper.train_downsample", (4, 1)),  # mapping image scale [2]
     ("mapper.window_size", (4, 10)),  # [6]
 )
