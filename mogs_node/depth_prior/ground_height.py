@@ -100,15 +100,13 @@ def refine_ground_height(
     """
     if not (np.isfinite(centre_m) and centre_m > 0):
         return None
-    best_h, best_n = centre_m, -1
-    for steps, around in ((COARSE_STEPS, centre_m), (FINE_STEPS, None)):
-        base = best_h if around is None else around
-        for r in steps:
-            h = base * (1.0 + r)
-            n = int(verified_pixels(h))
-            if n > best_n:
-                best_h, best_n = h, n
-    return (float(best_h), best_n) if best_n >= MIN_VERIFIED else None
+    heights = [centre_m * (1.0 + r) for r in COARSE_STEPS]
+    counts = [int(verified_pixels(h)) for h in heights]
+    around = heights[int(np.argmax(counts))]
+    heights += [around * (1.0 + r) for r in FINE_STEPS]
+    counts += [int(verified_pixels(h)) for h in heights[len(COARSE_STEPS) :]]
+    best = int(np.argmax(counts))  # the first of equals, coarse before fine
+    return (float(heights[best]), counts[best]) if counts[best] >= MIN_VERIFIED else None
 
 
 def _level(

@@ -517,9 +517,6 @@ class GaussianMapper:
         self.map.add(vals, birth_kf=len(self.keyframes) - 1)
         self.n_densified += len(pick)
 
-    def _rows_of(self, ids: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        return rows_of(self.map, ids)
-
     def _contribution(self, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """Blending weight and judgeability per Gaussian over ``indices``' views (support.py)."""
         kfs = [self.keyframes[i] for i in indices]
@@ -531,7 +528,7 @@ class GaussianMapper:
         latest renders' records), kept as a running maximum."""
         obs = torch.zeros(len(self.map), dtype=torch.long, device=self.device)
         for i in self.window:
-            rows, _ = self._rows_of(self.keyframes[i].visible_ids)
+            rows, _ = rows_of(self.map, self.keyframes[i].visible_ids)
             obs[rows] += 1
         self.map.n_obs = torch.maximum(self.map.n_obs, obs)
 
