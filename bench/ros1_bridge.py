@@ -75,6 +75,13 @@ def _sets(items: list[str]) -> list[str]:
     return [a for s in items for a in ("--set", s)]
 
 
+def _launch_argv(launch: str, run_dir: Path, sets: list[str], *extra: str) -> list[str]:
+    """``mogs launch launch/LAUNCH --run-dir RUN_DIR --grace 60 EXTRA --set ...``: the direct and
+    the bridged run start the same way (a long grace: the mapper writes its map at the end)."""
+    head = ["launch", str(REPO / "launch" / launch), "--run-dir", str(run_dir), "--grace", "60"]
+    return cli_argv(*head, *extra, *_sets(sets))
+
+
 def _ate(stamps: np.ndarray, poses: np.ndarray, gt: dict[int, np.ndarray]) -> dict:
     keep = [i for i, t in enumerate(stamps) if int(t) in gt]
     s = np.asarray(stamps, np.int64)[keep]
@@ -120,16 +127,12 @@ def run_direct(bag: Path, out: Path, timeout_s: float) -> tuple[np.ndarray, np.n
     t0 = time.monotonic()
     with (out.parent / "direct.log").open("w") as log:
         proc = subprocess.run(
-            cli_argv(
-                "launch",
-                str(REPO / "launch" / "bag.yaml"),
-                "--run-dir",
-                str(out),
-                "--grace",
-                "60",
+            _launch_argv(
+                "bag.yaml",
+                out,
+                [f"player.path={bag}", *TOPIC_SETS, *MAPPER_SETS],
                 "--timeout",
                 str(timeout_s),
-                *_sets([f"player.path={bag}", *TOPIC_SETS, *MAPPER_SETS]),
             ),
             cwd=REPO,
             env={**os.environ, "MOGS_NO_CPP_EXT": "1"},  # the mapper's pure-PyTorch compositor
@@ -152,22 +155,16 @@ def run_bridge(bag: Path, tmp: Path, rate: float) -> tuple[dict, str]:
         log_path = tmp / "bridge.log"
         with log_path.open("w") as log:
             launch = subprocess.Popen(
-                cli_argv(
-                    "launch",
-                    str(REPO / "launch" / "ros1.yaml"),
-                    "--run-dir",
-                    str(run),
-                    "--grace",
-                    "60",
-                    *_sets(
-                        [
-                            f"ros1.image_topic={TOPICS['image']}",
-                            f"ros1.imu_topic={TOPICS['imu']}",
-                            f"ros1.camera_info_topic={TOPICS['camera_info']}",
-                            "ros1.wait_for_nodes_s=900",
-                            *MAPPER_SETS,
-                        ]
-                    ),
+                _launch_argv(
+                    "ros1.yaml",
+                    run,
+                    [
+                        f"ros1.image_topic={TOPICS['image']}",
+                        f"ros1.imu_topic={TOPICS['imu']}",
+                        f"ros1.camera_info_topic={TOPICS['camera_info']}",
+                        "ros1.wait_for_nodes_s=900",
+                        *MAPPER_SETS,
+                    ],
                 ),
                 cwd=REPO,
                 env=env,

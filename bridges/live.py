@@ -33,6 +33,7 @@ import zmq
 
 from bridges.imu_text import REJECT_REASONS, ImuSample, ImuSampleParser, LineSplitter
 from mogs_node import msgs
+from mogs_node.bus import queued
 from mogs_node.errors import ConfigError, DeviceError
 from mogs_node.node import Node
 
@@ -385,11 +386,7 @@ class ZmqImuNode(_ImuPublisher):
 
     def tick(self) -> None:
         p: ZmqImuParams = self.params
-        for _ in range(10000):
-            try:
-                raw = self.input.recv(zmq.NOBLOCK)
-            except zmq.Again:
-                return
+        for raw in queued(self.input.recv, limit=10000):
             try:
                 obj = msgpack.unpackb(
                     raw,
