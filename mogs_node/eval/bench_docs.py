@@ -10,10 +10,11 @@ from __future__ import annotations
 import json
 import platform
 import subprocess
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["REPO_ROOT", "machine_line", "update_markdown_section", "write_json"]
+__all__ = ["REPO_ROOT", "machine_line", "markdown_table", "update_markdown_section", "write_json"]
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -25,6 +26,13 @@ def write_json(path: str | Path | None, figures: dict[str, Any]) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(figures, indent=2, sort_keys=True, default=float) + "\n")
+
+
+def markdown_table(columns: Sequence[str], rows: Iterable[Sequence[Any]] = ()) -> list[str]:
+    """A markdown table's lines: the header, the separator and one line a row (cells formatted
+    by the caller, so that each figure keeps its own precision)."""
+    out = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
+    return out + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
 
 
 def machine_line() -> str:
