@@ -51,6 +51,7 @@ from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import ConfigError, MessageError, Ros1UnavailableError
 from mogs_node.node import Node
+from mogs_node.params import group_of
 
 __all__ = [
     "APT_INSTALL",
@@ -162,22 +163,10 @@ class Ros1BridgeParams:
         self.inputs()  # checks T_imu_cam, tf_wait_s
 
     def inputs(self) -> RosInputParams:
-        return RosInputParams(
-            camera_info_topic=self.camera_info_topic,
-            tf_static_topic=self.tf_static_topic,
-            T_imu_cam=self.T_imu_cam,
-            tf_wait_s=self.tf_wait_s,
-            source="ros1",
-        )
+        return group_of(RosInputParams, self, source="ros1")
 
     def outputs(self) -> RosOutputParams:
-        return RosOutputParams(
-            prefix=self.prefix,
-            world_frame=self.world_frame,
-            camera_frame=self.camera_frame,
-            map_period_s=self.map_period_s,
-            max_map_points=self.max_map_points,
-        )
+        return group_of(RosOutputParams, self)
 
 
 class _Inbox:

@@ -44,6 +44,7 @@ from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import MessageError, Ros2UnavailableError
 from mogs_node.node import Node
+from mogs_node.params import group_of
 
 __all__ = [
     "ROS_TYPES",
@@ -137,11 +138,11 @@ class Ros2MirrorParams:
         self.inputs()  # checks T_imu_cam, tf_wait_s
 
     def inputs(self) -> RosInputParams:
-        return RosInputParams(
+        return group_of(
+            RosInputParams,
+            self,
             camera_info_topic=self.ros_camera_info_topic,
             tf_static_topic=self.ros_tf_static_topic,
-            T_imu_cam=self.T_imu_cam,
-            tf_wait_s=self.tf_wait_s,
             source="ros2",
         )
 
