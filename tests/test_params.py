@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from mogs_node.errors import ConfigError
-from mogs_node.params import parse_params
+from mogs_node.params import group_of, parse_params
 
 
 @dataclass(frozen=True)
@@ -57,8 +57,6 @@ def test_an_error_deep_in_a_group_names_its_dotted_path(values, names):
 
 
 def test_group_of_takes_same_named_fields_and_given_values_win():
-    from mogs_node.params import group_of
-
     @dataclass(frozen=True)
     class Group:
         a: int = 0
