@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
     machine_line,
     update_markdown_section,
     write_json,
@@ -171,9 +172,8 @@ def main() -> None:
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
     ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
     ap.add_argument("--lag", type=int, default=1, help="keyframes until metrized depth arrives")
-    ap.add_argument("--json", default=None, help="also write the figures here")
+    add_output_options(ap)
     ap.add_argument("--png", default="docs/depth_prior_calibration.png", help="curve (PNG)")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     ap.add_argument("--kitti", default=None, help="KITTI excerpt folder: measure there instead")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")

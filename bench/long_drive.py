@@ -49,7 +49,13 @@ import zmq
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.launch import parse_overrides
-from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import (
+    REPO_ROOT,
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
 RSS_FRAME = 600  # the reference point of the memory ratio (issue 17)
@@ -346,9 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=6 * 3600.0)
     ap.add_argument("--drain", type=float, default=300.0, help="s without input before giving up")
     ap.add_argument("--out", default=None, help="run folder (default: a temporary one)")
-    ap.add_argument("--json", default=None)
+    add_output_options(ap)
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
-    ap.add_argument("--no-docs", action="store_true")
     ap.add_argument(
         "--docs-from",
         default=None,

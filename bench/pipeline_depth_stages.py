@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section  # noqa: E402
+from mogs_node.eval.bench_docs import add_output_options, machine_line, update_markdown_section  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
     demo_params,
     evaluate_stages,
@@ -145,8 +145,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
     ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
-    ap.add_argument("--json", default=None, help="also write the figures here")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    add_output_options(ap)
     ap.add_argument("--live", action="store_true", help="also run the pipeline (two mogs demo)")
     ap.add_argument(
         "--live-runs",

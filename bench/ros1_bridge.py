@@ -47,7 +47,12 @@ from _ros1 import (  # noqa: E402
     write_sim_bag_official,
 )
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.eval.traj import trajectory_metrics  # noqa: E402
 from mogs_node.frontend.trajectory_io import read_tum  # noqa: E402
 from mogs_node.geometry import make_T, quat_wxyz_to_rotmat  # noqa: E402
@@ -195,8 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--rate", type=float, default=0.5, help="rosbag play rate (1 = real time)")
     ap.add_argument("--timeout", type=float, default=1800.0)
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--no-docs", action="store_true")
+    add_output_options(ap)
     args = ap.parse_args(argv)
 
     tmp = Path(tempfile.mkdtemp(prefix="mogs-bench-ros1-"))

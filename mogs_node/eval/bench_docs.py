@@ -7,6 +7,7 @@ each other's figures.
 
 from __future__ import annotations
 
+import argparse
 import json
 import platform
 import subprocess
@@ -14,9 +15,23 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["REPO_ROOT", "machine_line", "markdown_table", "update_markdown_section", "write_json"]
+__all__ = [
+    "REPO_ROOT",
+    "add_output_options",
+    "machine_line",
+    "markdown_table",
+    "update_markdown_section",
+    "write_json",
+]
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def add_output_options(ap: argparse.ArgumentParser) -> None:
+    """What every benchmark offers: ``--json PATH`` (the figures, through :func:`write_json`) and
+    ``--no-docs`` (leave docs/benchmarks.md as it is)."""
+    ap.add_argument("--json", default=None, metavar="PATH", help="also write the figures here")
+    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
 
 
 def write_json(path: str | Path | None, figures: dict[str, Any]) -> None:
