@@ -359,6 +359,16 @@ class Subscriber:
         st.shm_received += 1
         return [topic_bytes, inline, *buffers]
 
+    def arrivals(
+        self, alive: Callable[[], bool], timeout_ms: int = 100
+    ) -> Iterator[tuple[float, msgs.Envelope | None]]:
+        """``(monotonic time, message or None)`` after each :meth:`receive` while ``alive()``
+        (a run's thread): a watcher stamps each message as it arrives and, between messages
+        (None after ``timeout_ms``), samples what it watches."""
+        while alive():
+            env = self.receive(timeout_ms=timeout_ms)
+            yield time.monotonic(), env
+
     def receive(self, timeout_ms: int | None = 0) -> msgs.Envelope | None:
         """The next valid message of a subscribed topic, or None if none arrives in time.
 
