@@ -31,6 +31,7 @@ from typing import Any
 
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.errors import ConfigError
+from mogs_node.params import check_choice
 from mogs_node.presets import DEFAULT_PRESET, apply_preset, validate_preset
 from mogs_node.yaml_file import read_yaml
 
@@ -174,8 +175,7 @@ def parse_launch(
         if overrides and nname in overrides:
             params.update(overrides[nname])
         respawn = nd.get("respawn", "on_failure")
-        if respawn not in RESPAWN_POLICIES:
-            raise ConfigError(f"{w}.respawn: expected one of {RESPAWN_POLICIES}, got {respawn!r}")
+        check_choice(f"{w}.respawn", respawn, RESPAWN_POLICIES)
         nodes.append(
             NodeSpec(
                 name=nname,

@@ -19,7 +19,8 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from mogs_node.errors import ConfigError, ModelError
+from mogs_node.errors import ModelError
+from mogs_node.params import check_choice
 
 __all__ = ["PROVIDERS", "check_signature", "model_path", "open_session"]
 
@@ -48,8 +49,7 @@ def open_session(
     """
     import onnxruntime as ort
 
-    if provider not in PROVIDERS:
-        raise ConfigError(f"provider: expected one of {sorted(PROVIDERS)}, got {provider!r}")
+    check_choice("provider", provider, sorted(PROVIDERS))
     p = model_path(path)
     if not str(path) or not p.is_file():
         raise ModelError(f"model file not found: {str(path)!r}")

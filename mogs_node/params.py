@@ -19,7 +19,7 @@ from mogs_node.errors import ConfigError
 
 _G = typing.TypeVar("_G")
 
-__all__ = ["EmptyParams", "group_of", "parse_params"]
+__all__ = ["EmptyParams", "check_choice", "group_of", "parse_params"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,12 @@ def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "p
         return cls(**kwargs)
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{where}: {err}") from err
+
+
+def check_choice(where: str, value: Any, choices: Any) -> None:
+    """Raise :class:`ConfigError` naming ``where`` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"{where}: expected one of {choices}, got {value!r}")
 
 
 def group_of(cls: type[_G], flat: Any, /, **given: Any) -> _G:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from mogs_node.errors import ConfigError
-from mogs_node.params import group_of, parse_params
+from mogs_node.params import check_choice, group_of, parse_params
 
 
 @dataclass(frozen=True)
@@ -71,3 +71,11 @@ def test_group_of_takes_same_named_fields_and_given_values_win():
 
     assert group_of(Group, Flat()) == Group(a=5, b="flat", c=1.0)
     assert group_of(Group, Flat(), b="given", c=2.0) == Group(a=5, b="given", c=2.0)
+
+
+def test_check_choice_names_the_field_and_the_choices():
+    check_choice("viz.mode", "save", ("save", "spawn"))
+    with pytest.raises(
+        ConfigError, match=r"viz.mode: expected one of \('save', 'spawn'\), got 'x'"
+    ):
+        check_choice("viz.mode", "x", ("save", "spawn"))
