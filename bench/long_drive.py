@@ -350,13 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     add_run_options(ap, "stop the run after this many seconds", timeout_s=6 * 3600.0)
     ap.add_argument("--drain", type=float, default=300.0, help="s without input before giving up")
     ap.add_argument("--out", default=None, help="run folder (default: a temporary one)")
-    add_output_options(ap)
-    ap.add_argument(
-        "--docs-from",
-        default=None,
-        metavar="DIR",
-        help="write the plot and docs section from a finished run's folder (no new run)",
-    )
+    add_output_options(ap, docs_from="DIR")
     args = ap.parse_args(argv)
     if args.docs_from:
         return _docs_from(Path(args.docs_from), args)

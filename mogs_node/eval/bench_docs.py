@@ -27,11 +27,15 @@ __all__ = [
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
-def add_output_options(ap: argparse.ArgumentParser) -> None:
+def add_output_options(ap: argparse.ArgumentParser, docs_from: str | None = None) -> None:
     """What every benchmark offers: ``--json PATH`` (the figures, through :func:`write_json`) and
-    ``--no-docs`` (leave docs/benchmarks.md as it is)."""
+    ``--no-docs`` (leave docs/benchmarks.md as it is); given ``docs_from`` (what a finished run
+    left: ``DIR`` or ``JSON``), ``--docs-from`` too: the docs from that run, no new run."""
     ap.add_argument("--json", default=None, metavar="PATH", help="also write the figures here")
     ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    if docs_from is not None:
+        help_ = f"write the docs section (tables, plots) from a finished run's {docs_from}, no run"
+        ap.add_argument("--docs-from", default=None, metavar=docs_from, help=help_)
 
 
 def write_json(path: str | Path | None, figures: dict[str, Any]) -> None:
