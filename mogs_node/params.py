@@ -19,7 +19,7 @@ from mogs_node.errors import ConfigError
 
 _G = typing.TypeVar("_G")
 
-__all__ = ["EmptyParams", "check_choice", "group_of", "parse_params"]
+__all__ = ["EmptyParams", "check_choice", "group_of", "parse_group", "parse_params"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,12 @@ def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "p
         return cls(**kwargs)
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{where}: {err}") from err
+
+
+def parse_group(cls: type[_G], params: Any, name: str, where: str) -> _G:
+    """The nested group ``name`` of a node's ``params`` (a mapping in the launch file) parsed
+    strictly as ``cls``; errors name ``where.name``."""
+    return parse_params(cls, getattr(params, name), where=f"{where}.{name}")
 
 
 def check_choice(where: str, value: Any, choices: Any) -> None:
