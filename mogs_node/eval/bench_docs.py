@@ -22,6 +22,7 @@ __all__ = [
     "markdown_table",
     "update_markdown_section",
     "write_json",
+    "write_results",
 ]
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -76,6 +77,17 @@ def machine_line() -> str:
     except (OSError, subprocess.SubprocessError):
         rev = ""
     return f"{cpu}, Python {platform.python_version()}" + (f", commit {rev}" if rev else "")
+
+
+def write_results(
+    section: str, md: str, figures: dict[str, Any], json_path: Any, docs: bool
+) -> None:
+    """The end of a benchmark: its markdown on stdout, the figures as JSON at ``json_path`` (if
+    any) and, with ``docs``, the markdown as the ``section`` of docs/benchmarks.md."""
+    print(md)
+    write_json(json_path, figures)
+    if docs:
+        update_markdown_section(section, md)
 
 
 def update_markdown_section(name: str, body_md: str, path: str | Path | None = None) -> Path:
