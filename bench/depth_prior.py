@@ -14,7 +14,6 @@ writes the curve as a PNG. Writes the ``depth-prior`` section of docs/benchmarks
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -26,9 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
     machine_line,
-    update_markdown_section,
-    write_json,
+    write_results,
 )
 from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     calibration_bins,
@@ -171,9 +170,8 @@ def main() -> None:
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
     ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
     ap.add_argument("--lag", type=int, default=1, help="keyframes until metrized depth arrives")
-    ap.add_argument("--json", default=None, help="also write the figures here")
+    add_output_options(ap)
     ap.add_argument("--png", default="docs/depth_prior_calibration.png", help="curve (PNG)")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     ap.add_argument("--kitti", default=None, help="KITTI excerpt folder: measure there instead")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -182,11 +180,7 @@ def main() -> None:
     )
     if args.kitti:
         fig, md = kitti(args.kitti, command)
-        print(md)
-        if args.json:
-            Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
-        if not args.no_docs:
-            update_markdown_section("depth-prior-kitti", md)
+        write_results("depth-prior-kitti", md, fig, args.json, not args.no_docs)
         return
     t0 = time.process_time()
     params = demo_params(args.launch)
@@ -241,10 +235,7 @@ def main() -> None:
     png = Path(args.png)
     plot(fig["calibration"], png if png.is_absolute() else REPO / png, "dense prior, demo drive")
     md = markdown(fig, command, Path(args.png).name if not png.is_absolute() else str(png))
-    print(md)
-    write_json(args.json, fig)
-    if not args.no_docs:
-        update_markdown_section("depth-prior", md)
+    write_results("depth-prior", md, fig, args.json, not args.no_docs)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ from mogs_node.depth_prior.dense_prior import SOURCES, DensePrior, FusionParams
 from mogs_node.depth_prior.flow_prior import FlowPriorParams
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
-from mogs_node.params import parse_params
+from mogs_node.params import parse_group, parse_params
 
 __all__ = [
     "CONFIDENCE_EDGES",
@@ -72,8 +72,8 @@ def metrizer_params(params: dict[str, dict[str, Any]]):
 
     mp = parse_params(MetrizerNodeParams, params.get("metrizer", {}), where="metrizer")
     top = dict(mp.metrizer)
-    top["consensus"] = parse_params(ConsensusParams, mp.consensus, where="metrizer.consensus")
-    top["cdr"] = parse_params(CdrParams, mp.cdr, where="metrizer.cdr")
+    top["consensus"] = parse_group(ConsensusParams, mp, "consensus", "metrizer")
+    top["cdr"] = parse_group(CdrParams, mp, "cdr", "metrizer")
     return parse_params(MetrizerParams, top, where="metrizer.metrizer"), mp.mode
 
 
