@@ -450,3 +450,25 @@ def test_sequence_first_keyframe_takes_a_frame_before_it_as_reference(views) -> 
         seq.add_frame(400, g0, np.full((4, 4), np.nan))
     with pytest.raises(ConfigError):
         FlowPriorParams(frame_references=-1)
+    with pytest.raises(ConfigError):
+        FusionParams(carry_min_confidence=1.5)
+
+
+def test_carry_min_confidence_drops_weak_carried_depth(views) -> None:
+    """``fusion.carry_min_confidence``: carried prior pixels less confident than it are not
+    carried; the others are, unchanged (standing still: the identity warp)."""
+    (g0, d0, T0), _ = views
+    conf = np.where(np.arange(HW[1])[None, :] < HW[1] // 2, 0.02, 0.6).astype(np.float32)
+    conf = np.broadcast_to(conf, HW).copy()
+    prev = (d0.astype(np.float32), conf, T0, g0)
+    kw = {"road_params": ROAD, "previous_prior": prev}
+    every = compute_dense_prior(g0, K, T0, [], **kw)
+    strong = compute_dense_prior(
+        g0, K, T0, [], params=FusionParams(carry_min_confidence=0.05), **kw
+    )
+    left, right = np.s_[:, : HW[1] // 2 - 2], np.s_[:, HW[1] // 2 + 2 :]
+    assert (every.confidence[left] > 0).mean() > 0.9
+    assert not strong.confidence[left].any()
+    assert (strong.confidence[right] > 0).mean() > 0.9
+    m = strong.confidence > 0
+    np.testing.assert_allclose(strong.depth_m[m], d0[m], rtol=1e-4)
