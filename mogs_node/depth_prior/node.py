@@ -194,7 +194,11 @@ class DepthPriorNode(Node):
         self._pair_frames()
 
     def on_odometry(self, msg: msgs.Odometry) -> None:
-        """The frontend's pose of a frame; only tracked frames (not initialising, not reset)."""
+        """The frontend's pose of a frame; only tracked frames (not initialising, not reset). A
+        reset starts a new world: the frames kept so far are in the old one."""
+        if msg.status == "reset":
+            self.sequence.frames.clear()
+            self._frame_poses.clear()
         if msg.status == "tracking":
             self._frame_poses[int(msg.stamp_ns)] = np.asarray(msg.T_world_cam, np.float64)
             self._pair_frames()

@@ -358,3 +358,9 @@ def test_flow_node_takes_a_tracked_frame_as_reference_of_the_first_keyframe(
     assert m.mean() > 0.4
     assert np.median(np.abs(got.depth[m] - depth[m]) / depth[m]) < 0.03
     assert node.counters["handler_errors"] == 0
+    # a reset starts a new world: the frames kept are forgotten
+    w.pub.publish("/frontend/odometry", msgs.Odometry(60_000_000, "cam", 0, T0, (0, 0, 0), "reset"))
+    deadline = time.monotonic() + 10
+    while node.sequence.frames and time.monotonic() < deadline:
+        node.spin_once(50)
+    assert not node.sequence.frames
