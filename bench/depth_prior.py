@@ -44,7 +44,7 @@ from mogs_node.eval.pipeline_stages import (  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BEFORE = "flow only, references from 0.3 m (main)"
-AFTER = "flow + road + carried + warped metrized depth (default)"
+AFTER = "flow + road + carried + warped metrized depth + frames as references (default)"
 
 
 def plot(bins: list[dict], path: Path, title: str) -> None:
@@ -185,18 +185,28 @@ def main() -> None:
     t0 = time.process_time()
     params = demo_params(args.launch)
     kfs, info = prepare_keyframes(params, seed=args.seed)
+    tracked = info.pop("tracked_frames")  # the frames between keyframes (flow.frame_references)
     masks = graph_masks(kfs, params)
     flow, road, fusion = prior_params(params)
     no_feedback = replace(fusion, warp_sources=0, carry=False)
     variants = {
         # main's prior: one or two flow references from 0.3 m, nothing else
         BEFORE: (
-            replace(flow, min_baseline_m=0.3),
+            replace(flow, min_baseline_m=0.3, frame_references=0),
             replace(road, enabled=False),
             no_feedback,
         ),
-        "flow + road plane": (flow, road, no_feedback),
-        "flow + road + previous prior carried": (flow, road, replace(fusion, warp_sources=0)),
+        "flow + road plane": (replace(flow, frame_references=0), road, no_feedback),
+        "flow + road + previous prior carried": (
+            replace(flow, frame_references=0),
+            road,
+            replace(fusion, warp_sources=0),
+        ),
+        "... + warped metrized depth (keyframes only as references)": (
+            replace(flow, frame_references=0),
+            road,
+            fusion,
+        ),
         AFTER: (flow, road, fusion),
     }
     keyframes = [s.keyframe for s in kfs]
@@ -204,7 +214,9 @@ def main() -> None:
     ids = [k.keyframe_id for k in keyframes]
     fig: dict = {"keyframes": len(kfs), "lag": args.lag, "variants": {}}
     for name, (f, r, u) in variants.items():
-        run = run_priors(keyframes, f, r, u, masks=masks, params=params, lag=args.lag)
+        run = run_priors(
+            keyframes, f, r, u, masks=masks, params=params, lag=args.lag, frames=tracked
+        )
         fig["variants"][name] = {
             "prior": score_priors([p.depth_m for p in run.priors], gts, ids),
             "prior_coverage_all_pixels": float(np.mean([p.stats["coverage"] for p in run.priors])),

@@ -134,6 +134,13 @@ def prepare_keyframes(
         "keyframes": len(kfs),
         "frontend_s": time.perf_counter() - t0,
         "K_sim": seq.camera.K,
+        # every tracked frame (stamp, image, pose) as the prior node receives them on
+        # /camera/image and /frontend/odometry (its flow.frame_references)
+        "tracked_frames": [
+            (int(o.stamp_ns), frames[index[int(o.stamp_ns)]].rgb, np.array(o.T_world_cam))
+            for o in outs
+            if o.T_world_cam is not None and o.status == "tracking"
+        ],
     }
     return kfs, info
 
