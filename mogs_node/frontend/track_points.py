@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -256,7 +257,7 @@ def unsupported_depth_flags(
     return (near > 0) & (agreeing == 0)
 
 
-def _edge_flags(params: TrackPointsParams):  # noqa: ANN202 (one of the two flag functions)
+def _edge_flags(params: TrackPointsParams) -> Callable[..., NDArray[np.bool_]]:
     """The depth-edge test that ``params.edge_rule`` names."""
     return unsupported_depth_flags if params.edge_rule == "unsupported" else depth_edge_flags
 
