@@ -77,9 +77,9 @@ class TrackPointsParams:
     bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
     bucket_rows: int = 5
     history_frames: int = 16  # frames of observations (and poses) a track is triangulated from
-    min_views: int = 2  # observations needed (the keyframe's included)
+    min_views: int = 3  # observations needed (the keyframe's included)
     min_parallax_deg: float = 0.3  # largest ray angle between the keyframe and another view
-    max_reproj_px: float = 1.2  # largest reprojection error over the views after refinement
+    max_reproj_px: float = 0.8  # largest reprojection error over the views after refinement
     min_depth_m: float = 0.5  # depth range in the keyframe
     max_depth_m: float = 100.0
     pixel_sigma_px: float = 0.5  # KLT noise assumed for the covariance (at least the residual)
