@@ -157,6 +157,7 @@ ROUND8 = {
     "history_frames": 10,
     "min_views": 3,
     "view_stride": 1,
+    "gn_iterations": 2,
     "min_parallax_deg": 1.0,
     "max_reproj_px": 0.6,
     "max_depth_rel_sigma": 0.05,

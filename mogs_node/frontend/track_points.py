@@ -85,10 +85,10 @@ class TrackPointsParams:
     pixel_sigma_px: float = 0.5  # KLT noise assumed for the covariance (at least the residual)
     max_depth_rel_sigma: float = 0.05  # 1-sigma depth / depth above this: dropped
     omega_rel_sigma: float = 0.02  # omega = 1 / (1 + (sigma_z / z / this)^2)
-    view_stride: int = 2  # frames older than the last 3 are used every this many frames
+    view_stride: int = 3  # frames older than the last 3 are used every this many frames
     # (triangulation cost is linear in the frames; round 9)
-    gn_iterations: int = 2  # Gauss-Newton iterations of the refinement (from the DLT start, 2
-    # and 4 give the same points on the demo drive)
+    gn_iterations: int = 1  # Gauss-Newton iterations of the refinement (from the DLT start, 1,
+    # 2 and 4 give the same points on the demo drive; round 9)
     edge_radius_px: float = 8.0  # neighbours this close in the image are compared ...
     edge_rel_jump: float = 0.05  # ... and a relative depth jump larger than this marks an edge
     edge_rule: str = "unsupported"  # "both_sides": drop both sides of every jump
