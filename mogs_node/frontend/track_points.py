@@ -11,8 +11,9 @@ poses:
    vectorised over points. It returns the covariance from the Jacobian (poses held fixed).
 3. :func:`gate_points`: parallax angle, reprojection error, depth range, relative depth sigma;
    the weight omega from the relative depth sigma.
-4. :func:`depth_edge_flags`: points that disagree with their image-space neighbours (a depth jump
-   between close pixels) are dropped: a point near a depth edge carries the wrong side's depth.
+4. :func:`unsupported_depth_flags` (round 9; :func:`depth_edge_flags` before): points that no
+   image-space neighbour agrees with in depth are dropped: a track straddling a depth edge
+   triangulates between the two sides; a silhouette corner whose own side agrees is kept.
 5. :func:`carry_forward`: a keyframe with too few fresh points (standstill) takes the previous
    keyframe's points moved into its camera frame.
 6. :func:`reproject_points` + :func:`merge_points`: while moving, the last keyframes' points
@@ -61,7 +62,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class TrackPointsParams:
-    """Dense tracks and the sparse points triangulated from them (docs/frontend.md, round 6)."""
+    """Dense tracks and the sparse points triangulated from them (docs/frontend.md, rounds 6-9)."""
 
     enabled: bool = True  # publish the dense tracks' points (False: the estimator's landmarks)
     max_tracks: int = 3000  # dense tracks kept per frame (the estimator's tracker is separate)
@@ -72,7 +73,8 @@ class TrackPointsParams:
     fb_check: bool = False  # forward-backward check (True: twice the KLT cost; the multi-view
     # reprojection gate catches the same drifting tracks)
     klt_max_iter: int = 10  # KLT iterations per pyramid level
-    top_up_every: int = 1  # new corners every this many frames (corner search is half the cost)
+    top_up_every: int = 1  # new corners every this many frames (2: ~40 % less tracker time,
+    # ~7 % fewer points on the demo drive, whose tracks die in bursts; round 9)
     ransac_thresh_px: float = 1.0  # F-RANSAC threshold of the dense tracker (undistorted px)
     bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
     bucket_rows: int = 5
@@ -97,7 +99,8 @@ class TrackPointsParams:
     patch_radius_px: int = 3  # photometric check: (2r+1)^2 patch around the point in the
     min_patch_zncc: float = 0.85  # keyframe against its oldest view, moved by the point's own
     # depth: a patch straddling a depth edge does not match (ZNCC below this: dropped)
-    two_view_min_zncc: float = 0.9  # a point seen in 2 views only needs this ZNCC
+    two_view_min_zncc: float = 0.9  # with min_views 2: a point seen in 2 views only needs at
+    # least this ZNCC (one residual degree of freedom: the reprojection gate sees little)
     suspect_zncc: float = 0.95  # a point with a lower ZNCC ...
     suspect_reproj_px: float = 0.3  # ... or a larger reprojection error ...
     suspect_weight: float = 0.25  # ... keeps this share of its omega
