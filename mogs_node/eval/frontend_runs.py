@@ -265,11 +265,12 @@ def keyframe_point_figures(
     ``depth_m_of(stamp_ns)``: the true z-depth [H, W] of the frame (inf on sky);
     ``speed_m_s_of(stamp_ns)``: the vehicle's speed, a keyframe faster than ``min_speed_m_s`` is
     a moving one. Figures: the median point count per moving keyframe, the median relative depth
-    error at the points' pixels (pixels with a finite truth), and the share of points on a depth
-    edge (:data:`EDGE_JUMP` within :data:`EDGE_RADIUS_PX`), also weighted by omega, and the share
-    of points on a depth edge that carry neither side's depth (round 8: more than
-    :data:`EDGE_JUMP` off the truth of every pixel within :data:`EDGE_MATCH_RADIUS_PX`; a corner
-    on a silhouette with the foreground's depth is a right point)."""
+    error at the points' pixels (pixels with a finite truth), and the share of points that
+    straddle a depth edge (issue 16's "on depth edges", round 9): on an edge (:data:`EDGE_JUMP`
+    within :data:`EDGE_RADIUS_PX`) and more than :data:`EDGE_JUMP` off the truth of every pixel
+    within :data:`EDGE_MATCH_RADIUS_PX` (neither side's depth; a corner on a silhouette with
+    the foreground's depth is a right point), also weighted by omega; and the share of points
+    near an edge at all (the geometric definition of rounds 6 to 8)."""
     from mogs_node.eval.depth_sim import _depth_edge_free
 
     counts, errors, on_edge, weights, n_kf, n_empty = [], [], [], [], 0, 0
@@ -296,15 +297,14 @@ def keyframe_point_figures(
     err = np.concatenate(errors) if errors else np.zeros(0)
     edge = np.concatenate(on_edge) if on_edge else np.zeros(0, bool)
     w = np.concatenate(weights) if weights else np.zeros(0)
+    straddle = np.concatenate(wrong_side) if wrong_side else np.zeros(0, bool)
     return {
         "points_per_keyframe_median": float(np.median(counts)) if counts else 0.0,
         "points_rel_err_median": float(np.median(err)) if len(err) else float("nan"),
-        "points_on_edges_share": float(np.mean(edge)) if len(edge) else 0.0,
+        "points_on_edges_share": float(np.mean(straddle)) if len(edge) else 0.0,
         # the same share counted by omega: what a weighted consumer (the metrizer) sees
-        "points_on_edges_weight_share": float(w[edge].sum() / w.sum()) if w.sum() > 0 else 0.0,
-        "points_on_edges_wrong_share": float(np.mean(np.concatenate(wrong_side)))
-        if len(edge)
-        else 0.0,
+        "points_on_edges_weight_share": float(w[straddle].sum() / w.sum()) if w.sum() > 0 else 0.0,
+        "points_near_edges_share": float(np.mean(edge)) if len(edge) else 0.0,
         "points_total": float(len(edge)),
         "keyframes": float(n_kf),
         "keyframes_moving": float(len(counts)),

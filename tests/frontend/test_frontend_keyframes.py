@@ -120,8 +120,9 @@ def test_edge_figures_tell_a_silhouette_corner_from_a_straddling_point():
     uv = [[14, 10], [15, 10], [14, 5], [5, 10], [25, 10]]  # 3 on the silhouette, 2 far from it
     z = [5.1, 19.0, 10.0, 5.0, 30.0]  # right, right, straddling, right, off by 50 % (not an edge)
     fig = keyframe_point_figures([_keyframe_with(uv, z)], lambda t: depth, lambda t: 1.0)
-    assert fig["points_on_edges_share"] == pytest.approx(3 / 5)
-    assert fig["points_on_edges_wrong_share"] == pytest.approx(1 / 5)
+    assert fig["points_near_edges_share"] == pytest.approx(3 / 5)
+    assert fig["points_on_edges_share"] == pytest.approx(1 / 5)  # straddling (issue 16)
+    assert fig["points_on_edges_weight_share"] == pytest.approx(1 / 5)
     assert fig["points_per_keyframe_median"] == 5 and fig["keyframes_without_points"] == 0
 
 

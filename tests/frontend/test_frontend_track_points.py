@@ -26,6 +26,7 @@ from mogs_node.frontend.track_points import (
     refine_points,
     reproject_points,
     triangulate_dlt,
+    unsupported_depth_flags,
 )
 from mogs_node.frontend.tracker import FeatureTracker
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse, so3_exp, transform_points
@@ -119,6 +120,27 @@ def test_a_track_that_slides_along_an_occluding_edge_is_rejected_by_its_reprojec
     keep, _ = gate_points(pts, TrackPointsParams())
     assert not keep[:5].any() and keep[5:].mean() >= 0.8
     assert np.all(pts.reproj_max_px[:5] > 1.0)
+
+
+def test_unsupported_depth_flags_drop_a_straddling_point_and_keep_both_sides():
+    """Round 9: a wall at 10 m (u < 300) beside one at 20 m, points every 6 px, plus tracks on
+    the contour that triangulated between the two (14 m): only those are dropped; points by
+    the silhouette whose own side agrees, and a lone point, are kept."""
+    u, v = np.meshgrid(np.arange(200, 400, 6.0), np.arange(40, 140, 6.0))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    z = np.where(uv[:, 0] < 300, 10.0, 20.0)
+    straddling = np.stack([np.full(5, 300.0), np.arange(43.0, 140.0, 24.0)], 1)
+    lone = np.array([[600.0, 20.0]])
+    uv_all = np.concatenate([uv, straddling, lone])
+    z_all = np.concatenate([z, np.full(len(straddling), 14.0), [50.0]])
+    flags = unsupported_depth_flags(uv_all, z_all, radius_px=8.0, rel_jump=0.05)
+    np.testing.assert_array_equal(flags[: len(uv)], False)
+    assert flags[len(uv) : -1].all() and not flags[-1]
+    # the older rule drops both sides of the jump as well
+    assert depth_edge_flags(uv_all, z_all, radius_px=8.0, rel_jump=0.05)[: len(uv)].sum() > 30
+    assert not unsupported_depth_flags(uv[:1], z[:1], radius_px=8.0, rel_jump=0.05).any()
+    with pytest.raises(ShapeError):
+        unsupported_depth_flags(uv, z[:-1], radius_px=8.0, rel_jump=0.05)
 
 
 def test_depth_edge_flags_mark_both_sides_of_a_depth_jump_only():
@@ -237,10 +259,20 @@ def test_history_and_keyframe_points_on_exact_tracks():
         order = rng.permutation(len(seen))  # any order of ids
         hist.add(1000 + f, seen[order], uv[seen[order], f])
         hist.set_pose(1000 + f, T[f])
-    pts = keyframe_points(hist, CAM, TrackPointsParams(min_patch_zncc=-1.0))
+    # random points, no surfaces: the neighbour-depth test is off (a tiny radius)
+    pts = keyframe_points(hist, CAM, TrackPointsParams(min_patch_zncc=-1.0, edge_radius_px=1e-3))
     assert len(pts) > 150
     np.testing.assert_allclose(pts.xyz_cam_m, X_world[pts.ids], rtol=1e-4)
     np.testing.assert_allclose(pts.uv_px, uv[pts.ids, -1], atol=1e-3)
+    # every view (no thinning of the older frames): the same exact points
+    every = keyframe_points(
+        hist, CAM, TrackPointsParams(min_patch_zncc=-1.0, edge_radius_px=1e-3, view_stride=1)
+    )
+    np.testing.assert_allclose(every.xyz_cam_m, X_world[every.ids], rtol=1e-4)
+    with pytest.raises(ConfigError):
+        TrackPointsParams(view_stride=0)
+    with pytest.raises(ConfigError, match="edge_rule"):
+        TrackPointsParams(edge_rule="neither")
     # a newest frame without a pose gives nothing (yet)
     hist.add(2000, np.arange(5), np.zeros((5, 2)))
     assert len(keyframe_points(hist, CAM, TrackPointsParams())) == 0
@@ -334,7 +366,7 @@ def test_dense_tracker_options_are_validated_and_track_without_the_backward_pass
         with pytest.raises(ConfigError):
             TrackerParams(**bad)
     seq = make_sequence(SimConfig(seed=0, n_frames=3, width=621, height=188))
-    tr = FeatureTracker(TrackPointsParams().tracker(), CameraModel(seq.camera))
+    tr = FeatureTracker(TrackPointsParams(top_up_every=2).tracker(), CameraModel(seq.camera))
     first = tr.track(seq.render(0).rgb)
     second = tr.track(seq.render(1).rgb)
     assert second.n_tracked >= 0.7 * len(first.ids)  # 1 m of driving between the frames
