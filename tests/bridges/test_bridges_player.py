@@ -519,7 +519,9 @@ def test_a_player_has_its_prefetch_loaded_before_the_first_image(inproc_bus, mon
 
     calls: list[int] = []
     render = SimSequence.render
-    monkeypatch.setattr(SimSequence, "render", lambda self, i: (calls.append(i), render(self, i))[1])
+    monkeypatch.setattr(
+        SimSequence, "render", lambda self, i: (calls.append(i), render(self, i))[1]
+    )
     bus, ctx = inproc_bus
     params = {
         "source": "sim",
