@@ -50,7 +50,12 @@ from mogs_node.bus import (
     tune_malloc_for_large_messages,
 )
 from mogs_node.demo_nodes import make_keyframe
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import (
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 
 CASES = ("bare", "hop", "inline", "mogs")
 
@@ -328,8 +333,7 @@ def main(argv: list[str] | None = None) -> int:
         help="bus.socket_buffer_bytes for the broker and the MOGS ends (0: OS default)",
     )
     ap.add_argument("--only", choices=["keyframe", "imu"], default=None, help="one kind only")
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    add_output_options(ap)
     args = ap.parse_args(argv)
     mp.set_start_method("spawn", force=True)
     figures: dict[str, float | str] = {}

@@ -14,7 +14,6 @@ writes the curve as a PNG. Writes the ``depth-prior`` section of docs/benchmarks
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -26,9 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
     machine_line,
-    update_markdown_section,
-    write_json,
+    write_results,
 )
 from mogs_node.eval.depth_prior_eval import (  # noqa: E402
     calibration_bins,
@@ -45,7 +44,7 @@ from mogs_node.eval.pipeline_stages import (  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BEFORE = "flow only, references from 0.3 m (main)"
-AFTER = "flow + road + carried + warped metrized depth (default)"
+AFTER = "flow + road + carried + warped metrized depth + frames as references (default)"
 
 
 def plot(bins: list[dict], path: Path, title: str) -> None:
@@ -171,9 +170,8 @@ def main() -> None:
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
     ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
     ap.add_argument("--lag", type=int, default=1, help="keyframes until metrized depth arrives")
-    ap.add_argument("--json", default=None, help="also write the figures here")
+    add_output_options(ap)
     ap.add_argument("--png", default="docs/depth_prior_calibration.png", help="curve (PNG)")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
     ap.add_argument("--kitti", default=None, help="KITTI excerpt folder: measure there instead")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -182,27 +180,33 @@ def main() -> None:
     )
     if args.kitti:
         fig, md = kitti(args.kitti, command)
-        print(md)
-        if args.json:
-            Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
-        if not args.no_docs:
-            update_markdown_section("depth-prior-kitti", md)
+        write_results("depth-prior-kitti", md, fig, args.json, not args.no_docs)
         return
     t0 = time.process_time()
     params = demo_params(args.launch)
     kfs, info = prepare_keyframes(params, seed=args.seed)
+    tracked = info.pop("tracked_frames")  # the frames between keyframes (flow.frame_references)
     masks = graph_masks(kfs, params)
     flow, road, fusion = prior_params(params)
     no_feedback = replace(fusion, warp_sources=0, carry=False)
     variants = {
         # main's prior: one or two flow references from 0.3 m, nothing else
         BEFORE: (
-            replace(flow, min_baseline_m=0.3),
+            replace(flow, min_baseline_m=0.3, frame_references=0),
             replace(road, enabled=False),
             no_feedback,
         ),
-        "flow + road plane": (flow, road, no_feedback),
-        "flow + road + previous prior carried": (flow, road, replace(fusion, warp_sources=0)),
+        "flow + road plane": (replace(flow, frame_references=0), road, no_feedback),
+        "flow + road + previous prior carried": (
+            replace(flow, frame_references=0),
+            road,
+            replace(fusion, warp_sources=0),
+        ),
+        "... + warped metrized depth (keyframes only as references)": (
+            replace(flow, frame_references=0),
+            road,
+            fusion,
+        ),
         AFTER: (flow, road, fusion),
     }
     keyframes = [s.keyframe for s in kfs]
@@ -210,7 +214,9 @@ def main() -> None:
     ids = [k.keyframe_id for k in keyframes]
     fig: dict = {"keyframes": len(kfs), "lag": args.lag, "variants": {}}
     for name, (f, r, u) in variants.items():
-        run = run_priors(keyframes, f, r, u, masks=masks, params=params, lag=args.lag)
+        run = run_priors(
+            keyframes, f, r, u, masks=masks, params=params, lag=args.lag, frames=tracked
+        )
         fig["variants"][name] = {
             "prior": score_priors([p.depth_m for p in run.priors], gts, ids),
             "prior_coverage_all_pixels": float(np.mean([p.stats["coverage"] for p in run.priors])),
@@ -241,10 +247,7 @@ def main() -> None:
     png = Path(args.png)
     plot(fig["calibration"], png if png.is_absolute() else REPO / png, "dense prior, demo drive")
     md = markdown(fig, command, Path(args.png).name if not png.is_absolute() else str(png))
-    print(md)
-    write_json(args.json, fig)
-    if not args.no_docs:
-        update_markdown_section("depth-prior", md)
+    write_results("depth-prior", md, fig, args.json, not args.no_docs)
 
 
 if __name__ == "__main__":

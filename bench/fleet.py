@@ -25,7 +25,13 @@ import time
 import uuid
 from pathlib import Path
 
-from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.eval.bench_docs import (
+    REPO_ROOT,
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.fleet.batch import BatchOptions, run_batch
 from mogs_node.fleet.drives import PATIENT_PLAYER, drive_id, write_sim_drives
 from mogs_node.fleet.table import comparable_figures
@@ -161,8 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cpus-per-drive", type=float, nargs="+", default=[1.0, 2.0])
     ap.add_argument("--timeout", type=float, default=3000.0, help="per drive [s]")
     ap.add_argument("--out", default=None, help="working folder (default: a temporary one)")
-    ap.add_argument("--json", default=None, metavar="PATH")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    add_output_options(ap)
     args = ap.parse_args(argv)
     if args.drives < 1:
         raise SystemExit("--drives: at least 1")

@@ -218,9 +218,7 @@ def run_config(
     inserted: list[int] = []  # Gaussians each mapped keyframe inserted (-1: not said)
     final_t: float | None = None
     last_sample = 0.0
-    while runner.is_alive():
-        env = sub.receive(timeout_ms=50)
-        now = time.monotonic()
+    for now, env in sub.arrivals(runner.is_alive, timeout_ms=50):
         if env is not None:
             m = env.msg
             if env.topic == "/camera/image":

@@ -48,8 +48,14 @@ import zmq
 
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
-from mogs_node.commands.launch import parse_overrides
-from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
+from mogs_node.commands.launch import add_run_options, parse_overrides
+from mogs_node.eval.bench_docs import (
+    REPO_ROOT,
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
 RSS_FRAME = 600  # the reference point of the memory ratio (issue 17)
@@ -168,9 +174,7 @@ def _watch(launcher: Launcher, runner: threading.Thread, trace: Trace, drain_s: 
     cpu_by_pid: dict[int, tuple[str, float]] = {}
     last_sample = last_input = time.monotonic()
     try:
-        while runner.is_alive():
-            env = sub.receive(timeout_ms=100)
-            now = time.monotonic()
+        for now, env in sub.arrivals(runner.is_alive, timeout_ms=100):
             if env is not None:
                 last_input = now
                 m = env.msg
@@ -343,18 +347,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--launch", default=str(REPO_ROOT / "launch" / "long_drive.yaml"))
     ap.add_argument("--frames", type=int, default=3000, help="frames of the drive (10 Hz)")
-    ap.add_argument("--timeout", type=float, default=6 * 3600.0)
+    add_run_options(ap, "stop the run after this many seconds", timeout_s=6 * 3600.0)
     ap.add_argument("--drain", type=float, default=300.0, help="s without input before giving up")
     ap.add_argument("--out", default=None, help="run folder (default: a temporary one)")
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
-    ap.add_argument("--no-docs", action="store_true")
-    ap.add_argument(
-        "--docs-from",
-        default=None,
-        metavar="DIR",
-        help="write the plot and docs section from a finished run's folder (no new run)",
-    )
+    add_output_options(ap, docs_from="DIR")
     args = ap.parse_args(argv)
     if args.docs_from:
         return _docs_from(Path(args.docs_from), args)

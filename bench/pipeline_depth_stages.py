@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section  # noqa: E402
+from mogs_node.eval.bench_docs import add_output_options, machine_line, write_results  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
     demo_params,
     evaluate_stages,
@@ -145,8 +145,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
     ap.add_argument("--seed", type=int, default=None, help="sim seed (default: the demo's)")
-    ap.add_argument("--json", default=None, help="also write the figures here")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    add_output_options(ap)
     ap.add_argument("--live", action="store_true", help="also run the pipeline (two mogs demo)")
     ap.add_argument(
         "--live-runs",
@@ -184,11 +183,7 @@ def main() -> None:
     md = markdown(fig, info, command)
     if args.live or args.live_runs:
         md = md.replace(LIVE_ANCHOR, "\n".join(live_markdown(fig)) + "\n\n" + LIVE_ANCHOR)
-    print(md)
-    if args.json:
-        Path(args.json).write_text(json.dumps(fig, indent=1, default=float))
-    if not args.no_docs:
-        update_markdown_section("pipeline-depth-stages", md)
+    write_results("pipeline-depth-stages", md, fig, args.json, not args.no_docs)
 
 
 if __name__ == "__main__":

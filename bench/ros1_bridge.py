@@ -47,7 +47,12 @@ from _ros1 import (  # noqa: E402
     write_sim_bag_official,
 )
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.eval.traj import trajectory_metrics  # noqa: E402
 from mogs_node.frontend.trajectory_io import read_tum  # noqa: E402
 from mogs_node.geometry import make_T, quat_wxyz_to_rotmat  # noqa: E402
@@ -73,6 +78,13 @@ MAPPER_SETS = [
 
 def _sets(items: list[str]) -> list[str]:
     return [a for s in items for a in ("--set", s)]
+
+
+def _launch_argv(launch: str, run_dir: Path, sets: list[str], *extra: str) -> list[str]:
+    """``mogs launch launch/LAUNCH --run-dir RUN_DIR --grace 60 EXTRA --set ...``: the direct and
+    the bridged run start the same way (a long grace: the mapper writes its map at the end)."""
+    head = ["launch", str(REPO / "launch" / launch), "--run-dir", str(run_dir), "--grace", "60"]
+    return cli_argv(*head, *extra, *_sets(sets))
 
 
 def _ate(stamps: np.ndarray, poses: np.ndarray, gt: dict[int, np.ndarray]) -> dict:
@@ -120,16 +132,12 @@ def run_direct(bag: Path, out: Path, timeout_s: float) -> tuple[np.ndarray, np.n
     t0 = time.monotonic()
     with (out.parent / "direct.log").open("w") as log:
         proc = subprocess.run(
-            cli_argv(
-                "launch",
-                str(REPO / "launch" / "bag.yaml"),
-                "--run-dir",
-                str(out),
-                "--grace",
-                "60",
+            _launch_argv(
+                "bag.yaml",
+                out,
+                [f"player.path={bag}", *TOPIC_SETS, *MAPPER_SETS],
                 "--timeout",
                 str(timeout_s),
-                *_sets([f"player.path={bag}", *TOPIC_SETS, *MAPPER_SETS]),
             ),
             cwd=REPO,
             env={**os.environ, "MOGS_NO_CPP_EXT": "1"},  # the mapper's pure-PyTorch compositor
@@ -152,22 +160,16 @@ def run_bridge(bag: Path, tmp: Path, rate: float) -> tuple[dict, str]:
         log_path = tmp / "bridge.log"
         with log_path.open("w") as log:
             launch = subprocess.Popen(
-                cli_argv(
-                    "launch",
-                    str(REPO / "launch" / "ros1.yaml"),
-                    "--run-dir",
-                    str(run),
-                    "--grace",
-                    "60",
-                    *_sets(
-                        [
-                            f"ros1.image_topic={TOPICS['image']}",
-                            f"ros1.imu_topic={TOPICS['imu']}",
-                            f"ros1.camera_info_topic={TOPICS['camera_info']}",
-                            "ros1.wait_for_nodes_s=900",
-                            *MAPPER_SETS,
-                        ]
-                    ),
+                _launch_argv(
+                    "ros1.yaml",
+                    run,
+                    [
+                        f"ros1.image_topic={TOPICS['image']}",
+                        f"ros1.imu_topic={TOPICS['imu']}",
+                        f"ros1.camera_info_topic={TOPICS['camera_info']}",
+                        "ros1.wait_for_nodes_s=900",
+                        *MAPPER_SETS,
+                    ],
                 ),
                 cwd=REPO,
                 env=env,
@@ -198,8 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--rate", type=float, default=0.5, help="rosbag play rate (1 = real time)")
     ap.add_argument("--timeout", type=float, default=1800.0)
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--no-docs", action="store_true")
+    add_output_options(ap)
     args = ap.parse_args(argv)
 
     tmp = Path(tempfile.mkdtemp(prefix="mogs-bench-ros1-"))

@@ -18,7 +18,12 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.sim import SimConfig, WorldParams, make_sequence  # noqa: E402
 
 
@@ -63,8 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=5, help="frames timed per resolution")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", default=None, metavar="PATH")
-    ap.add_argument("--no-docs", action="store_true", help="do not update docs/benchmarks.md")
+    add_output_options(ap)
     args = ap.parse_args(argv)
     figures: dict[str, float] = {}
     for w, h in ((1242, 375), (621, 188)):

@@ -17,7 +17,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    add_output_options,
+    machine_line,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.eval.frontend_runs import window_refinement  # noqa: E402
 from mogs_node.frontend.frontend import FrontendParams  # noqa: E402
 from mogs_node.frontend.keyframes import KeyframeParams  # noqa: E402
@@ -29,8 +34,7 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--frames", type=int, default=60)
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--no-docs", action="store_true")
+    add_output_options(ap)
     args = ap.parse_args(argv)
     rows = {}
     for n in sorted({40, args.frames}):

@@ -42,7 +42,12 @@ from mogs_node.depth_prior.flow_prior import (  # noqa: E402
     compute_flow_prior,
     two_view_depth,
 )
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import (  # noqa: E402
+    machine_line,
+    markdown_table,
+    update_markdown_section,
+    write_json,
+)
 from mogs_node.geometry import se3_inverse  # noqa: E402
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph  # noqa: E402
 
@@ -171,19 +176,6 @@ def coverage_vs_baseline(data, poses, n_frames: int) -> dict[str, float]:
 
 
 def _markdown(fig: dict[str, float], args: argparse.Namespace) -> str:
-    lines = [
-        "## Segmentation and depth-prior workers",
-        "",
-        f"Command: `python bench/workers.py --repeats {args.repeats} --frames {args.frames}`. "
-        f"Machine: {machine_line()}. One core (OpenCV, BLAS and onnxruntime at one thread); "
-        f"load average at the start {fig['load_average_1min']:.1f} (the machine is shared: "
-        "latencies are upper bounds).",
-        "",
-        "Latency per keyframe at 1242x375 (KITTI excerpt frame), median:",
-        "",
-        "| backend | ms per keyframe |",
-        "| --- | --- |",
-    ]
     names = {
         "graph_seg_ms_per_keyframe": "graph segmentation (default, half resolution)",
         "slic_seg_ms_per_keyframe": "SLIC superpixels",
@@ -199,24 +191,33 @@ def _markdown(fig: dict[str, float], args: argparse.Namespace) -> str:
         "depth_anything_tiny_518_overhead_ms_per_keyframe": "Depth Anything ONNX 518 px, "
         "pipeline overhead only",
     }
-    for k, label in names.items():
-        if k in fig:
-            lines.append(f"| {label} | {fig[k]:.1f} |")
-    lines += [
+    flow = []
+    for b in BASELINES_M:
+        cells = [fig[f"flow_{f}_b{b:g}m"] for f in ("frames", "coverage_ratio", "absrel")]
+        cells.append(fig[f"flow_absrel_0_20m_b{b:g}m"])
+        flow.append([f"{b:g}", f"{cells[0]:.0f}", *(f"{c:.3f}" for c in cells[1:])])
+    lines = [
+        "## Segmentation and depth-prior workers",
+        "",
+        f"Command: `python bench/workers.py --repeats {args.repeats} --frames {args.frames}`. "
+        f"Machine: {machine_line()}. One core (OpenCV, BLAS and onnxruntime at one thread); "
+        f"load average at the start {fig['load_average_1min']:.1f} (the machine is shared: "
+        "latencies are upper bounds).",
+        "",
+        "Latency per keyframe at 1242x375 (KITTI excerpt frame), median:",
+        "",
+        *markdown_table(
+            ["backend", "ms per keyframe"],
+            [(label, f"{fig[k]:.1f}") for k, label in names.items() if k in fig],
+        ),
         "",
         "Flow prior (one pair) against LiDAR on the real KITTI excerpt, by baseline to the "
         "reference keyframe (poses by PnP on LiDAR-sampled corners):",
         "",
-        "| baseline [m] | frames | coverage of LiDAR pixels | AbsRel | AbsRel 0-20 m |",
-        "| --- | --- | --- | --- | --- |",
+        *markdown_table(
+            ["baseline [m]", "frames", "coverage of LiDAR pixels", "AbsRel", "AbsRel 0-20 m"], flow
+        ),
     ]
-    for b in BASELINES_M:
-        k = f"{b:g}m"
-        lines.append(
-            f"| {b:g} | {fig[f'flow_frames_b{k}']:.0f} | "
-            f"{fig[f'flow_coverage_ratio_b{k}']:.3f} | {fig[f'flow_absrel_b{k}']:.3f} | "
-            f"{fig[f'flow_absrel_0_20m_b{k}']:.3f} |"
-        )
     return "\n".join(lines)
 
 

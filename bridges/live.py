@@ -33,8 +33,10 @@ import zmq
 
 from bridges.imu_text import REJECT_REASONS, ImuSample, ImuSampleParser, LineSplitter
 from mogs_node import msgs
+from mogs_node.bus import queued
 from mogs_node.errors import ConfigError, DeviceError
 from mogs_node.node import Node
+from mogs_node.params import check_choice
 
 __all__ = [
     "CameraStamper",
@@ -121,10 +123,7 @@ class LiveCameraParams:
     wait_for_subscriber_s: float = 0.0  # before streaming, wait this long for a subscriber
 
     def __post_init__(self) -> None:
-        if self.encoding not in msgs.Image.ENCODINGS:
-            raise ConfigError(
-                f"camera.encoding: expected one of {msgs.Image.ENCODINGS}, got {self.encoding!r}"
-            )
+        check_choice("camera.encoding", self.encoding, msgs.Image.ENCODINGS)
         if min(self.width, self.height, self.max_frames, self.max_read_failures) < 0:
             raise ConfigError("camera: width, height, max_frames, max_read_failures must be >= 0")
 
@@ -385,11 +384,7 @@ class ZmqImuNode(_ImuPublisher):
 
     def tick(self) -> None:
         p: ZmqImuParams = self.params
-        for _ in range(10000):
-            try:
-                raw = self.input.recv(zmq.NOBLOCK)
-            except zmq.Again:
-                return
+        for raw in queued(self.input.recv, limit=10000):
             try:
                 obj = msgpack.unpackb(
                     raw,

@@ -12,6 +12,7 @@ import numpy as np
 from bridges.sources import SOURCE_KINDS
 from mogs_node.datasets import BagTopics
 from mogs_node.errors import ConfigError
+from mogs_node.params import check_choice
 
 __all__ = ["ENCODINGS", "PLAYER_SOURCES", "PlayerParams", "convert_encoding"]
 
@@ -73,14 +74,8 @@ class PlayerParams:
     exit_when_done: bool = True  # stop the node (exit code 0) once everything is played
 
     def __post_init__(self) -> None:
-        if self.source not in PLAYER_SOURCES:
-            raise ConfigError(
-                f"player.source: expected one of {PLAYER_SOURCES}, got {self.source!r}"
-            )
-        if self.encoding not in ENCODINGS:
-            raise ConfigError(
-                f"player.encoding: expected one of {ENCODINGS}, got {self.encoding!r}"
-            )
+        check_choice("player.source", self.source, PLAYER_SOURCES)
+        check_choice("player.encoding", self.encoding, ENCODINGS)
         if not (self.rate >= 0 and np.isfinite(self.rate)):
             raise ConfigError(f"player.rate: expected a finite number >= 0, got {self.rate}")
         if self.max_frames_in_flight < 1 or self.max_keyframes_in_flight < 0:

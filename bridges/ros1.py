@@ -39,18 +39,12 @@ from typing import Any
 from bridges import ros_convert as rc
 from bridges.ros_convert import Distro
 from bridges.ros_inputs import RosInputParams, RosInputs, calibration_line
-from bridges.ros_outputs import (
-    DIAGNOSTICS_TYPE,
-    OUTPUT_TYPES,
-    TF_TOPIC,
-    TF_TYPE,
-    RosOutputParams,
-    RosOutputs,
-)
+from bridges.ros_outputs import RosOutputParams, RosOutputs
 from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import ConfigError, MessageError, Ros1UnavailableError
 from mogs_node.node import Node
+from mogs_node.params import group_of
 
 __all__ = [
     "APT_INSTALL",
@@ -162,22 +156,10 @@ class Ros1BridgeParams:
         self.inputs()  # checks T_imu_cam, tf_wait_s
 
     def inputs(self) -> RosInputParams:
-        return RosInputParams(
-            camera_info_topic=self.camera_info_topic,
-            tf_static_topic=self.tf_static_topic,
-            T_imu_cam=self.T_imu_cam,
-            tf_wait_s=self.tf_wait_s,
-            source="ros1",
-        )
+        return group_of(RosInputParams, self, source="ros1")
 
     def outputs(self) -> RosOutputParams:
-        return RosOutputParams(
-            prefix=self.prefix,
-            world_frame=self.world_frame,
-            camera_frame=self.camera_frame,
-            map_period_s=self.map_period_s,
-            max_map_points=self.max_map_points,
-        )
+        return group_of(RosOutputParams, self)
 
 
 class _Inbox:
@@ -265,13 +247,8 @@ class Ros1Bridge(RosBridgeShell, Node):
         _init_node_keeping_logging(rospy, p.ros_node_name)
         out = p.outputs()
         self._pubs: dict[str, Any] = {}
-        for name, rtype in OUTPUT_TYPES.items():
-            latch = name in ("path", "map_cloud")  # RViz started later still sees the map
-            self._pubs[out.topic(name)] = self._publisher(out.topic(name), rtype, latch)
-        self._pubs[TF_TOPIC] = self._publisher(TF_TOPIC, TF_TYPE, False)
-        self._pubs[out.diagnostics_topic] = self._publisher(
-            out.diagnostics_topic, DIAGNOSTICS_TYPE, False
-        )
+        for topic, rtype in out.publisher_types().items():
+            self._pubs[topic] = self._publisher(topic, rtype, out.latched(topic))
         self._subscribe_outputs()
         self.add_reader(self.inbox.wake_r, self.drain)
         self.every(max(0.1, min(1.0, p.map_period_s)), self.flush_map)  # the map's last change

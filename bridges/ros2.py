@@ -2,8 +2,9 @@
 
 The conversions (shared with the ROS 1 bridge and ``mogs record``) are pure functions over the
 ``rosbags`` typestore classes, tested without ROS; ``mogs ros2`` publishes their CDR bytes through
-rclpy. This module re-exports them with ROS 2 defaults for its earlier users. Stamps are
-``builtin_interfaces/Time`` (sec, nanosec) of our int ``stamp_ns``, in [0, 2^31 s).
+rclpy. Tests and tools call them from :mod:`bridges.ros_convert`; this module keeps the two
+readers whose defaults name ROS 2. Stamps are ``builtin_interfaces/Time`` (sec, nanosec) of our
+int ``stamp_ns``, in [0, 2^31 s).
 """
 
 from __future__ import annotations
@@ -14,58 +15,22 @@ from dataclasses import dataclass
 from typing import Any
 
 from bridges import ros_convert
-from bridges.ros_convert import (
-    ROS_TYPES,
-    Distro,
-    depth_to_ros,
-    image_from_ros,
-    image_to_ros,
-    imu_from_ros,
-    imu_to_ros,
-    mapstats_from_ros,
-    mapstats_to_ros,
-    odometry_to_ros,
-    pose_from_ros,
-    pose_to_ros,
-    ros_stamp_ns,
-    tf_from_pose,
-    to_ros,
-)
+from bridges.ros_convert import Distro, pose_to_ros
 from bridges.ros_inputs import RosInputParams, RosInputs, calibration_line
-from bridges.ros_outputs import (
-    DIAGNOSTICS_TYPE,
-    OUTPUT_TYPES,
-    TF_TOPIC,
-    TF_TYPE,
-    RosOutputParams,
-    RosOutputs,
-)
+from bridges.ros_outputs import RosOutputParams, RosOutputs
 from bridges.ros_shell import RosBridgeShell
 from mogs_node import msgs
 from mogs_node.errors import MessageError, Ros2UnavailableError
 from mogs_node.node import Node
+from mogs_node.params import group_of
 
 __all__ = [
-    "ROS_TYPES",
     "Ros2Mirror",
     "Ros2MirrorParams",
     "Ros2UnavailableError",
     "depth_from_ros",
-    "depth_to_ros",
-    "image_from_ros",
-    "image_to_ros",
-    "imu_from_ros",
-    "imu_to_ros",
-    "mapstats_from_ros",
-    "mapstats_to_ros",
     "odometry_from_ros",
-    "odometry_to_ros",
-    "pose_from_ros",
-    "pose_to_ros",
     "require_rclpy",
-    "ros_stamp_ns",
-    "tf_from_pose",
-    "to_ros",
     "typestore",
 ]
 
@@ -137,11 +102,11 @@ class Ros2MirrorParams:
         self.inputs()  # checks T_imu_cam, tf_wait_s
 
     def inputs(self) -> RosInputParams:
-        return RosInputParams(
+        return group_of(
+            RosInputParams,
+            self,
             camera_info_topic=self.ros_camera_info_topic,
             tf_static_topic=self.ros_tf_static_topic,
-            T_imu_cam=self.T_imu_cam,
-            tf_wait_s=self.tf_wait_s,
             source="ros2",
         )
 
@@ -249,14 +214,8 @@ class Ros2Mirror(RosBridgeShell, Node):
             ),
             Distro.ROS2,
         )
-        topics = {self.outputs.params.topic(n): t for n, t in OUTPUT_TYPES.items()}
-        topics.update(
-            {
-                f"{pre}/keyframe_pose": "geometry_msgs/msg/PoseStamped",
-                f"{pre}/map_stats": DIAGNOSTICS_TYPE,
-                TF_TOPIC: TF_TYPE,
-            }
-        )
+        topics = self.outputs.params.publisher_types()  # map stats on <prefix>/map_stats
+        topics[f"{pre}/keyframe_pose"] = "geometry_msgs/msg/PoseStamped"
         for name, rtype in topics.items():
             self._out[name] = (self.rnode.create_publisher(get_message(rtype), name, 10), rtype)
         self._subscribe_outputs()

@@ -74,6 +74,18 @@ class RosOutputParams:
     def topic(self, name: str) -> str:
         return f"{self.prefix.rstrip('/')}/{name}"
 
+    def publisher_types(self) -> dict[str, str]:
+        """Every ROS topic the outputs go out on, with its type (the outputs, tf and the map
+        statistics): what a bridge advertises."""
+        topics = {self.topic(n): t for n, t in OUTPUT_TYPES.items()}
+        topics[TF_TOPIC] = TF_TYPE
+        topics[self.diagnostics_topic] = DIAGNOSTICS_TYPE
+        return topics
+
+    def latched(self, topic: str) -> bool:
+        """Whether ``topic`` is latched on ROS 1: RViz started later still sees the map."""
+        return topic in (self.topic("path"), self.topic("map_cloud"))
+
 
 class RosOutputs:
     """Bus message in, ROS messages out (see the module docstring); ``now_s`` is a monotonic time

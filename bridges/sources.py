@@ -34,6 +34,7 @@ from mogs_node.datasets import (
 from mogs_node.datasets.base import Frame, ImuSamples, Trajectory
 from mogs_node.errors import ConfigError, DatasetError, GeometryError
 from mogs_node.geometry import PinholeCamera, rigid_transform
+from mogs_node.params import check_choice, parse_params
 
 __all__ = ["SOURCE_KINDS", "camera_info_of", "open_sequence", "sequence_from_sim"]
 
@@ -168,10 +169,8 @@ def open_sequence(
     ``intrinsics`` ``(fx, fy, cx, cy, width, height)``: the camera of a bag without CameraInfo.
     ``sim``: :class:`mogs_node.sim.SimConfig` fields for ``kind == "sim"``.
     """
-    if kind not in SOURCE_KINDS:
-        raise ConfigError(f"source: expected one of {SOURCE_KINDS}, got {kind!r}")
+    check_choice("source", kind, SOURCE_KINDS)
     if kind == "sim":
-        from mogs_node.params import parse_params
         from mogs_node.sim import SimConfig, make_sequence
 
         cfg = parse_params(SimConfig, sim or {}, where="sim")

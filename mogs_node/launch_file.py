@@ -29,11 +29,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from mogs_node.bus import BusConfig, default_bus_config
 from mogs_node.errors import ConfigError
+from mogs_node.params import check_choice
 from mogs_node.presets import DEFAULT_PRESET, apply_preset, validate_preset
+from mogs_node.yaml_file import read_yaml
 
 __all__ = [
     "LaunchFile",
@@ -175,8 +175,7 @@ def parse_launch(
         if overrides and nname in overrides:
             params.update(overrides[nname])
         respawn = nd.get("respawn", "on_failure")
-        if respawn not in RESPAWN_POLICIES:
-            raise ConfigError(f"{w}.respawn: expected one of {RESPAWN_POLICIES}, got {respawn!r}")
+        check_choice(f"{w}.respawn", respawn, RESPAWN_POLICIES)
         nodes.append(
             NodeSpec(
                 name=nname,
@@ -218,12 +217,7 @@ def load_launch_file(
     path: str | Path, overrides: dict[str, Any] | None = None, preset: str | None = None
 ) -> LaunchFile:
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as err:
-        raise ConfigError(f"cannot read launch file {p}: {err}") from err
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{p}: invalid YAML: {err}") from err
+    data = read_yaml(p, ConfigError)
     return parse_launch(data, path=p, overrides=overrides, preset=preset)
 
 

@@ -19,13 +19,25 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from mogs_node.errors import ConfigError, ModelError
+from mogs_node.errors import ModelError
+from mogs_node.params import check_choice
 
-__all__ = ["PROVIDERS", "check_signature", "model_path", "open_session"]
+__all__ = [
+    "IMAGENET_MEAN_RGB",
+    "IMAGENET_STD_RGB",
+    "PROVIDERS",
+    "check_signature",
+    "model_path",
+    "open_session",
+]
 
 log = logging.getLogger(__name__)
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "auto": ""}
+#: ImageNet's per-channel mean and standard deviation (RGB in [0, 1]): the learned backends'
+#: networks expect their input normalised with them (Depth Anything in [0, 1], SAM in [0, 255])
+IMAGENET_MEAN_RGB = (0.485, 0.456, 0.406)
+IMAGENET_STD_RGB = (0.229, 0.224, 0.225)
 
 
 def model_path(path: str | Path) -> Path:
@@ -48,8 +60,7 @@ def open_session(
     """
     import onnxruntime as ort
 
-    if provider not in PROVIDERS:
-        raise ConfigError(f"provider: expected one of {sorted(PROVIDERS)}, got {provider!r}")
+    check_choice("provider", provider, sorted(PROVIDERS))
     p = model_path(path)
     if not str(path) or not p.is_file():
         raise ModelError(f"model file not found: {str(path)!r}")

@@ -17,7 +17,9 @@ from typing import Any
 
 from mogs_node.errors import ConfigError
 
-__all__ = ["EmptyParams", "parse_params"]
+_G = typing.TypeVar("_G")
+
+__all__ = ["EmptyParams", "check_choice", "group_of", "parse_group", "parse_params"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,27 @@ def parse_params(cls: type, values: Mapping[str, Any] | None, *, where: str = "p
         return cls(**kwargs)
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{where}: {err}") from err
+
+
+def parse_group(cls: type[_G], params: Any, name: str, where: str) -> _G:
+    """The nested group ``name`` of a node's ``params`` (a mapping in the launch file) parsed
+    strictly as ``cls``; errors name ``where.name``."""
+    return parse_params(cls, getattr(params, name), where=f"{where}.{name}")
+
+
+def check_choice(where: str, value: Any, choices: Any) -> None:
+    """Raise :class:`ConfigError` naming ``where`` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"{where}: expected one of {choices}, got {value!r}")
+
+
+def group_of(cls: type[_G], flat: Any, /, **given: Any) -> _G:
+    """The parameter group ``cls`` (a frozen dataclass) filled from the same-named fields of the
+    dataclass ``flat`` (a node's flat launch parameters), ``given`` winning (renamed or fixed
+    values): launch files keep their flat names, and no conversion re-lists a group's fields."""
+    have = {f.name for f in dataclasses.fields(flat)}
+    values = {f.name: getattr(flat, f.name) for f in dataclasses.fields(cls) if f.name in have}
+    return cls(**{**values, **given})
 
 
 #: scalar field types: what the error calls them, and which YAML values fit (ints fit floats,

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from mogs_node.errors import ConfigError
-from mogs_node.params import parse_params
+from mogs_node.params import check_choice, group_of, parse_params
 
 
 @dataclass(frozen=True)
@@ -54,3 +54,28 @@ def test_an_error_deep_in_a_group_names_its_dotted_path(values, names):
         parse_params(_Node, values, where="node")
     for name in names:
         assert name in str(err.value)
+
+
+def test_group_of_takes_same_named_fields_and_given_values_win():
+    @dataclass(frozen=True)
+    class Group:
+        a: int = 0
+        b: str = ""
+        c: float = 1.0
+
+    @dataclass(frozen=True)
+    class Flat:
+        a: int = 5
+        b: str = "flat"
+        other: int = 9
+
+    assert group_of(Group, Flat()) == Group(a=5, b="flat", c=1.0)
+    assert group_of(Group, Flat(), b="given", c=2.0) == Group(a=5, b="given", c=2.0)
+
+
+def test_check_choice_names_the_field_and_the_choices():
+    check_choice("viz.mode", "save", ("save", "spawn"))
+    with pytest.raises(
+        ConfigError, match=r"viz.mode: expected one of \('save', 'spawn'\), got 'x'"
+    ):
+        check_choice("viz.mode", "x", ("save", "spawn"))

@@ -27,7 +27,7 @@ from mogs_node.bus.config import (
     tune_malloc_for_large_messages,
     with_endpoints,
 )
-from mogs_node.bus.pubsub import Publisher, Subscriber, TopicStats
+from mogs_node.bus.pubsub import Publisher, Subscriber, TopicStats, queued
 
 __all__ = [
     "BusConfig",
@@ -37,6 +37,7 @@ __all__ = [
     "TopicStats",
     "default_bus_config",
     "generate_keys",
+    "queued",
     "run_broker",
     "tune_malloc_for_large_messages",
     "with_endpoints",

@@ -5,8 +5,9 @@ from __future__ import annotations
 import logging
 import random
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import zmq
 
@@ -26,6 +27,23 @@ def _connect_client(sock: zmq.Socket, config: BusConfig, endpoint: str, what: st
         sock.connect(endpoint)
     except zmq.ZMQError as err:
         raise BusError(f"cannot connect {what} to {endpoint}: {err}") from err
+
+
+_T = TypeVar("_T")
+
+
+def queued(recv: Callable[[int], _T], limit: int | None = None) -> Iterator[_T]:
+    """What a socket's ``recv`` (or ``recv_multipart``) has queued now, without waiting: one
+    item per call with ``zmq.NOBLOCK`` until ``zmq.Again`` (or ``limit`` items), so that one
+    poll's worth of work never blocks the run loop."""
+    n = 0
+    while limit is None or n < limit:
+        try:
+            item = recv(zmq.NOBLOCK)
+        except zmq.Again:
+            return
+        n += 1
+        yield item
 
 
 class Publisher:
@@ -138,11 +156,7 @@ class Publisher:
         return len(frames[0]) + len(frames[1]) + total
 
     def _drain_subscriptions(self) -> None:
-        while True:
-            try:
-                ev = self._sock.recv(zmq.NOBLOCK)
-            except zmq.Again:
-                return
+        for ev in queued(self._sock.recv):
             if ev and ev[0] == 1:
                 self._subscribed.add(ev[1:])
 
@@ -344,6 +358,16 @@ class Subscriber:
             return None
         st.shm_received += 1
         return [topic_bytes, inline, *buffers]
+
+    def arrivals(
+        self, alive: Callable[[], bool], timeout_ms: int = 100
+    ) -> Iterator[tuple[float, msgs.Envelope | None]]:
+        """``(monotonic time, message or None)`` after each :meth:`receive` while ``alive()``
+        (a run's thread): a watcher stamps each message as it arrives and, between messages
+        (None after ``timeout_ms``), samples what it watches."""
+        while alive():
+            env = self.receive(timeout_ms=timeout_ms)
+            yield time.monotonic(), env
 
     def receive(self, timeout_ms: int | None = 0) -> msgs.Envelope | None:
         """The next valid message of a subscribed topic, or None if none arrives in time.

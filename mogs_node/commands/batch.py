@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mogs_node.commands.launch import parse_overrides
+from mogs_node.commands.launch import add_run_options, parse_overrides
 
 HELP = "map many drives in one batch on Ray (local or a cluster)"
 
@@ -52,27 +52,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1,
         help="attempts after a drive crashed (config errors and timeouts are not retried)",
     )
-    parser.add_argument(
-        "--timeout",
-        type=float,
-        default=3600.0,
-        help="per-drive timeout in seconds (default 3600; 0: none)",
-    )
-    parser.add_argument(
-        "--grace", type=float, default=10.0, help="seconds between SIGINT and SIGKILL of a node"
-    )
+    timeout_help = "per-drive timeout in seconds (default 3600; 0: none)"
+    add_run_options(parser, timeout_help, timeout_s=3600.0, grace_s=10.0)
     parser.add_argument(
         "--path-param",
         default="player.path",
         metavar="NODE.PARAM",
         help="the parameter that takes the drive's path (default player.path)",
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NODE.PARAM=VALUE",
-        help="override a node parameter for every drive (value parsed as YAML); repeatable",
     )
     parser.add_argument(
         "--no-resume", action="store_true", help="run every drive, also those already complete"

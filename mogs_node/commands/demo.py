@@ -13,7 +13,7 @@ import json
 import time
 from pathlib import Path
 
-from mogs_node.commands.launch import parse_overrides
+from mogs_node.commands.launch import add_keep_journal, add_run_options, parse_overrides
 from mogs_node.eval.bench_docs import REPO_ROOT
 from mogs_node.launch import Launcher, load_launch_file, run_dir_overrides
 
@@ -24,21 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", default=None, help="output folder (default runs/<timestamp>)")
     parser.add_argument("--frames", type=int, default=None, help="frames of the synthetic drive")
-    parser.add_argument(
-        "--timeout", type=float, default=1200.0, help="give up after this many seconds"
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NODE.PARAM=VALUE",
-        help="override a node parameter (value parsed as YAML), e.g. mapper.device=cuda",
-    )
-    parser.add_argument(
-        "--keep-journal",
-        action="store_true",
-        help="keep the run's journal and mapper checkpoint (default: removed at a clean end)",
-    )
+    add_run_options(parser, "give up after this many seconds (default 1200)", timeout_s=1200.0)
+    add_keep_journal(parser)
 
 
 def command(args: argparse.Namespace) -> int:

@@ -36,25 +36,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = presets_help_text()
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NODE.PARAM=VALUE",
-        help="override a node parameter (value parsed as YAML); repeatable",
-    )
-    parser.add_argument(
-        "--timeout", type=float, default=None, help="stop everything after this many seconds"
-    )
-    parser.add_argument(
-        "--grace", type=float, default=3.0, help="seconds between SIGINT and SIGKILL on shutdown"
-    )
+    add_run_options(parser, "stop everything after this many seconds", grace_s=3.0)
     parser.add_argument(
         "--run-dir", default=None, metavar="DIR", help="keep journal, report, map, checkpoints here"
     )
     parser.add_argument(
         "--resume", default=None, metavar="RUN_DIR", help="continue the run stored in RUN_DIR"
     )
+    add_keep_journal(parser)
+
+
+def add_run_options(
+    parser: argparse.ArgumentParser,
+    timeout_help: str,
+    *,
+    timeout_s: float | None = None,
+    grace_s: float | None = None,
+) -> None:
+    """The options of every command that runs a launch file (launch, demo, batch): ``--set``
+    overrides (read by :func:`parse_overrides`), ``--timeout`` and, given ``grace_s``,
+    ``--grace``."""
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="override a node parameter (value parsed as YAML), e.g. mapper.device=cuda; "
+        "repeatable",
+    )
+    parser.add_argument("--timeout", type=float, default=timeout_s, help=timeout_help)
+    if grace_s is not None:
+        help_ = f"seconds between SIGINT and SIGKILL of a node (default {grace_s:g})"
+        parser.add_argument("--grace", type=float, default=grace_s, help=help_)
+
+
+def add_keep_journal(parser: argparse.ArgumentParser) -> None:
+    """``--keep-journal``: the run's journal and checkpoints stay after a clean end."""
     parser.add_argument(
         "--keep-journal",
         action="store_true",

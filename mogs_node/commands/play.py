@@ -14,8 +14,10 @@ Pause with ``kill -USR1 PID``, resume with ``kill -USR2 PID``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
+from typing import Any
 
 from mogs_node.commands.broker import bus_from_args
 from mogs_node.errors import ConfigError
@@ -34,39 +36,43 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--bus-json", default=None, help=argparse.SUPPRESS)
 
 
+#: the ``dest`` prefix of the options that set a player parameter (the rest of the ``dest``)
+_PLAYER = "player."
+
+
+def _player_option(g: argparse._ArgumentGroup, flag: str, param: str, **kw: Any) -> None:
+    """An option that sets the player node's parameter ``param``: its ``dest`` names it, so that
+    :func:`params_from_args` needs no list of its own."""
+    if kw.get("action") is None and "choices" not in kw:
+        kw.setdefault("metavar", flag[2:].upper().replace("-", "_"))  # argparse's, not the dest's
+    g.add_argument(flag, dest=_PLAYER + param, **kw)
+
+
 def _play_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("playback")
-    g.add_argument("--rate", type=float, default=1.0, help="speed factor (1 = recorded rate)")
-    g.add_argument(
-        "--fast",
-        action="store_true",
-        help="as fast as the pipeline accepts (flow control on --ack-topic)",
-    )
-    g.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
-    g.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds in")
-    g.add_argument(
-        "--imu-lead", type=float, default=1.2, metavar="S", help="IMU from S seconds before frame 1"
-    )
-    g.add_argument(
-        "--camera-height", type=float, default=None, metavar="M", help="camera above the road (m)"
-    )
-    g.add_argument("--ack-topic", default="/frontend/odometry", help="fast: acknowledgements")
-    g.add_argument(
-        "--max-in-flight", type=int, default=1, help="fast: unacknowledged images at most"
-    )
-    g.add_argument(
-        "--max-keyframes-in-flight",
-        type=int,
-        default=0,
-        help="fast: keyframes waiting for /metrizer/depth at most (0 = not watched)",
-    )
-    g.add_argument("--encoding", default="", choices=["", "mono8", "rgb8", "bgr8"])
-    g.add_argument("--no-groundtruth", action="store_true", help="no /groundtruth/pose")
-    g.add_argument("--gt-depth", action="store_true", help="also publish /groundtruth/depth")
-    g.add_argument(
-        "--wait", type=float, default=10.0, help="seconds to wait for an image subscriber"
-    )
-    g.add_argument("--progress", type=float, default=2.0, help="seconds between progress lines")
+    opt = functools.partial(_player_option, g)
+    opt("--rate", "rate", type=float, default=1.0, help="speed factor (1 = recorded rate)")
+    fast_help = "as fast as the pipeline accepts (flow control on --ack-topic)"
+    opt("--fast", "fast", action="store_true", help=fast_help)
+    opt("--start", "start_s", type=float, default=0.0, metavar="S", help="skip the first S seconds")
+    opt("--end", "end_s", type=float, default=None, metavar="S", help="stop S seconds in")
+    lead_help = "IMU from S seconds before frame 1"
+    opt("--imu-lead", "imu_lead_s", type=float, default=1.2, metavar="S", help=lead_help)
+    height_help = "camera above the road (m)"
+    opt("--camera-height", "camera_height_m", type=float, metavar="M", help=height_help)
+    opt("--ack-topic", "ack_topic", default="/frontend/odometry", help="fast: acknowledgements")
+    in_flight_help = "fast: unacknowledged images at most"
+    opt("--max-in-flight", "max_frames_in_flight", type=int, default=1, help=in_flight_help)
+    kf_help = "fast: keyframes waiting for /metrizer/depth at most (0 = not watched)"
+    opt("--max-keyframes-in-flight", "max_keyframes_in_flight", type=int, default=0, help=kf_help)
+    opt("--encoding", "encoding", default="", choices=["", "mono8", "rgb8", "bgr8"])
+    opt("--no-groundtruth", "groundtruth", action="store_false", help="no /groundtruth/pose")
+    gt_help = "also publish /groundtruth/depth"
+    opt("--gt-depth", "groundtruth_depth", action="store_true", help=gt_help)
+    wait_help = "seconds to wait for an image subscriber"
+    opt("--wait", "wait_for_subscriber_s", type=float, default=10.0, help=wait_help)
+    progress_help = "seconds between progress lines"
+    opt("--progress", "progress_period_s", type=float, default=2.0, help=progress_help)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,22 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def params_from_args(args: argparse.Namespace) -> dict:
     """The player node's parameters (a JSON-able dict) from the parsed command line."""
-    params: dict = {
-        "rate": args.rate,
-        "fast": args.fast,
-        "start_s": args.start,
-        "end_s": args.end,
-        "imu_lead_s": args.imu_lead,
-        "camera_height_m": args.camera_height,
-        "ack_topic": args.ack_topic,
-        "max_frames_in_flight": args.max_in_flight,
-        "max_keyframes_in_flight": args.max_keyframes_in_flight,
-        "encoding": args.encoding,
-        "groundtruth": not args.no_groundtruth,
-        "groundtruth_depth": args.gt_depth,
-        "wait_for_subscriber_s": args.wait,
-        "progress_period_s": args.progress,
-    }
+    params = {k[len(_PLAYER) :]: v for k, v in vars(args).items() if k.startswith(_PLAYER)}
     if args.kind == "kitti":
         params.update(source="kitti_odometry" if args.odometry else "kitti", path=args.path)
     elif args.kind == "euroc":

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from mogs_node.datasets.base import Frame, Sequence, Trajectory, text_lines
 from mogs_node.datasets.kitti import load_image, read_euroc_imu_csv
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, make_T, quat_wxyz_to_rotmat, se3_exp, se3_log
+from mogs_node.yaml_file import read_yaml
 
 __all__ = [
     "KALIBR_IMU_NOISE",
@@ -53,21 +53,7 @@ def imu_noise_from_kalibr(data: dict, path: Path) -> dict[str, float]:
 
 def read_sensor_yaml(path: str | Path) -> dict:
     """Parse an EuRoC/Kalibr ``sensor.yaml`` (OpenCV ``%YAML:1.0`` header tolerated)."""
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as err:
-        raise DatasetError(f"{p}: cannot read ({err.strerror or err})") from err
-    lines = [ln for ln in text.splitlines() if not ln.startswith("%YAML")]
-    try:
-        data = yaml.safe_load("\n".join(lines))
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f":{mark.line + 2}" if mark is not None else ""
-        raise DatasetError(f"{p}{where}: invalid YAML ({err})") from err
-    if not isinstance(data, dict):
-        raise DatasetError(f"{p}: expected a mapping")
-    return data
+    return read_yaml(Path(path), DatasetError, mapping=True)
 
 
 def _T_BS(data: dict, path: Path) -> np.ndarray:

@@ -29,7 +29,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from mogs_node.datasets.base import Sequence, Trajectory
 from mogs_node.datasets.euroc import (
@@ -40,6 +39,7 @@ from mogs_node.datasets.euroc import (
 from mogs_node.datasets.kitti import image_file_frames, read_depth_png, read_imu_text, stamp_ns_of
 from mogs_node.errors import DatasetError
 from mogs_node.geometry import PinholeCamera, se3_inverse
+from mogs_node.yaml_file import read_yaml
 
 __all__ = ["read_kalibr_camchain", "read_user_poses", "read_vi_folder"]
 
@@ -47,23 +47,11 @@ _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _KALIBR_MODELS = {"radtan": "radtan", "equidistant": "equidistant", "none": "none"}
 
 
-def _yaml(path: Path) -> dict:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from err
-    except yaml.YAMLError as err:
-        raise DatasetError(f"{path}: invalid YAML ({err})") from err
-    if not isinstance(data, dict):
-        raise DatasetError(f"{path}: expected a mapping")
-    return data
-
-
 def read_kalibr_camchain(path: str | Path, camera: str = "cam0") -> dict:
     """Kalibr ``camchain.yaml`` -> ``{"camera": PinholeCamera, "distortion": {"model", "coeffs"},
     "T_imu_cam": [4, 4] | None, "time_shift_ns": int}`` of ``camera``."""
     p = Path(path)
-    data = _yaml(p)
+    data = read_yaml(p, DatasetError, mapping=True)
     c = data.get(camera)
     if not isinstance(c, dict):
         raise DatasetError(f"{p}: no {camera!r} (cameras: {sorted(data)})")
@@ -189,7 +177,7 @@ def read_vi_folder(root: str | Path, *, camera: str = "cam0") -> Sequence:
     imu_yaml = _first(r, ["imu.yaml", "*imu*.yaml", "dso/imu_config.yaml"])
     noise: dict[str, float] = {}
     if imu_yaml is not None:
-        data = _yaml(imu_yaml)
+        data = read_yaml(imu_yaml, DatasetError, mapping=True)
         noise = imu_noise_from_kalibr(data.get("imu0", data), imu_yaml)
     gt = _ground_truth(r)
     poses: list[np.ndarray | None] = [None] * len(stamps)

@@ -85,6 +85,7 @@ class FusionParams:
     warp_sources: int = 2  # at most this many earlier metrized depths are warped in
     carry: bool = True  # the previous keyframe's own prior, warped in, is a source too
     carry_growth: float = 1.25  # ... with its predicted error times this (pose error, aging)
+    carry_min_confidence: float = 0.0  # previous-prior confidences below this are not carried
     warp_max_grey_diff: float = 3  # warped grey level vs the keyframe's: larger -> dropped
     verify_warp: bool = True  # warped sources checked against this keyframe's measurements
     verify_max_err: float = 0.05  # measurements (flow / road) predicted better than this
@@ -101,6 +102,8 @@ class FusionParams:
             raise ConfigError("fusion: rel_err_ref, warp_rel_err and agree_sigmas must be > 0")
         if not 0 < self.warp_min_confidence <= 1 or self.warp_sources < 0:
             raise ConfigError("fusion: need 0 < warp_min_confidence <= 1 and warp_sources >= 0")
+        if not 0 <= self.carry_min_confidence <= 1:
+            raise ConfigError("fusion: need 0 <= carry_min_confidence <= 1")
         if self.conflict_ratio < 1 or self.carry_growth < 1:
             raise ConfigError("fusion: conflict_ratio and carry_growth must be >= 1")
         if self.verify_max_err <= 0 or self.verify_min_pixels < 1 or self.verify_window_px < 1:
@@ -409,7 +412,7 @@ def _warped(
             K,
             [previous_prior],
             flow_params.max_depth_m,
-            1e-6,
+            max(params.carry_min_confidence, 1e-6),
             params,
             "previous_prior",
         )

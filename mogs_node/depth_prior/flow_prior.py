@@ -86,6 +86,10 @@ class FlowPriorParams:
     sky_max_gradient: float = 6.0  # sky: maximum smoothed gradient magnitude [grey levels / px]
     max_pair_disagreement: float = 0.1  # two pairs differing more (relative) -> no depth there
     history: int = 20  # keyframes kept by the node to choose references from
+    # recent non-keyframe frames (image + tracked pose) kept as flow references too (0: none):
+    # the first keyframe after a standstill has no earlier keyframe, but the frames in which the
+    # car started moving have parallax; keyframes 3 m apart get a nearer reference
+    frame_references: int = 0
 
     def __post_init__(self) -> None:
         if self.dis_preset not in _DIS_PRESETS:
@@ -100,6 +104,8 @@ class FlowPriorParams:
             raise ConfigError(
                 "FlowPriorParams: need max_depth_m > 0, ground_margin >= 1, rel_err_ref > 0"
             )
+        if self.frame_references < 0:
+            raise ConfigError("FlowPriorParams.frame_references: must be >= 0")
         if np.linalg.norm(self.ground_up_cam) < 1e-6 or self.history < 2:
             raise ConfigError("FlowPriorParams: ground_up_cam must be non-zero and history >= 2")
 

@@ -42,6 +42,7 @@ from mogs_node.worker_budget import ScaleBudget, ScaleBudgetParams
 __all__ = ["DepthPriorNode", "DepthPriorParams"]
 
 SIM_LFM_QUEUE = 64  # sim_lfm: ground-truth depths kept, keyframes waiting for theirs
+FRAME_QUEUE = 32  # flow.frame_references: frames / poses queued and waiting for their pair
 BACKENDS = ("flow", "depth_anything", "sim_lfm")
 
 
@@ -61,6 +62,10 @@ class DepthPriorParams:
     in_topic: str = "/frontend/keyframe"  # keyframes
     out_topic: str = "/prior/depth"  # priors, keyed by keyframe id
     metrized_topic: str = "/metrizer/depth"  # metrized depth of earlier keyframes ("" = off)
+    # flow.frame_references > 0: the tracked frames between keyframes (image + the frontend's
+    # pose of that frame, paired by stamp) are flow references too
+    image_topic: str = "/camera/image"
+    odometry_topic: str = "/frontend/odometry"
     camera_info_topic: str = "/camera/info"  # the source's camera height above the road, used
     # for flow.camera_height_m unless the launch file sets it ("" = off)
     metrized_wait_s: float = 5.0  # a keyframe waits for the previous one's metrized depth
@@ -122,6 +127,15 @@ class DepthPriorNode(Node):
                 p.metrized_topic, self.on_metrized, reliable=True, msg_type=msgs.DepthMap
             )
             inputs += (p.metrized_topic,)
+        # frames waiting for their pose (stamp -> image) and poses for their image (-> pose)
+        self._frame_images: dict[int, msgs.Image] = {}
+        self._frame_poses: dict[int, np.ndarray] = {}
+        if self.flow_params.frame_references > 0 and p.image_topic and p.odometry_topic:
+            # best effort with a queue: a busy node never holds the drive back, and frames that
+            # come while it computes a prior stay queued (PriorSequence keeps enough of them)
+            kw = {"reliable": False, "queue_size": FRAME_QUEUE}
+            self.subscribe(p.image_topic, self.on_image, msg_type=msgs.Image, **kw)
+            self.subscribe(p.odometry_topic, self.on_odometry, msg_type=msgs.Odometry, **kw)
         # keyframes held back (in order) until the previous keyframe's metrized depth is in
         self._waiting: deque[tuple[msgs.Keyframe, float]] = deque()
         self._waits_timed_out = 0
@@ -173,6 +187,37 @@ class DepthPriorNode(Node):
         if h != self.flow_params.camera_height_m:
             self.log.info("camera %.3f m above the road (from %s)", h, msg.source or "camera info")
             self.flow_params = self.sequence.flow = replace(self.flow_params, camera_height_m=h)
+
+    def on_image(self, msg: msgs.Image) -> None:
+        """A frame: kept as a flow reference once its tracked pose is in."""
+        self._frame_images[int(msg.stamp_ns)] = msg
+        self._pair_frames()
+
+    def on_odometry(self, msg: msgs.Odometry) -> None:
+        """The frontend's pose of a frame; only tracked frames (not initialising, not reset). A
+        reset starts a new world: the frames kept so far are in the old one."""
+        if msg.status == "reset":
+            self.sequence.frames.clear()
+            self._frame_poses.clear()
+        if msg.status == "tracking":
+            self._frame_poses[int(msg.stamp_ns)] = np.asarray(msg.T_world_cam, np.float64)
+            self._pair_frames()
+
+    def _pair_frames(self) -> None:
+        """Give the sequence every frame with both its image and its pose, at the prior's scale."""
+        for stamp in sorted(set(self._frame_images) & set(self._frame_poses)):
+            msg = self._frame_images.pop(stamp)
+            rgb = msg.data[..., ::-1] if msg.encoding == "bgr8" else msg.data  # or mono8
+            rgb = np.ascontiguousarray(rgb)
+            scale = self.budget.scale
+            if scale < 1.0:
+                H, W = rgb.shape[:2]
+                size = (round(W * scale), round(H * scale))
+                rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+            self.sequence.add_frame(stamp, rgb, self._frame_poses.pop(stamp))
+        for waiting in (self._frame_images, self._frame_poses):  # never paired: the oldest go
+            while len(waiting) > FRAME_QUEUE:
+                waiting.pop(min(waiting))
 
     def on_metrized(self, msg: msgs.DepthMap) -> None:
         """Keep an earlier keyframe's metric depth to warp into later keyframes."""
@@ -286,7 +331,7 @@ class DepthPriorNode(Node):
             image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
             K = cam.K
         t0 = time.monotonic()
-        prior, refs = self.sequence.next(kf.keyframe_id, image, K, kf.T_world_cam)
+        prior, refs = self.sequence.next(kf.keyframe_id, image, K, kf.T_world_cam, kf.stamp_ns)
         if self.budget.observe(time.monotonic() - t0) != scale:
             self.log.info(
                 "keyframe %d: prior %.0f ms at scale %.2f (budget %.0f ms): next at scale %.2f",

@@ -19,11 +19,13 @@ from numpy.typing import NDArray
 from mogs_node.depth_prior.dense_prior import DensePrior, FusionParams, compute_dense_prior
 from mogs_node.depth_prior.flow_prior import FlowPriorParams, _grey, choose_references
 from mogs_node.depth_prior.road import RoadPriorParams
+from mogs_node.geometry import check_array
 
 __all__ = ["PriorSequence"]
 
 
 GROUND_HEIGHTS_KEPT = 50  # camera-height measurements whose median is used
+FRAMES_AHEAD = 32  # frames kept beyond flow.frame_references (add_frame)
 
 
 @dataclass
@@ -33,6 +35,16 @@ class _Past:
     T_world_cam: NDArray[np.float64]  # [4, 4]
     metrized: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None  # depth, confidence
     prior: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None  # its own prior
+    stamp_ns: int = -1  # -1: unknown
+
+
+@dataclass
+class _Frame:
+    """A non-keyframe frame kept as a possible flow reference."""
+
+    stamp_ns: int
+    grey: NDArray[np.uint8]  # [H, W]
+    T_world_cam: NDArray[np.float64]  # [4, 4]
 
 
 class PriorSequence:
@@ -48,6 +60,8 @@ class PriorSequence:
         self.road = road or RoadPriorParams()
         self.fusion = fusion or FusionParams()
         self.history: deque[_Past] = deque(maxlen=self.flow.history)
+        # recent frames by stamp (flow.frame_references of them), keyframes' own frames included
+        self.frames: dict[int, _Frame] = {}
         self._K: NDArray[np.float64] | None = None
         self._pending: dict[int, tuple[NDArray, NDArray]] = {}  # metrized before its keyframe
         # the keyframes' measurements of the camera height (road.auto_height), latest kept
@@ -61,6 +75,8 @@ class PriorSequence:
             or not np.array_equal(self._K, K)
             or (self.history and self.history[-1].grey.shape != shape)
         ):
+            if self._K is not None:  # frames before the first keyframe are its references
+                self.frames.clear()
             self.history.clear()
             self._pending.clear()
             self._K = np.array(K)
@@ -74,6 +90,47 @@ class PriorSequence:
         past = _Past(int(keyframe_id), grey, np.array(T_world_cam, np.float64))
         past.metrized = self._pending.pop(int(keyframe_id), None)
         self.history.append(past)
+
+    def add_frame(self, stamp_ns: int, image: NDArray[np.uint8], T_world_cam: NDArray) -> bool:
+        """Keep a tracked frame (the keyframes' camera) as a possible flow reference of a later
+        keyframe; False when off or its size does not match the keyframes'. A keyframe uses the
+        latest ``flow.frame_references`` frames before its stamp; ``FRAMES_AHEAD`` more are kept,
+        so that frames that arrive while a keyframe waits do not push its own ones out."""
+        n = self.flow.frame_references
+        if n <= 0:
+            return False
+        grey = _grey(image, "image")
+        if self.history and self.history[-1].grey.shape != grey.shape:
+            return False
+        T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
+        self.frames[int(stamp_ns)] = _Frame(int(stamp_ns), grey, np.array(T, np.float64))
+        while len(self.frames) > n + FRAMES_AHEAD:
+            self.frames.pop(min(self.frames))
+        return True
+
+    def _references(
+        self, stamp_ns: int | None, T_world_cam: NDArray, past: list[_Past], shape: tuple
+    ) -> tuple[list[tuple[NDArray, NDArray]], list[int], list[tuple[NDArray, NDArray]]]:
+        """Flow references (grey, pose), their keyframe ids (-1: a frame) and the road's extra
+        references, chosen among the earlier keyframes and the kept frames before ``stamp_ns``."""
+        pool = [(p.stamp_ns, p.grey, p.T_world_cam, p.keyframe_id) for p in past]
+        if stamp_ns is not None and self.frames:
+            seen = {p.stamp_ns for p in past}
+            before = sorted(t for t in self.frames if t < stamp_ns)[-self.flow.frame_references :]
+            pool += [
+                (t, self.frames[t].grey, self.frames[t].T_world_cam, -1)
+                for t in before
+                if t not in seen and self.frames[t].grey.shape == shape
+            ]
+            pool.sort(key=lambda e: e[0])
+        Th = np.array([e[2] for e in pool]) if pool else np.zeros((0, 4, 4))
+        refs = choose_references(T_world_cam, Th, self.flow)
+        road = self._road_references(pool, refs)
+        return (
+            [(pool[j][1], pool[j][2]) for j in refs],
+            [pool[j][3] for j in refs],
+            [(pool[j][1], pool[j][2]) for j in road],
+        )
 
     def add_metrized(self, keyframe_id: int, depth_m: NDArray, confidence: NDArray) -> bool:
         """Store the metrized depth of a keyframe; False if its size does not fit the history."""
@@ -92,7 +149,7 @@ class PriorSequence:
             self._pending.pop(min(self._pending))
         return True
 
-    def _road_references(self, past: list[_Past], refs: list[int]) -> list[int]:
+    def _road_references(self, past: list, refs: list[int]) -> list[int]:
         """The keyframe before the nearest reference, when far enough: the road it saw may have
         been hidden from the nearest one (``road.extra_references`` of them)."""
         out: list[int] = []
@@ -106,14 +163,19 @@ class PriorSequence:
         return out
 
     def next(
-        self, keyframe_id: int, image: NDArray[np.uint8], K: NDArray, T_world_cam: NDArray
+        self,
+        keyframe_id: int,
+        image: NDArray[np.uint8],
+        K: NDArray,
+        T_world_cam: NDArray,
+        stamp_ns: int | None = None,
     ) -> tuple[DensePrior, list[int]]:
-        """Prior of a new keyframe; returns it with the ids of the flow references used."""
+        """Prior of a new keyframe; returns it with the ids of the flow references used (-1: a
+        kept frame, :meth:`add_frame`, used only with the keyframe's ``stamp_ns``)."""
         grey = _grey(image, "image")
         self._check_camera(K, grey.shape)
         past = list(self.history)
-        Th = np.array([p.T_world_cam for p in past]) if past else np.zeros((0, 4, 4))
-        refs = choose_references(T_world_cam, Th, self.flow)
+        references, ref_ids, road_refs = self._references(stamp_ns, T_world_cam, past, grey.shape)
         earlier = [
             (p.metrized[0], p.metrized[1], p.T_world_cam, p.grey)
             for p in reversed(past)
@@ -127,10 +189,10 @@ class PriorSequence:
             grey,
             K,
             T_world_cam,
-            [(past[j].grey, past[j].T_world_cam) for j in refs],
+            references,
             earlier,
             carried,
-            [(past[j].grey, past[j].T_world_cam) for j in self._road_references(past, refs)],
+            road_refs,
             flow_params=self.flow,
             road_params=self.road,
             params=self.fusion,
@@ -141,4 +203,5 @@ class PriorSequence:
             self.ground_heights_m.append(fit)
         self.remember(keyframe_id, grey, K, T_world_cam)
         self.history[-1].prior = (prior.depth_m, prior.confidence)
-        return prior, [past[j].keyframe_id for j in refs]
+        self.history[-1].stamp_ns = -1 if stamp_ns is None else int(stamp_ns)
+        return prior, ref_ids

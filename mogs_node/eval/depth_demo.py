@@ -102,10 +102,17 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     params = demo_params(getattr(args, "launch", None))
     kfs, info = prepare_keyframes(params, seed=getattr(args, "seed", None) or None)
+    tracked = info.pop("tracked_frames")  # images: not for the JSON
     n_want = getattr(args, "frames", None)
     masks = graph_masks(kfs, params)
     keyframes = [s.keyframe for s in kfs]
-    run = run_priors(keyframes, *prior_params(params), masks=masks, params=params)
+    run = run_priors(
+        keyframes,
+        *prior_params(params),
+        masks=masks,
+        params=params,
+        frames=tracked,
+    )
     mparams, _ = metrizer_params(params)
     viz = Path(args.viz) if getattr(args, "viz", None) else None
     scores: dict[str, list] = {m: [] for m in METHODS}

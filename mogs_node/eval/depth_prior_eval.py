@@ -25,7 +25,7 @@ from mogs_node.depth_prior.dense_prior import SOURCES, DensePrior, FusionParams
 from mogs_node.depth_prior.flow_prior import FlowPriorParams
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.depth_prior.sequence import PriorSequence
-from mogs_node.params import parse_params
+from mogs_node.params import parse_group, parse_params
 
 __all__ = [
     "CONFIDENCE_EDGES",
@@ -72,8 +72,8 @@ def metrizer_params(params: dict[str, dict[str, Any]]):
 
     mp = parse_params(MetrizerNodeParams, params.get("metrizer", {}), where="metrizer")
     top = dict(mp.metrizer)
-    top["consensus"] = parse_params(ConsensusParams, mp.consensus, where="metrizer.consensus")
-    top["cdr"] = parse_params(CdrParams, mp.cdr, where="metrizer.cdr")
+    top["consensus"] = parse_group(ConsensusParams, mp, "consensus", "metrizer")
+    top["cdr"] = parse_group(CdrParams, mp, "cdr", "metrizer")
     return parse_params(MetrizerParams, top, where="metrizer.metrizer"), mp.mode
 
 
@@ -86,9 +86,12 @@ def run_priors(
     masks: Sequence[msgs.Masks] | None = None,
     params: dict[str, dict[str, Any]] | None = None,
     lag: int = 1,
+    frames: Sequence[tuple[int, NDArray, NDArray]] = (),
 ) -> PriorRun:
     """Priors of ``keyframes`` in order; with ``masks`` and ``params`` the metrizer runs in the
-    loop (module docstring), else the prior has no metrized depth to warp."""
+    loop (module docstring), else the prior has no metrized depth to warp. ``frames``: the
+    tracked frames ``(stamp_ns, image, T_world_cam)`` (``prepare_keyframes``'s
+    ``tracked_frames``), offered to the sequence up to each keyframe, as the node receives them."""
     from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
     from mogs_node.metrizer.pipeline import metrize_depth
 
@@ -98,11 +101,15 @@ def run_priors(
     mparams, mode = metrizer_params(params) if metrize else (None, None)
     seq = PriorSequence(flow, road, fusion)
     run = PriorRun([], [], [])
+    fed = 0
     for i, kf in enumerate(keyframes):
         j = i - lag
         if metrize and j >= 0 and run.metrized[j] is not None:
             seq.add_metrized(keyframes[j].keyframe_id, *run.metrized[j])
-        prior, refs = seq.next(kf.keyframe_id, kf.image, kf.K, kf.T_world_cam)
+        while fed < len(frames) and frames[fed][0] <= kf.stamp_ns:
+            seq.add_frame(*frames[fed])
+            fed += 1
+        prior, refs = seq.next(kf.keyframe_id, kf.image, kf.K, kf.T_world_cam, kf.stamp_ns)
         run.priors.append(prior)
         run.references.append(refs)
         if not metrize:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from mogs_node.errors import ConfigError
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section
+from mogs_node.eval.bench_docs import machine_line, markdown_table, update_markdown_section
 
 __all__ = ["SimDepthCase", "evaluate", "make_cases", "run_methods"]
 
@@ -210,6 +210,17 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     return figures
 
 
+_SCORES = ("AbsRel", "RMSE [m]", "delta1")
+
+
+def _score_cells(v: dict[str, float]) -> list[str]:
+    return [f"{v['absrel']:.4f}", f"{v['rmse']:.3f}", f"{v['delta1']:.4f}"]
+
+
+def _ms_cell(t: float | None) -> str:
+    return f"{t:.1f}" if t is not None else "-"
+
+
 def _write_markdown(fig: dict[str, Any], args: argparse.Namespace) -> None:
     lines = [
         "## Depth metrizer ablation on the synthetic world (Table IV style)",
@@ -222,26 +233,22 @@ def _write_markdown(fig: dict[str, Any], args: argparse.Namespace) -> None:
         "`full_eq6` / `no_msc_eq6`: the same without the model output and the residual field "
         "(docs/metrizer.md, departures 7-8), i.e. the calibrated prior of eq. (6) alone.",
         "",
-        "| masks | method | AbsRel | RMSE [m] | delta1 | ms/keyframe |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for src, table in fig["by_masks"].items():
-        for name, v in table.items():
-            t = fig["ms_per_keyframe"].get(f"{src}/{name}")
-            ts = f"{t:.1f}" if t is not None else "-"
-            lines.append(
-                f"| {src} | {name} | {v['absrel']:.4f} | {v['rmse']:.3f} | {v['delta1']:.4f} "
-                f"| {ts} |"
-            )
-    lines += [
+        *markdown_table(
+            ["masks", "method", *_SCORES, "ms/keyframe"],
+            [
+                [src, name, *_score_cells(v), _ms_cell(fig["ms_per_keyframe"].get(f"{src}/{name}"))]
+                for src, table in fig["by_masks"].items()
+                for name, v in table.items()
+            ],
+        ),
         "",
         "Both mask sources pooled:",
         "",
-        "| method | AbsRel | RMSE [m] | delta1 |",
-        "| --- | --- | --- | --- |",
+        *markdown_table(
+            ["method", *_SCORES],
+            [[name, *_score_cells(v)] for name, v in fig["methods"].items()],
+        ),
     ]
-    for name, v in fig["methods"].items():
-        lines.append(f"| {name} | {v['absrel']:.4f} | {v['rmse']:.3f} | {v['delta1']:.4f} |")
     m = fig["methods"]
     if all(k in m for k in METHODS):
         lines += [

@@ -39,6 +39,7 @@ import yaml
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import PinholeCamera
+from mogs_node.params import parse_group, parse_params
 
 __all__ = [
     "MASKS",
@@ -89,7 +90,6 @@ def prepare_keyframes(
     from mogs_node.eval.frontend_runs import run_frontend
     from mogs_node.frontend.frontend import Frontend
     from mogs_node.frontend.node_config import FrontendNodeParams, keyframe_message
-    from mogs_node.params import parse_params
     from mogs_node.sim import SimConfig, make_sequence
 
     sim = dict(params["player"].get("sim", {}))
@@ -134,18 +134,24 @@ def prepare_keyframes(
         "keyframes": len(kfs),
         "frontend_s": time.perf_counter() - t0,
         "K_sim": seq.camera.K,
+        # every tracked frame (stamp, image, pose) as the prior node receives them on
+        # /camera/image and /frontend/odometry (its flow.frame_references)
+        "tracked_frames": [
+            (int(o.stamp_ns), frames[index[int(o.stamp_ns)]].rgb, np.array(o.T_world_cam))
+            for o in outs
+            if o.T_world_cam is not None and o.status == "tracking"
+        ],
     }
     return kfs, info
 
 
 def graph_masks(kfs: list[StageKeyframe], params: dict[str, dict[str, Any]]) -> list[msgs.Masks]:
     """The demo segmentation node's masks of each keyframe (its launch parameters)."""
-    from mogs_node.params import parse_params
     from mogs_node.segmentation.graph import GraphSegParams, segment_graph
     from mogs_node.segmentation.params import SegmentationParams
 
     seg = parse_params(SegmentationParams, params.get("segmentation", {}), where="segmentation")
-    gp = parse_params(GraphSegParams, seg.graph, where="segmentation.graph")
+    gp = parse_group(GraphSegParams, seg, "graph", "segmentation")
     return [
         msgs.Masks(
             stamp_ns=s.keyframe.stamp_ns,
@@ -197,7 +203,6 @@ def stage_inputs(
     """Per input kind and variant, one message per keyframe (``Keyframe``, ``DepthMap``,
     ``Masks``) in the form the metrizer node receives."""
     from mogs_node.eval.depth_sim import _depth_edge_free
-    from mogs_node.params import parse_params
     from mogs_node.segmentation.graph import GraphSegParams, segment_graph
     from mogs_node.segmentation.params import SegmentationParams
     from mogs_node.sim import LfmParams, simulated_lfm
@@ -250,7 +255,7 @@ def stage_inputs(
         lfm = simulated_lfm(d, rng, LfmParams())
         priors["lfm"].append(as_msg(s, lfm, np.ones_like(lfm), "relative_inverse_depth", "lfm"))
     seg = parse_params(SegmentationParams, params.get("segmentation", {}), where="segmentation")
-    gp = parse_params(GraphSegParams, seg.graph, where="segmentation.graph")
+    gp = parse_group(GraphSegParams, seg, "graph", "segmentation")
     masks: dict[str, list] = {"graph": [], "oracle": []}
     for s in kfs:
         kf = s.keyframe
@@ -295,20 +300,13 @@ def evaluate_stages(
     confidence > 0) and the sparse points off depth edges (median relative error, scale against
     the truth; how many lie on a depth edge).
     """
+    from mogs_node.eval.depth_prior_eval import metrizer_params as metrizer_params_of
     from mogs_node.eval.depth_sim import _depth_edge_free
-    from mogs_node.metrizer.consensus import ConsensusParams
     from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
-    from mogs_node.metrizer.params import MetrizerNodeParams
-    from mogs_node.metrizer.pipeline import MetrizerParams, metrize
-    from mogs_node.metrizer.refinement import CdrParams
-    from mogs_node.params import parse_params
+    from mogs_node.metrizer.pipeline import metrize
     from mogs_node.report.collect import score_depth
 
-    mp = parse_params(MetrizerNodeParams, params.get("metrizer", {}), where="metrizer")
-    top = dict(mp.metrizer)
-    top["consensus"] = parse_params(ConsensusParams, mp.consensus, where="metrizer.consensus")
-    top["cdr"] = parse_params(CdrParams, mp.cdr, where="metrizer.cdr")
-    metrizer_params = parse_params(MetrizerParams, top, where="metrizer.metrizer")
+    metrizer_params, mode = metrizer_params_of(params)
     combos: dict[str, Any] = {}
     for sp, pr, mk in itertools.product(sparse, priors, masks):
         scores, per_kf = [], []
@@ -320,7 +318,7 @@ def evaluate_stages(
                 masks=inputs["masks"][mk][i],
                 prior=inputs["prior"][pr][i],
             )
-            out = metrize(metrizer_inputs(entry), metrizer_params, mp.mode)
+            out = metrize(metrizer_inputs(entry), metrizer_params, mode)
             sc = score_depth(s.keyframe.keyframe_id, s.keyframe.stamp_ns, out.depth_m, s.gt_depth_m)
             scores.append(sc)
             per_kf.append((sc.absrel, sc.coverage))

@@ -20,7 +20,7 @@ import zmq
 from zmq.auth.thread import ThreadAuthenticator
 
 from mogs_node import msgs
-from mogs_node.bus import Subscriber
+from mogs_node.bus import Subscriber, queued
 from mogs_node.bus.config import _check_bind_address, _load_secret
 from mogs_node.errors import BusError, ConfigError
 from mogs_node.journal.protocol import handle_request, journal_endpoint
@@ -140,11 +140,7 @@ class JournalNode(Node):
 
     def serve(self) -> None:
         """Answer the waiting requests (after storing everything received so far)."""
-        while True:
-            try:
-                frames = self.router.recv_multipart(zmq.NOBLOCK)
-            except zmq.Again:
-                return
+        for frames in queued(self.router.recv_multipart):
             self.drain()
             while self.jsub.socket.poll(0, zmq.POLLIN):
                 self.drain()

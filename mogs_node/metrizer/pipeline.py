@@ -78,33 +78,12 @@ DEFAULT_PARAMS = MetrizerParams()
 
 
 def metrize_depth(
-    *,
-    K: F64,
-    labels: NDArray[np.integer],
-    feature_uv_px: NDArray[np.floating],
-    feature_depth_m: NDArray[np.floating],
-    feature_weight: NDArray[np.floating],
-    prior: NDArray[np.floating],
-    prior_confidence: NDArray[np.floating],
-    prior_kind: str = "relative_inverse_depth",
-    image_rgb: NDArray[np.uint8] | None = None,
-    params: MetrizerParams = DEFAULT_PARAMS,
-    mode: str = "full",
+    *, params: MetrizerParams = DEFAULT_PARAMS, mode: str = "full", **fields: Any
 ) -> MetrizedDepth:
     """Keyword form of :func:`metrize`: the fields of :class:`MetrizerInputs` as arguments
-    (``metrize_depth(**inputs, params=..., mode=...)``)."""
-    inputs = MetrizerInputs(
-        K=K,
-        labels=labels,
-        feature_uv_px=feature_uv_px,
-        feature_depth_m=feature_depth_m,
-        feature_weight=feature_weight,
-        prior=prior,
-        prior_confidence=prior_confidence,
-        prior_kind=prior_kind,
-        image_rgb=image_rgb,
-    )
-    return metrize(inputs, params, mode)
+    (``metrize_depth(**inputs, params=..., mode=...)``); an unknown or missing field is the
+    dataclass's own TypeError naming it."""
+    return metrize(MetrizerInputs(**fields), params, mode)
 
 
 def metrize(

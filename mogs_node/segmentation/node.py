@@ -12,7 +12,8 @@ import numpy as np
 
 from mogs_node import msgs
 from mogs_node.keyframe_chain import failed_masks
-from mogs_node.node import Node, parse_params
+from mogs_node.node import Node
+from mogs_node.params import parse_group
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
 from mogs_node.segmentation.params import SegmentationParams
 from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
@@ -27,10 +28,10 @@ class SegmentationNode(Node):
 
     def setup(self) -> None:
         p: SegmentationParams = self.params
-        self.graph_params = parse_params(GraphSegParams, p.graph, where=f"{self.name}.graph")
+        self.graph_params = parse_group(GraphSegParams, p, "graph", self.name)
         self.sam: SamOnnx | None = None
         if p.backend == "sam":
-            self.sam = SamOnnx(parse_params(SamParams, p.sam, where=f"{self.name}.sam"))
+            self.sam = SamOnnx(parse_group(SamParams, p, "sam", self.name))
         self.subscribe(
             p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe, idempotent=True
         )

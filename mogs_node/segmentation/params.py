@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from mogs_node.errors import ConfigError
+from mogs_node.params import check_choice
 
 __all__ = ["BACKENDS", "SegmentationParams"]
 
@@ -24,7 +24,4 @@ class SegmentationParams:
     out_topic: str = "/seg/masks"  # label images, keyed by keyframe id
 
     def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ConfigError(
-                f"segmentation.backend: expected one of {BACKENDS}, got {self.backend!r}"
-            )
+        check_choice("segmentation.backend", self.backend, BACKENDS)

@@ -35,7 +35,13 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError, ModelError
 from mogs_node.geometry import check_array
-from mogs_node.ort import check_signature, model_path, open_session
+from mogs_node.ort import (
+    IMAGENET_MEAN_RGB,
+    IMAGENET_STD_RGB,
+    check_signature,
+    model_path,
+    open_session,
+)
 
 __all__ = [
     "SamMasks",
@@ -52,8 +58,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-PIXEL_MEAN = np.array([123.675, 116.28, 103.53], np.float32)
-PIXEL_STD = np.array([58.395, 57.12, 57.375], np.float32)
+PIXEL_MEAN = (255.0 * np.array(IMAGENET_MEAN_RGB)).astype(np.float32)  # SAM sees [0, 255]
+PIXEL_STD = (255.0 * np.array(IMAGENET_STD_RGB)).astype(np.float32)
 DECODER_INPUTS = [
     ("image_embeddings", 4),
     ("point_coords", 3),

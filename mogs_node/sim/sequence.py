@@ -18,6 +18,7 @@ import numpy as np
 
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import PinholeCamera, make_T
+from mogs_node.params import check_choice
 from mogs_node.sim.imu import ImuNoise, ImuNoiseParams, simulate_imu_noise
 from mogs_node.sim.trajectory import (
     GRAVITY_WORLD_M_S2,
@@ -154,8 +155,7 @@ def make_sequence(config: SimConfig | None = None) -> SimSequence:
         raise ConfigError(f"width/height: too small ({cfg.width}x{cfg.height})")
     duration_s = (cfg.n_frames - 1) / cfg.frame_rate_hz
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 1]))
-    if cfg.motion not in MOTIONS:
-        raise ConfigError(f"motion: expected one of {MOTIONS}, got {cfg.motion!r}")
+    check_choice("motion", cfg.motion, MOTIONS)
     T_imu_cam = (
         T_IMU_CAM_DEFAULT.copy()
         if cfg.T_imu_cam is None

@@ -132,26 +132,9 @@ def synthetic_trajectory(
         s_of_t = speed_m_s * (
             tk - speed_variation / w * (np.cos(w * tk + phase) - np.cos(w * t0 + phase))
         )
-    # curvature profile over arc length: raised-cosine turns
-    s_max = float(s_of_t[-1] - s_of_t[0]) + 10.0
-    ds = 0.05
-    s = np.arange(0.0, s_max, ds)
-    kappa = np.zeros_like(s)
-    pos = rng.uniform(5.0, 25.0)
-    while pos < s_max:
-        length = rng.uniform(25.0, 60.0)
-        k = rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 1.0) / min_turn_radius_m
-        m = (s >= pos) & (s < pos + length)
-        kappa[m] += k * 0.5 * (1 - np.cos(2 * np.pi * (s[m] - pos) / length))
-        pos += length + rng.uniform(15.0, 50.0)
-    heading = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * ds)])
-    xy = np.zeros((len(s), 2))
-    xy[1:, 0] = np.cumsum(0.5 * (np.cos(heading[1:]) + np.cos(heading[:-1])) * ds)
-    xy[1:, 1] = np.cumsum(0.5 * (np.sin(heading[1:]) + np.sin(heading[:-1])) * ds)
+    s, heading, x, y = _turning_path(float(s_of_t[-1] - s_of_t[0]) + 10.0, rng, min_turn_radius_m)
     sk = s_of_t - s_of_t[0]
-    pk = np.stack(
-        [np.interp(sk, s, xy[:, 0]), np.interp(sk, s, xy[:, 1]), np.full_like(sk, imu_height_m)], -1
-    )
+    pk = np.stack([np.interp(sk, s, x), np.interp(sk, s, y), np.full_like(sk, imu_height_m)], -1)
     # start at the origin heading +x at t = 0
     i0 = int(np.argmin(np.abs(tk)))
     pk = pk - pk[i0] + np.array([0.0, 0.0, imu_height_m])
@@ -177,17 +160,23 @@ def _smootherstep(x: np.ndarray) -> np.ndarray:
     return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
 
 
-def _planar_path(
-    t: np.ndarray, speed: np.ndarray, rng: np.random.Generator, min_turn_radius_m: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Positions ``[T, 2]`` and path heading ``[T]`` at times ``t`` for the speed profile ``speed``
-    ``[T]`` (m/s) along raised-cosine turns of radius at least ``min_turn_radius_m``."""
-    s_of_t = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))])
+def _turning_path(
+    s_max: float,
+    rng: np.random.Generator,
+    min_turn_radius_m: float,
+    turns_to_last_sample: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Arc length ``s`` (every 5 cm up to ``s_max``), heading and ``x``, ``y`` of a path along
+    smooth (raised-cosine) turns of radius at least ``min_turn_radius_m``, at random places. The
+    car draws turns up to ``s_max``, the walker up to the last sample (``turns_to_last_sample``):
+    a turn past the end changes nothing on the path but moves the generator, so each keeps its
+    drives for a given seed."""
     ds = 0.05
-    s = np.arange(0.0, float(s_of_t[-1]) + 10.0, ds)
+    s = np.arange(0.0, s_max, ds)
+    stop = s[-1] if turns_to_last_sample else s_max
     kappa = np.zeros_like(s)
     pos = rng.uniform(5.0, 25.0)
-    while pos < s[-1]:
+    while pos < stop:
         length = rng.uniform(25.0, 60.0)
         k = rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 1.0) / min_turn_radius_m
         m = (s >= pos) & (s < pos + length)
@@ -196,6 +185,17 @@ def _planar_path(
     heading = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * ds)])
     x = np.concatenate([[0.0], np.cumsum(0.5 * (np.cos(heading[1:]) + np.cos(heading[:-1])) * ds)])
     y = np.concatenate([[0.0], np.cumsum(0.5 * (np.sin(heading[1:]) + np.sin(heading[:-1])) * ds)])
+    return s, heading, x, y
+
+
+def _planar_path(
+    t: np.ndarray, speed: np.ndarray, rng: np.random.Generator, min_turn_radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``[T, 2]`` and path heading ``[T]`` at times ``t`` for the speed profile ``speed``
+    ``[T]`` (m/s) along raised-cosine turns of radius at least ``min_turn_radius_m``."""
+    s_of_t = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))])
+    s_max = float(s_of_t[-1]) + 10.0
+    s, heading, x, y = _turning_path(s_max, rng, min_turn_radius_m, turns_to_last_sample=True)
     xy = np.stack([np.interp(s_of_t, s, x), np.interp(s_of_t, s, y)], -1)
     return xy, np.interp(s_of_t, s, heading)
 

@@ -17,6 +17,7 @@ primitive-local coordinates, so a surface point has the same colour in every vie
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -426,6 +427,15 @@ class _Placer:
         c, t, n = self.cl.frame_at(s)
         return c + lat * n, t, n
 
+    def stations(self, first_m: float, gap_m: tuple[float, float]) -> Iterator[float]:
+        """Arc lengths of one kind's objects: the first in [0, ``first_m``), then gaps drawn in
+        ``gap_m`` (shrunk by the density) after the caller has placed each object (so that the
+        draws keep their order)."""
+        s = self.rng.uniform(0, first_m)
+        while s < self.length_m:
+            yield s
+            s += self.rng.uniform(*gap_m) / self.p.density
+
     def facades(self, side: float) -> list[Primitive]:
         rng, p, L, out = self.rng, self.p, self.length_m, []
         s = rng.uniform(0, 10)
@@ -447,19 +457,16 @@ class _Placer:
     def poles(self, side: float) -> list[Primitive]:
         """Poles near the kerb."""
         rng, out = self.rng, []
-        s = rng.uniform(0, 15)
-        while s < self.length_m:
+        for s in self.stations(15.0, (18.0, 35.0)):
             xy, _, _ = self.at(s, side * (self.p.road_half_width_m + 0.4))
             r, h = float(rng.uniform(0.08, 0.14)), float(rng.uniform(5.0, 8.0))
             out.append(Cylinder(xy, r, 0.0, h, "pole", self.next_id()))
-            s += rng.uniform(18.0, 35.0) / self.p.density
         return out
 
     def trees(self, side: float) -> list[Primitive]:
         """A trunk and an ellipsoid crown each."""
         rng, out = self.rng, []
-        s = rng.uniform(0, 12)
-        while s < self.length_m:
+        for s in self.stations(12.0, (10.0, 26.0)):
             xy, _, _ = self.at(s, side * rng.uniform(6.8, 7.6))
             h = float(rng.uniform(2.2, 3.2))
             out.append(
@@ -471,27 +478,23 @@ class _Placer:
             yaw = float(rng.uniform(0, np.pi))
             color = (0.24 + 0.1 * rng.random(), 0.42 + 0.1 * rng.random(), 0.15)
             out.append(Ellipsoid(centre, r, yaw, "crown", self.next_id(), color=color))
-            s += rng.uniform(10.0, 26.0) / self.p.density
         return out
 
     def parked_cars(self, side: float) -> list[Primitive]:
         """Cars in the parking lane, either way round."""
         rng, out = self.rng, []
-        s = rng.uniform(0, 20)
-        while s < self.length_m:
+        for s in self.stations(20.0, (9.0, 35.0)):
             xy, t, _ = self.at(s, side * 4.5)
             yaw = float(np.arctan2(t[1], t[0]) + (np.pi if rng.random() < 0.5 else 0.0))
             color = _CAR_COLORS[int(rng.integers(len(_CAR_COLORS)))]
             centre, radii = np.array([xy[0], xy[1], 0.78]), np.array([2.1, 0.88, 0.74])
             out.append(Ellipsoid(centre, radii, yaw, "car", self.next_id(), color=color))
-            s += rng.uniform(9.0, 35.0) / self.p.density
         return out
 
     def bushes_and_boxes(self, side: float) -> list[Primitive]:
         """Bushes (60 %) and boxes by the facades."""
         rng, out = self.rng, []
-        s = rng.uniform(0, 20)
-        while s < self.length_m:
+        for s in self.stations(20.0, (12.0, 30.0)):
             xy, t, _ = self.at(s, side * rng.uniform(8.0, 8.6))
             yaw = float(np.arctan2(t[1], t[0]))
             if rng.random() < 0.6:
@@ -506,7 +509,6 @@ class _Placer:
                 centre = np.array([xy[0], xy[1], half[2]])
                 color = (0.45 + 0.3 * rng.random(), 0.45 + 0.2 * rng.random(), 0.4)
                 out.append(Box(centre, half, yaw, "box", self.next_id(), color=color))
-            s += rng.uniform(12.0, 30.0) / self.p.density
         return out
 
 

@@ -18,6 +18,7 @@ import numpy as np
 from mogs_node import msgs
 from mogs_node.errors import ConfigError
 from mogs_node.node import Node
+from mogs_node.params import check_choice
 from mogs_node.viz import rerun_log as vl
 
 __all__ = ["VizNode", "VizParams", "import_rerun"]
@@ -38,8 +39,7 @@ class VizParams:
     camera_image: bool = True  # log /camera/image (the largest stream)
 
     def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ConfigError(f"viz.mode: expected one of {MODES}, got {self.mode!r}")
+        check_choice("viz.mode", self.mode, MODES)
         if self.mode == "save" and not self.rrd_path:
             raise ConfigError("viz.rrd_path: required in mode save")
         if self.image_every < 1 or self.max_gaussians < 1:

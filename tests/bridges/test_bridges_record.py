@@ -10,7 +10,7 @@ import pytest
 import zmq
 from _reliability_harness import cli_process
 
-from bridges import ros2
+from bridges import ros2, ros_convert
 from bridges.recording import (
     ROS2_PREFIX,
     RecordingWriter,
@@ -154,17 +154,21 @@ def test_writer_and_reader_round_trip_with_ros2_types(tmp_path: Path, name: str)
         got: dict[str, list] = {}
         for c, _, raw in reader.messages([v for k, v in conns.items() if k.startswith("/ros2/")]):
             got.setdefault(c.topic, []).append(reader.deserialize(raw, c.msgtype))
-    assert [ros2.imu_from_ros(r) for r in got["/ros2/imu"]] == originals["/imu"]
-    assert [ros2.image_from_ros(r) for r in got["/ros2/camera/image"]] == originals["/camera/image"]
+    assert [ros_convert.imu_from_ros(r) for r in got["/ros2/imu"]] == originals["/imu"]
+    assert [ros_convert.image_from_ros(r) for r in got["/ros2/camera/image"]] == originals[
+        "/camera/image"
+    ]
     assert (
         ros2.depth_from_ros(got["/ros2/metrizer/depth"][0], keyframe_id=7, source="test")
         == (originals["/metrizer/depth"][0])
     )
-    assert ros2.mapstats_from_ros(got["/ros2/mapper/stats"][0]) == originals["/mapper/stats"][0]
+    assert (
+        ros_convert.mapstats_from_ros(got["/ros2/mapper/stats"][0]) == originals["/mapper/stats"][0]
+    )
     for r, m in zip(got["/ros2/frontend/odometry"], originals["/frontend/odometry"]):
         o = ros2.odometry_from_ros(r, frame_index=m.frame_index, status="tracking")
         np.testing.assert_allclose(o.T_world_cam, m.T_world_cam, atol=1e-12)
-    kf_pose = ros2.pose_from_ros(got["/ros2/frontend/keyframe"][0])
+    kf_pose = ros_convert.pose_from_ros(got["/ros2/frontend/keyframe"][0])
     np.testing.assert_allclose(kf_pose.T_world_cam, originals["/frontend/keyframe"][0].T_world_cam)
     with pytest.raises(DatasetError, match="already exists"):
         RecordingWriter(path)

@@ -10,7 +10,7 @@ from _reliability_harness import run_cli
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridges import ros2
+from bridges import ros2, ros_convert
 from mogs_node import msgs
 from mogs_node.errors import MessageError
 from mogs_node.geometry import make_T, so3_exp
@@ -33,10 +33,10 @@ def _pose(seed: int) -> np.ndarray:
 def test_image_round_trip_is_exact(enc: str, shape: tuple) -> None:
     data = np.random.default_rng(1).integers(0, 256, shape, dtype=np.uint8)
     m = msgs.Image(stamp_ns=1_700_000_000_123_456_789, frame_id="cam", encoding=enc, data=data)
-    r = cdr(ros2.image_to_ros(m), "sensor_msgs/msg/Image")
+    r = cdr(ros_convert.image_to_ros(m), "sensor_msgs/msg/Image")
     assert (r.encoding, r.height, r.width, r.step) == (enc, shape[0], shape[1], data[0].size)
     assert (r.header.stamp.sec, r.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
-    assert ros2.image_from_ros(r) == m
+    assert ros_convert.image_from_ros(r) == m
 
 
 def test_image_from_ros_honours_row_padding_and_rejects_short_data() -> None:
@@ -53,14 +53,14 @@ def test_image_from_ros_honours_row_padding_and_rejects_short_data() -> None:
         step=5,
         data=padded.reshape(-1),
     )
-    out = ros2.image_from_ros(r)
+    out = ros_convert.image_from_ros(r)
     assert out.encoding == "mono8" and out.data.tolist() == img.tolist()
     r.data = r.data[:7]
     with pytest.raises(MessageError, match="data"):
-        ros2.image_from_ros(r)
+        ros_convert.image_from_ros(r)
     r.encoding = "yuv422"
     with pytest.raises(MessageError, match="encoding"):
-        ros2.image_from_ros(r)
+        ros_convert.image_from_ros(r)
 
 
 @settings(max_examples=50, deadline=None)
@@ -70,9 +70,9 @@ def test_image_from_ros_honours_row_padding_and_rejects_short_data() -> None:
 )
 def test_imu_round_trip_is_exact(stamp: int, v: list[float]) -> None:
     m = msgs.Imu(stamp_ns=stamp, frame_id="imu", gyro_rad_s=tuple(v[:3]), accel_m_s2=tuple(v[3:]))
-    r = cdr(ros2.imu_to_ros(m), "sensor_msgs/msg/Imu")
+    r = cdr(ros_convert.imu_to_ros(m), "sensor_msgs/msg/Imu")
     assert r.orientation_covariance[0] == -1.0
-    assert ros2.imu_from_ros(r) == m
+    assert ros_convert.imu_from_ros(r) == m
 
 
 def test_odometry_round_trip_and_twist_in_camera_frame() -> None:
@@ -86,7 +86,7 @@ def test_odometry_round_trip_and_twist_in_camera_frame() -> None:
         velocity_world_m_s=v,
         status="tracking",
     )
-    r = cdr(ros2.odometry_to_ros(m), "nav_msgs/msg/Odometry")
+    r = cdr(ros_convert.odometry_to_ros(m), "nav_msgs/msg/Odometry")
     assert r.header.frame_id == "world" and r.child_frame_id == "camera"
     lin = r.twist.twist.linear
     np.testing.assert_allclose([lin.x, lin.y, lin.z], T[:3, :3].T @ np.array(v), atol=1e-12)
@@ -98,11 +98,11 @@ def test_odometry_round_trip_and_twist_in_camera_frame() -> None:
 
 def test_pose_and_tf() -> None:
     T = _pose(4)
-    r = cdr(ros2.pose_to_ros(9, T), "geometry_msgs/msg/PoseStamped")
-    back = ros2.pose_from_ros(r)
+    r = cdr(ros_convert.pose_to_ros(9, T), "geometry_msgs/msg/PoseStamped")
+    back = ros_convert.pose_from_ros(r)
     np.testing.assert_allclose(back.T_world_cam, T, atol=1e-12)
     assert back.stamp_ns == 9
-    tf = cdr(ros2.tf_from_pose(9, T, child="kf"), "tf2_msgs/msg/TFMessage")
+    tf = cdr(ros_convert.tf_from_pose(9, T, child="kf"), "tf2_msgs/msg/TFMessage")
     (t,) = tf.transforms
     assert (t.header.frame_id, t.child_frame_id) == ("world", "kf")
     q = t.transform.rotation
@@ -116,11 +116,11 @@ def test_pose_and_tf() -> None:
         r.pose.orientation.w,
     )
     with pytest.raises(MessageError, match="T_world_cam"):
-        ros2.pose_to_ros(0, np.eye(3))
+        ros_convert.pose_to_ros(0, np.eye(3))
     with pytest.raises(MessageError, match="stamp_ns"):
-        ros2.pose_to_ros(-1, T)
+        ros_convert.pose_to_ros(-1, T)
     with pytest.raises(MessageError, match="stamp_ns"):
-        ros2.pose_to_ros(2**31 * 10**9, T)  # beyond int32 seconds (2038)
+        ros_convert.pose_to_ros(2**31 * 10**9, T)  # beyond int32 seconds (2038)
 
 
 def test_depth_round_trip_uses_nan_for_missing() -> None:
@@ -134,7 +134,7 @@ def test_depth_round_trip_uses_nan_for_missing() -> None:
         confidence=(d > 0).astype(np.float32),
         source="ros2",
     )
-    r = cdr(ros2.depth_to_ros(m), "sensor_msgs/msg/Image")
+    r = cdr(ros_convert.depth_to_ros(m), "sensor_msgs/msg/Image")
     assert r.encoding == "32FC1" and r.step == 8
     raw = np.frombuffer(bytes(r.data), "<f4").reshape(2, 2)
     assert np.isnan(raw[0, 0]) and raw[1, 1] == 80.0
@@ -149,8 +149,8 @@ def test_depth_round_trip_uses_nan_for_missing() -> None:
         source="x",
     )
     with pytest.raises(MessageError, match="kind"):
-        ros2.depth_to_ros(rel)
-    assert ros2.to_ros(rel) is None
+        ros_convert.depth_to_ros(rel)
+    assert ros_convert.to_ros(rel) is None
 
 
 def test_mapstats_round_trip_as_diagnostics() -> None:
@@ -165,20 +165,20 @@ def test_mapstats_round_trip_as_diagnostics() -> None:
         psnr_db=float("nan"),
         extra={"ms": 12.5, "pruned": 7},
     )
-    r = cdr(ros2.mapstats_to_ros(m), "diagnostic_msgs/msg/DiagnosticArray")
+    r = cdr(ros_convert.mapstats_to_ros(m), "diagnostic_msgs/msg/DiagnosticArray")
     assert r.status[0].name == "mogs/mapper"
-    assert ros2.mapstats_from_ros(r) == m
+    assert ros_convert.mapstats_from_ros(r) == m
 
 
 def test_to_ros_covers_every_bridged_type() -> None:
     from mogs_node.demo_nodes import make_keyframe
 
     kf = make_keyframe(3, 16, 8, 2)
-    rtype, r = ros2.to_ros(kf)
+    rtype, r = ros_convert.to_ros(kf)
     assert rtype == "geometry_msgs/msg/PoseStamped"
-    np.testing.assert_allclose(ros2.pose_from_ros(r).T_world_cam, kf.T_world_cam)
+    np.testing.assert_allclose(ros_convert.pose_from_ros(r).T_world_cam, kf.T_world_cam)
     diag = msgs.Diagnostics(stamp_ns=0, frame_id="", node="n", pid=1, uptime_s=0.0, status="ok")
-    assert ros2.to_ros(diag) is None
+    assert ros_convert.to_ros(diag) is None
 
 
 @pytest.mark.skipif(importlib.util.find_spec("rclpy") is not None, reason="rclpy is installed")

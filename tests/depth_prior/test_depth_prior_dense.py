@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -422,3 +423,52 @@ def test_sequence_standstill_keyframe_gets_the_metrized_depth(views) -> None:
     assert seq.add_metrized(7, d0.astype(np.float32), np.ones(HW, np.float32))  # comes later
     seq.remember(7, g0, K, T0)
     assert seq.history[-1].metrized is not None
+
+
+def test_sequence_first_keyframe_takes_a_frame_before_it_as_reference(views) -> None:
+    """A keyframe without an earlier keyframe (the first after a standstill) gets its flow from
+    the tracked frames before it (``flow.frame_references``); frames after it, or at its own
+    stamp, are never references; with the option off nothing changes."""
+    (g0, _, T0), (g1, d1, T1) = views
+    on = replace(FLOW, frame_references=4)
+    seq = PriorSequence(on, ROAD)
+    assert seq.add_frame(100, g0, T0)
+    assert seq.add_frame(300, g0, T0)  # after the keyframe: not a reference of it
+    prior, refs = seq.next(0, g1, K, T1, stamp_ns=200)
+    assert refs == [-1]
+    m = prior.confidence > 0
+    assert m.mean() > 0.5
+    assert np.median(np.abs(prior.depth_m[m] - d1[m]) / d1[m]) < 0.02
+    late = PriorSequence(on, ROAD)
+    late.add_frame(300, g0, T0)
+    prior, refs = late.next(0, g1, K, T1, stamp_ns=200)
+    assert refs == [] and not prior.confidence.any()
+    off = PriorSequence(FLOW, ROAD)
+    assert not off.add_frame(100, g0, T0)
+    assert off.next(0, g1, K, T1, stamp_ns=200)[1] == []
+    with pytest.raises(ShapeError):
+        seq.add_frame(400, g0, np.full((4, 4), np.nan))
+    with pytest.raises(ConfigError):
+        FlowPriorParams(frame_references=-1)
+    with pytest.raises(ConfigError):
+        FusionParams(carry_min_confidence=1.5)
+
+
+def test_carry_min_confidence_drops_weak_carried_depth(views) -> None:
+    """``fusion.carry_min_confidence``: carried prior pixels less confident than it are not
+    carried; the others are, unchanged (standing still: the identity warp)."""
+    (g0, d0, T0), _ = views
+    conf = np.where(np.arange(HW[1])[None, :] < HW[1] // 2, 0.02, 0.6).astype(np.float32)
+    conf = np.broadcast_to(conf, HW).copy()
+    prev = (d0.astype(np.float32), conf, T0, g0)
+    kw = {"road_params": ROAD, "previous_prior": prev}
+    every = compute_dense_prior(g0, K, T0, [], **kw)
+    strong = compute_dense_prior(
+        g0, K, T0, [], params=FusionParams(carry_min_confidence=0.05), **kw
+    )
+    left, right = np.s_[:, : HW[1] // 2 - 2], np.s_[:, HW[1] // 2 + 2 :]
+    assert (every.confidence[left] > 0).mean() > 0.9
+    assert not strong.confidence[left].any()
+    assert (strong.confidence[right] > 0).mean() > 0.9
+    m = strong.confidence > 0
+    np.testing.assert_allclose(strong.depth_m[m], d0[m], rtol=1e-4)

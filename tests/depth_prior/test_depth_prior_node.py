@@ -320,3 +320,47 @@ def test_flow_camera_height_from_camera_info_unless_typed(
     assert [m.keyframe_id for m in w.collect(1, 20)] == [3]
     assert node.flow_params.camera_height_m == expect
     assert node.sequence.flow.camera_height_m == expect
+
+
+def test_flow_node_takes_a_tracked_frame_as_reference_of_the_first_keyframe(
+    inproc_bus, wired_node
+) -> None:
+    """``flow.frame_references``: a frame's image and its tracked pose (paired by stamp) are a
+    flow reference of the next keyframe, which has no earlier keyframe (the first after a
+    standstill); an initialising frame's pose is not used."""
+    bus, ctx = inproc_bus
+    node = DepthPriorNode(
+        "prior",
+        {"flow": {"far_baseline_m": 0.0, "frame_references": 4}, "metrized_topic": ""},
+        bus,
+        context=ctx,
+        diagnostics_period_s=0,
+    )
+    topics = ("/frontend/keyframe", "/camera/image", "/frontend/odometry")
+    w = wired_node(node, topics, "/prior/depth")
+    T0 = np.eye(4)
+    T1 = make_T(so3_exp(np.array([0.0, 0.01, 0.0])), np.array([0.05, 0, 0.5]))
+    frame, _ = keyframe(0, T0)
+    for stamp, status in ((40_000_000, "initializing"), (50_000_000, "tracking")):
+        w.pub.publish("/camera/image", msgs.Image(stamp, "cam", "bgr8", frame.image[..., ::-1]))
+        w.pub.publish(
+            "/frontend/odometry",
+            msgs.Odometry(stamp, "cam", 0, T0, (0.0, 0.0, 0.0), status),
+        )
+    deadline = time.monotonic() + 10
+    while 50_000_000 not in node.sequence.frames and time.monotonic() < deadline:
+        node.spin_once(50)
+    assert sorted(node.sequence.frames) == [50_000_000]
+    kf, depth = keyframe(1, T1)
+    w.pub.publish("/frontend/keyframe", kf)
+    (got,) = w.collect(1, 20)
+    m = got.confidence > 0
+    assert m.mean() > 0.4
+    assert np.median(np.abs(got.depth[m] - depth[m]) / depth[m]) < 0.03
+    assert node.counters["handler_errors"] == 0
+    # a reset starts a new world: the frames kept are forgotten
+    w.pub.publish("/frontend/odometry", msgs.Odometry(60_000_000, "cam", 0, T0, (0, 0, 0), "reset"))
+    deadline = time.monotonic() + 10
+    while node.sequence.frames and time.monotonic() < deadline:
+        node.spin_once(50)
+    assert not node.sequence.frames
