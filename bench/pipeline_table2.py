@@ -53,6 +53,7 @@ import zmq
 
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
+from mogs_node.commands.launch import parse_overrides
 from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
 from mogs_node.mapper.insertion import InsertionParams, random_depth
@@ -102,11 +103,16 @@ class RandomDepthNode(Node):
         )
 
 
-def launch_dict(init: str, frames: int, out: Path) -> dict[str, Any]:
-    """The demo launch file, set up for one initialisation, outputs in ``out``."""
+def launch_dict(
+    init: str, frames: int, out: Path, overrides: dict[str, dict[str, Any]] | None = None
+) -> dict[str, Any]:
+    """The demo launch file, set up for one initialisation, outputs in ``out``; ``overrides``
+    (node -> params, ``--set``) apply to every initialisation alike."""
     launch = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
     launch["name"] = f"table2-{uuid.uuid4().hex[:8]}"
     nodes = {n["name"]: n for n in launch["nodes"]}
+    for node, params in (overrides or {}).items():
+        nodes[node].setdefault("params", {}).update(params)
     nodes["player"]["params"]["sim"]["n_frames"] = frames
     nodes["report"]["params"]["out_dir"] = str(out)
     nodes["report"]["params"]["idle_timeout_s"] = 1200.0
@@ -271,6 +277,21 @@ def choose_view(views: dict[str, HeldOutViews], target_db: float) -> int | None:
     return min(common) if common else None
 
 
+def common_target(
+    views: dict[str, HeldOutViews], cap_db: float, step_db: float = 0.5, floor_db: float = 10.0
+) -> float | None:
+    """``--target-db auto``: the highest of ``cap_db``, ``cap_db - step_db``, ... (down to
+    ``floor_db``) that some candidate view reaches under every initialisation within the budget,
+    so that the fixed view and the ratios are defined (issue 17: random depth reached 20 dB at no
+    candidate). The same rule for all; None when not even ``floor_db`` is common."""
+    t = cap_db
+    while t >= floor_db:
+        if choose_view(views, t) is not None:
+            return t
+        t = round(t - step_db, 6)
+    return None
+
+
 def sim_images(frames: int, indices: list[int]) -> dict[int, np.ndarray]:
     """Ground-truth RGB of the demo drive's frames ``indices`` (the player's sim, re-rendered)."""
     demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
@@ -291,7 +312,7 @@ def run_init(
     out = root / init
     out.mkdir(parents=True, exist_ok=True)
     path = out / "launch.yaml"
-    path.write_text(yaml.safe_dump(launch_dict(init, args.frames, out)))
+    path.write_text(yaml.safe_dump(launch_dict(init, args.frames, out, args.overrides)))
     launch = load_launch_file(path)
     ctx = zmq.Context()
     sub = Subscriber(launch.bus, context=ctx)
@@ -421,6 +442,12 @@ def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any], notes: str
         else f"the earliest candidate that every initialisation's map reaches {args.target_db:g} dB "
         "at (same rule for all)"
     )
+    rule = (
+        " (`--target-db auto`: the highest of 20, 19.5, ... dB that some candidate reaches under"
+        " every initialisation within the budget)"
+        if res.get("target_rule") == "auto"
+        else ""
+    )
     return f"""## Table II in the live pipeline (issue 17)
 
 Command: `{cmd}`
@@ -431,8 +458,8 @@ machines or loads). Demo drive ({args.frames} frames, 621x188), the same mapper 
 initialisation. Candidate held-out views: every {args.candidate_step}th frame from frame
 {args.candidates_from} on that is not a keyframe ({res["candidates_scored"]} frames), ground truth
 from the sim, pose from the frontend, scored after every map update. Fixed held-out view: frame
-{res["view_frame"]}, {how}; target {args.target_db:g} dB. At the budget: the run report's held-out
-frames (docs/report.md).
+{res["view_frame"]}, {how}; target {args.target_db:g} dB{rule}. At the budget: the run report's
+held-out frames (docs/report.md). Overrides for every init alike: {res.get("overrides") or "none"}.
 
 | init | iterations to {args.target_db:g} dB | wall s to target | Gaussians at target | fixed view PSNR at budget [dB] | held-out PSNR at budget [dB] | held-out SSIM | iterations (budget) | Gaussians at budget | inserted | pruned | candidates reaching {args.target_db:g} dB |
 | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
@@ -490,7 +517,18 @@ def main(argv: list[str] | None = None) -> int:
         "driving are near-copies of the static start's keyframes)",
     )
     ap.add_argument("--candidate-step", type=int, default=2, help="frames between candidates")
-    ap.add_argument("--target-db", type=float, default=20.0)
+    ap.add_argument(
+        "--target-db",
+        default="20",
+        help="dB, or auto: the highest of 20, 19.5, ... that a candidate reaches under every init",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="for every init alike, e.g. mapper.final_refine_iters=0 (the budget: the drive)",
+    )
     ap.add_argument(
         "--inits", default=",".join(INITS), help="comma-separated subset of " + ", ".join(INITS)
     )
@@ -512,6 +550,9 @@ def main(argv: list[str] | None = None) -> int:
         help="write the table and plot from a finished run's JSON (no new runs)",
     )
     args = ap.parse_args(argv)
+    args.auto_target = args.target_db == "auto"
+    args.target_db = 20.0 if args.auto_target else float(args.target_db)
+    args.overrides = parse_overrides(args.set)
     if args.docs_from:
         res = json.loads(Path(args.docs_from).read_text())
         write_docs(argparse.Namespace(**{**vars(args), **res["args"]}), res, res["command"])
@@ -566,6 +607,10 @@ def assemble(
     """The results of the runs of every init: the fixed view (chosen across them), each init's
     figures there and at the budget, the ratios."""
     views = {k: v for k, (_, v) in runs.items()}
+    if getattr(args, "auto_target", False):
+        t = common_target(views, args.target_db)
+        args.target_db = t if t is not None else args.target_db
+        print(f"[table2] target (auto): {args.target_db:g} dB", flush=True)
     view = args.view_frame if args.view_frame is not None else choose_view(views, args.target_db)
     scored = set.union(*(set(v.curves) for v in views.values())) if views else set()
     res: dict[str, Any] = {
@@ -579,6 +624,8 @@ def assemble(
             k: getattr(args, k)
             for k in ("frames", "view_frame", "candidates_from", "candidate_step", "target_db")
         },
+        "target_rule": "auto" if getattr(args, "auto_target", False) else "given",
+        "overrides": getattr(args, "overrides", {}),
         "inits": {},
     }
     for init, (r, v) in runs.items():

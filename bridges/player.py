@@ -48,7 +48,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import cv2
 import numpy as np
@@ -186,6 +186,8 @@ class PlayerNode(Node):
             f"fast (flow control on {p.ack_topic})" if p.fast else f"rate {p.rate}x",
         )
         self._tick_timer = self.every(p.tick_s, self.tick)
+        if self.seq is not None:  # load (the sim: render) ahead while the pipeline comes up
+            self._prefetch()
         if self.seq is not None and self.camera_info is not None:
             self.every(p.camera_info_period_s, self._publish_camera_info)
 
@@ -322,6 +324,16 @@ class PlayerNode(Node):
             if k not in self._loads:
                 self._loads[k] = self._pool.submit(self._load, k)
 
+    def _wait_for_loads(self) -> None:
+        """Before the first image: the ``prefetch`` frames loaded ahead are ready, so that
+        loading the sequence (the sim renders each frame and its depth, ~0.16 s of CPU a frame)
+        is not part of the drive that the pipeline is timed on (issue 17); heartbeats go on."""
+        pending = set(self._loads.values())
+        while pending and not self.stopping:
+            _, pending = wait(pending, timeout=1.0)
+            if self.diagnostics_period_s > 0:
+                self.publish_diagnostics()
+
     # ------------------------------------------------------------------ publishing
 
     def _publish_event(self, ev: tuple[int, str, int]) -> None:
@@ -453,6 +465,7 @@ class PlayerNode(Node):
             if self.seq is not None:
                 self._publish_camera_info()  # before the first image and IMU sample
                 self._prefetch()
+                self._wait_for_loads()
             self.state = "playing"
         now = time.monotonic()
         if self._pause_requested is not None:

@@ -89,6 +89,8 @@ class MapperNodeParams:
     threads: int = 0  # torch threads (0: torch's default)
     max_pending: int = 16  # keyframes waiting for their depth (or depth for its keyframe)
     publish_render: bool = True  # publish /mapper/render after each keyframe
+    render_at_train_size: bool = False  # ... at the training resolution (train_downsample):
+    # a snapshot for the report and viewer, off the drive's critical path (issue 17)
     ply_path: str = ""  # write the map here on shutdown ("" = never)
     ply_every_kf: int = 0  # also write it every n keyframes (0 = only on shutdown)
     checkpoint_dir: str = ""  # save the mapper state here (checkpoint.py; "" = never)
@@ -406,7 +408,8 @@ class MapperNode(Node):
             ),
         )
         if p.publish_render:
-            r = m.render_view(m.keyframe_pose(kf.keyframe_id))
+            K, size = (m.train_K, m.train_size) if p.render_at_train_size else (None, None)
+            r = m.render_view(m.keyframe_pose(kf.keyframe_id), K=K, size=size)
             depth_m = (r.depth / r.alpha.clamp_min(1e-6)).where(r.alpha > 1e-3, torch.zeros(()))
             self.publish(
                 p.render_topic,

@@ -508,3 +508,43 @@ def test_the_sim_source_casts_each_frame_once_for_its_image_and_depth(monkeypatc
     assert calls == [0, 1, 2]
     assert np.array_equal(image, own.rgb)
     assert np.array_equal(depth, np.where(np.isfinite(own.depth_m), own.depth_m, 0.0))
+
+
+def test_a_player_has_its_prefetch_loaded_before_the_first_image(inproc_bus, monkeypatch) -> None:
+    """Loading starts while the pipeline comes up (setup), and the ``prefetch`` frames loaded
+    ahead (the sim renders each, ~0.16 s of CPU at 621x188) are ready before the first image
+    goes out: the sim's rendering does not pace the drive that the pipeline is timed on."""
+    from bridges.player import PlayerNode
+    from mogs_node.sim import SimSequence
+
+    calls: list[int] = []
+    render = SimSequence.render
+    monkeypatch.setattr(
+        SimSequence, "render", lambda self, i: (calls.append(i), render(self, i))[1]
+    )
+    bus, ctx = inproc_bus
+    params = {
+        "source": "sim",
+        "sim": {"n_frames": 8, "width": 32, "height": 16},
+        "fast": True,
+        "prefetch": 4,
+        "wait_for_subscriber_s": 0.0,
+        "ack_timeout_s": 0.0,
+        "progress_period_s": 0.0,
+    }
+    node = PlayerNode("player", params, bus, context=ctx, diagnostics_period_s=0)
+    rendered_at_first_image: list[list[int]] = []
+    publish = node.publish
+
+    def spy(topic: str, msg: object, *a: object, **kw: object) -> None:
+        if topic == node.params.image_topic and not rendered_at_first_image:
+            rendered_at_first_image.append(sorted(set(calls)))
+        publish(topic, msg, *a, **kw)
+
+    node.publish = spy  # type: ignore[method-assign]
+    t_end = time.monotonic() + 10.0
+    while not rendered_at_first_image and time.monotonic() < t_end:
+        node.spin_once(100)
+    assert rendered_at_first_image == [[0, 1, 2, 3, 4]]  # the first image and 4 ahead
+    node.teardown()
+    node.close()

@@ -94,6 +94,31 @@ def test_mapper_node_publishes_stats_render_and_incremental_updates(inproc_bus, 
     assert len(read_gaussian_ply(ply)["means"]) == s1.n_gaussians
 
 
+def test_the_render_snapshot_can_come_at_the_training_resolution(inproc_bus) -> None:
+    """``render_at_train_size``: /mapper/render at 1/train_downsample of the keyframe size, the
+    same view (depth at the wall), a quarter of the pixels on the drive's critical path."""
+    bus, ctx = inproc_bus
+    params = {"iters_per_keyframe": 2, "train_downsample": 2, "render_at_train_size": True}
+    node = MapperNode("mapper", {**params, "threads": 1}, bus, context=ctx, diagnostics_period_s=0)
+    watcher = Subscriber(bus, context=ctx)
+    watcher.subscribe("/mapper/render")
+    pub = Publisher(bus, context=ctx)
+    assert pub.wait_for_subscriber("/metrizer/depth", 5)
+    assert node._pub.wait_for_subscriber("/mapper/render", 5)
+    for m in messages(0, 0.0):
+        pub.publish("/frontend/keyframe" if isinstance(m, msgs.Keyframe) else "/metrizer/depth", m)
+    got = None
+    deadline = time.monotonic() + 60
+    while got is None and time.monotonic() < deadline:
+        node.spin_once(50)
+        env = watcher.receive(timeout_ms=20)
+        got = env.msg if env is not None else None
+    assert got is not None and got.image.shape == (H // 2, W // 2, 3)
+    assert np.abs(got.depth[got.depth > 0] - 6.0).max() < 1.0
+    node.teardown()
+    node.close()
+
+
 def test_mapper_node_params_are_validated(inproc_bus) -> None:
     bus, ctx = inproc_bus
     with pytest.raises(ConfigError):

@@ -14,6 +14,7 @@ from bench.pipeline_table2 import (
     HeldOutViews,
     assemble,
     choose_view,
+    common_target,
     depth_statistics,
     launch_dict,
     markdown,
@@ -42,6 +43,11 @@ def test_launch_files_differ_only_in_the_depth_the_mapper_gets(tmp_path: Path) -
         mp0 = {a: b for a, b in nodes["mogs"]["mapper"]["params"].items() if a != "ply_path"}
         assert mp == mp0
         assert nodes[k]["player"]["params"]["sim"]["n_frames"] == 30
+    # --set applies to every init alike (e.g. the budget: the drive, no final refinement)
+    over = {"mapper": {"final_refine_iters": 0}}
+    for k in ("mogs", "random"):
+        n = {x["name"]: x for x in launch_dict(k, 30, tmp_path / k, over)["nodes"]}
+        assert n["mapper"]["params"]["final_refine_iters"] == 0
 
 
 def _gaussians(rgb: np.ndarray, depth: float, K: np.ndarray, T: np.ndarray, keyframe_id: int):
@@ -143,6 +149,12 @@ def test_the_fixed_view_is_the_earliest_every_initialisation_reaches() -> None:
     }
     assert choose_view(runs, 20.0) == 23  # 21: prior_global never reaches it
     assert choose_view(runs, 30.0) is None
+    # auto: the highest 0.5 dB step some candidate reaches under every init: 20 (view 23)
+    assert common_target(runs, 20.0) == 20.0
+    runs["random"] = views({21: [15.0, 17.2], 23: [16.9], 25: [17.6]})
+    assert choose_view(runs, 20.0) is None  # random reaches 20 dB nowhere: no view, no ratios
+    assert common_target(runs, 20.0) == 17.5 and choose_view(runs, 17.5) == 25
+    assert common_target(runs, 20.0, floor_db=18.0) is None
 
 
 def test_ratios_with_and_without_a_target() -> None:
