@@ -2,7 +2,7 @@
 estimated and with estimation off (the launch value 0 used as it is), for several true offsets.
 
     .venv/bin/python bench/time_offset.py [--frames 1200] [--offsets-ms 50 -30 0] [--json PATH]
-        [--platform handheld] [--set GROUP.FIELD=VALUE ...] [--write-docs]
+        [--platform handheld] [--set GROUP.FIELD=VALUE ...] [--no-imu-noise] [--write-docs]
 
 The walk is ``mogs sim --motion handheld --size 621x188`` (the same images for every offset: only
 the camera stamps move). Per run: the offset in use at the end, ATE (SE(3)-aligned, keyframes)
@@ -37,6 +37,7 @@ from mogs_node.frontend.frontend import Frontend, FrontendParams  # noqa: E402
 from mogs_node.frontend.keyframes import KeyframeParams  # noqa: E402
 from mogs_node.frontend.time_offset import TimeOffsetParams  # noqa: E402
 from mogs_node.sim import SimConfig, make_sequence  # noqa: E402
+from mogs_node.sim.imu import ImuNoiseParams  # noqa: E402
 
 
 def run_one(seq, images, params: FrontendParams) -> dict:
@@ -149,9 +150,13 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], help="GROUP.FIELD=VALUE")
     ap.add_argument("--write-docs", action="store_true")
     ap.add_argument("--cache", default=None, help=".npy of the rendered images (made if absent)")
+    ap.add_argument("--no-imu-noise", action="store_true", help="exact IMU readings, no biases")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    base = make_sequence(SimConfig(motion="handheld", n_frames=args.frames, width=621, height=188))
+    cfg = SimConfig(motion="handheld", n_frames=args.frames, width=621, height=188)
+    if args.no_imu_noise:  # the same images (the IMU's noise does not touch them)
+        cfg = replace(cfg, imu_noise=ImuNoiseParams(enabled=False))
+    base = make_sequence(cfg)
     if args.cache and Path(args.cache).exists():
         images = list(np.load(args.cache, mmap_mode="r"))
     else:

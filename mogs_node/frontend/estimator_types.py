@@ -81,10 +81,11 @@ class EstimatorParams:
     outlier_reproj_px: float = 5.0  # a landmark with a larger reprojection error is removed
     marginalize_landmarks: bool = False  # Schur-complement the oldest keyframe's landmarks too
     # (True: restarts every landmark it saw; False: they stay variables, see keep_visual_prior)
-    keep_visual_prior: bool = False  # the oldest keyframe's observations go into the
+    keep_visual_prior: bool | None = None  # the oldest keyframe's observations go into the
     # marginalisation prior with their landmarks kept as variables (exact Schur complement; a
     # landmark is marginalised out of the prior when it leaves the window). False: they are dropped
-    # and the window's scale drifts (docs/frontend.md, "Investigation")
+    # and the window's scale drifts (docs/frontend.md, "Investigation"). None: the platform
+    # profile's (handheld on, car and drone off; docs/frontend.md round 10)
     visual_prior_sigma: float = 1.0  # their pixel sigma there, times pixel_sigma_px (> 1: a
     # weaker visual prior that lets the window's scale follow the IMU; docs/frontend.md round 9)
     visual_prior_min_obs: int = 4  # only landmarks seen by at least this many window frames go

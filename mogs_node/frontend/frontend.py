@@ -82,9 +82,10 @@ class Frontend:
         self._recent_points: deque[tuple[NDArray, KeyframePoints, NDArray]] = deque(
             maxlen=max(params.points.reproject_keyframes, 1)
         )
-        self.estimator = VioEstimator(params.estimator, camera.pinhole, self.T_imu_cam, params.imu)
         self.platform = PlatformChooser(params.platform, params.bounds, params.platform_default)
         self.profile = self.platform.profile
+        est_params = params.estimator_for(self.profile)
+        self.estimator = VioEstimator(est_params, camera.pinhole, self.T_imu_cam, params.imu)
         self.time_offset_ns = int(params.time_offset_ns)  # the one in use (estimated or prior)
         self.clock = TimeOffsetEstimator(
             params.time_offset, params.time_offset_ns, camera.K, self.T_imu_cam[:3, :3]
@@ -101,7 +102,7 @@ class Frontend:
         self._keyframe_id = 0
         self._dyn_init = DynamicInitializer(
             params.init,
-            params.estimator,
+            est_params,
             camera.pinhole,
             self.T_imu_cam,
             params.imu,
@@ -400,6 +401,8 @@ class Frontend:
         new = (imu.stamps_ns <= t_ns) & (imu.stamps_ns > (prev_t if prev_t is not None else -1))
         if self.platform.add_imu(imu.stamps_ns[new], imu.accel_m_s2[new]):
             self.profile = self._dyn_init.profile = self.platform.profile
+            est = self._dyn_init.estimator_params = self.params.estimator_for(self.profile)
+            self.estimator.params = est
 
     def _update_time_offset(self, stamp_ns: int, ids: NDArray, uv_px: NDArray) -> None:
         """Feed the time-offset estimate; a new value is used from the next frame on (an

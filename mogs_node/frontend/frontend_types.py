@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +20,7 @@ from mogs_node.frontend.keyframes import (
 )
 from mogs_node.frontend.platform import (
     PlatformBounds,
+    PlatformProfile,
 )
 from mogs_node.frontend.preintegration import ImuNoise
 from mogs_node.frontend.time_offset import (
@@ -77,6 +78,14 @@ class FrontendParams:
             raise ConfigError(f"frontend.window_interval_s: {self.window_interval_s} < 0")
         if self.max_imu_gap_s <= 0 or self.max_pending_frames < 1:
             raise ConfigError("frontend: max_imu_gap_s > 0 and max_pending_frames >= 1")
+
+    def estimator_for(self, profile: PlatformProfile) -> EstimatorParams:
+        """The estimator's parameters, with the platform profile's defaults for those left
+        unset (None)."""
+        est = self.estimator
+        if est.keep_visual_prior is None:
+            est = replace(est, keep_visual_prior=profile.keep_visual_prior)
+        return est
 
 
 @dataclass

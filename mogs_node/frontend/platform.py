@@ -43,6 +43,7 @@ class PlatformProfile:
     keyframe_min_interval_s: float  # at most one keyframe per this long (the mapper's rate)
     window_interval_s: float = 0.0  # the estimator window's frame spacing when the view does
     # not move (FrontendParams.window_interval_s; 0: every frame stays in the window)
+    keep_visual_prior: bool = False  # EstimatorParams.keep_visual_prior when not set
 
     def __post_init__(self) -> None:
         vals = (
@@ -60,7 +61,16 @@ class PlatformProfile:
 #: drone: a multicopter (EuRoC's MAV) - fast rotations and vertical motion
 PLATFORMS: dict[str, PlatformProfile] = {
     "car": PlatformProfile("car", 70.0, 15.0, 2.0, 8.0, 0.09),
-    "handheld": PlatformProfile("handheld", 4.0, 20.0, 8.0, 2.0, 0.5, window_interval_s=0.2),
+    "handheld": PlatformProfile(
+        "handheld",
+        4.0,
+        20.0,
+        8.0,
+        2.0,
+        0.5,
+        window_interval_s=0.2,
+        keep_visual_prior=True,
+    ),
     "drone": PlatformProfile("drone", 20.0, 25.0, 8.0, 8.0, 0.25),
 }
 

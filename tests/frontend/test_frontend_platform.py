@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -237,11 +238,15 @@ def test_auto_platform_in_the_frontend_on_the_sim_walk() -> None:
     for motion, expect in (("handheld", "handheld"), ("car", "car")):
         seq = make_sequence(SimConfig(motion=motion, n_frames=45, width=64, height=32))
         fe = Frontend(FrontendParams(platform="auto"), CameraModel(seq.camera), seq.T_imu_cam)
+        assert fe.estimator.params.keep_visual_prior is False  # the car's until a walk shows
         imgs = [np.zeros((32, 64, 3), np.uint8)] * len(seq)
         run_frontend(
             fe, seq.stamps_ns, imgs, seq.imu_stamps_ns, seq.imu_gyro_rad_s, seq.imu_accel_m_s2
         )
         assert fe.profile.name == expect and fe._dyn_init.profile.name == expect
+        walk = expect == "handheld"  # the walk's estimator settings go to both
+        assert fe.estimator.params.keep_visual_prior is walk
+        assert fe._dyn_init.estimator_params.keep_visual_prior is walk
         assert fe.figures()["platform_walk_detected"] == float(expect == "handheld")
 
 
@@ -284,6 +289,17 @@ def test_window_interval_from_the_platform() -> None:
     assert platform_profile("handheld").window_interval_s > 0.0
     hand = platform_profile("handheld", PlatformBounds(window_interval_s=0.0))
     assert hand.window_interval_s == 0.0
+
+
+def test_estimator_settings_from_the_platform() -> None:
+    """Unset (None) estimator settings take the profile's: the walk keeps its
+    visual prior, car and drone do not; a launch value wins over the profile's (``platform: auto``
+    hands the walk's to the estimator: test_auto_platform_in_the_frontend_on_the_sim_walk)."""
+    params = FrontendParams()
+    for name, keep in (("car", False), ("drone", False), ("handheld", True)):
+        assert params.estimator_for(platform_profile(name)).keep_visual_prior is keep
+    off = replace(params, estimator=replace(params.estimator, keep_visual_prior=False))
+    assert off.estimator_for(platform_profile("handheld")).keep_visual_prior is False
 
 
 def test_keeps_in_window_rule() -> None:
