@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import machine_line, write_results  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -137,11 +137,7 @@ def main() -> int:
         r = run_one(frames, off, est, out)
         print(json.dumps({k: v for k, v in r.items() if k != "summary"}), _cells(r), flush=True)
         rows.append(r)
-    write_json(args.json, {"runs": rows})
-    md = markdown(rows, args)
-    print(md)
-    if args.write_docs:
-        update_markdown_section("handheld-bag", md)
+    write_results("handheld-bag", markdown(rows, args), {"runs": rows}, args.json, args.write_docs)
     return 0
 
 

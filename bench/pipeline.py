@@ -176,10 +176,13 @@ def main(argv: list[str] | None = None) -> int:
         "frames_per_s": round(len(image_t) / span, 2),
         "keyframes_per_s": round(len(depth_t) / span, 3),
         "real_time_factor": round(seq_s / span, 3),
-        "real_time_factor_incl_final": round(seq_s / span_final, 3),
+        "real_time_factor_incl_final": round(seq_s / span_final, 3)
+        if final_t is not None
+        else None,
+        # None (JSON null): the final map did not come before the run ended (e.g. --timeout)
         "final_refine_s": round(final_t - max(stats_t.values()), 2)
         if final_t is not None and stats_t
-        else 0.0,
+        else None,
     }
     # where each keyframe's time goes: seconds after the first image at which its image, its
     # keyframe, its metrized depth and its mapper stats arrived (the critical path of the drive)

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from mogs_node.eval.bench_docs import machine_line, update_markdown_section, write_json  # noqa: E402
+from mogs_node.eval.bench_docs import machine_line, write_results  # noqa: E402
 from mogs_node.eval.frontend_runs import RunResult, run_frontend, score_run  # noqa: E402
 from mogs_node.frontend.camera import CameraModel  # noqa: E402
 from mogs_node.frontend.frontend import Frontend, FrontendParams  # noqa: E402
@@ -177,11 +177,8 @@ def main() -> int:
             r.update(true_ms=off, estimation="on" if est else "off")
             print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()})
             rows.append(r)
-    write_json(args.json, {"runs": rows, "frames": args.frames, "platform": args.platform})
-    md = markdown(rows, args)
-    print(md)
-    if args.write_docs:
-        update_markdown_section("time-offset", md)
+    figures = {"runs": rows, "frames": args.frames, "platform": args.platform}
+    write_results("time-offset", markdown(rows, args), figures, args.json, args.write_docs)
     return 0
 
 

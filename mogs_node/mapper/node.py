@@ -327,18 +327,26 @@ class MapperNode(Node):
         self.refine_left = -2
         last = m.keyframes[-1]
         self.publish_update(last.keyframe_id, self.last_stamp_ns)
+        self._publish_stats(
+            self.last_stamp_ns, last.keyframe_id, st, {"final": 1.0, "pruned": st["n_pruned"]}
+        )
+
+    def _publish_stats(
+        self, stamp_ns: int, keyframe_id: int, st: dict[str, Any], extra: dict[str, Any]
+    ) -> None:
+        """The map's statistics after a keyframe (``extra``: what that step adds)."""
         self.publish(
-            p.stats_topic,
+            self.params.stats_topic,
             msgs.MapStats(
-                stamp_ns=self.last_stamp_ns,
+                stamp_ns=stamp_ns,
                 frame_id="world",
-                keyframe_id=last.keyframe_id,
+                keyframe_id=keyframe_id,
                 n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
                 n_keyframes=int(st["n_keyframes"]),
                 iterations=int(st["iterations"]),
                 loss=float(st["loss"]),
                 psnr_db=float(st["psnr_db"]),
-                extra={"final": 1.0, "pruned": st["n_pruned"]},
+                extra=extra,
             ),
         )
 
@@ -385,27 +393,19 @@ class MapperNode(Node):
         map_cpu_ms = (time.process_time() - c0) * 1000  # the same in CPU time (load-independent)
         self.counters["keyframes_mapped"] += 1
         self.last_stamp_ns = int(kf.stamp_ns)
-        self.publish(
-            p.stats_topic,
-            msgs.MapStats(
-                stamp_ns=kf.stamp_ns,
-                frame_id="world",
-                keyframe_id=kf.keyframe_id,
-                n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
-                n_keyframes=int(st["n_keyframes"]),
-                iterations=int(st["iterations"]),
-                loss=float(st["loss"]),
-                psnr_db=float(st["psnr_db"]),
-                extra={
-                    "inserted": float(n_new),
-                    "pruned": st["n_pruned"],
-                    "window": st["window"],
-                    "map_ms": round(map_ms, 3),
-                    "map_cpu_ms": round(map_cpu_ms, 3),
-                    "gaussians_in_ram": float(len(m.map)),
-                    "gaussians_on_disk": float(self.submaps.gaussians_on_disk),
-                },
-            ),
+        self._publish_stats(
+            kf.stamp_ns,
+            kf.keyframe_id,
+            st,
+            {
+                "inserted": float(n_new),
+                "pruned": st["n_pruned"],
+                "window": st["window"],
+                "map_ms": round(map_ms, 3),
+                "map_cpu_ms": round(map_cpu_ms, 3),
+                "gaussians_in_ram": float(len(m.map)),
+                "gaussians_on_disk": float(self.submaps.gaussians_on_disk),
+            },
         )
         if p.publish_render:
             K, size = (m.train_K, m.train_size) if p.render_at_train_size else (None, None)
