@@ -20,27 +20,17 @@ from mogs_node.errors import ConfigError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.estimator import EstimatorDivergedError, VioEstimator
 from mogs_node.frontend.frontend_types import FrameOutput, FrontendParams, KeyframeOutput
-from mogs_node.frontend.initialization import (
-    DynamicInitializer,
-    is_still,
-    static_init,
-)
+from mogs_node.frontend.initialization import DynamicInitializer, is_still, static_init
 from mogs_node.frontend.keyframes import (
     StandstillKeyframes,
     is_keyframe,
     keeps_in_window,
     omega_weight,
 )
-from mogs_node.frontend.platform import (
-    PlatformChooser,
-    motion_violation,
-)
+from mogs_node.frontend.platform import PlatformChooser, motion_violation
 from mogs_node.frontend.preintegration import ImuBuffer, ImuSamples, make_params
 from mogs_node.frontend.road_distance import RoadDistance
-from mogs_node.frontend.time_offset import (
-    TimeOffsetEstimator,
-    gyro_variation,
-)
+from mogs_node.frontend.time_offset import TimeOffsetEstimator, gyro_variation
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
