@@ -65,49 +65,49 @@ class TrackPointsParams:
     """Dense tracks and the sparse points triangulated from them (docs/frontend.md, rounds 6-9)."""
 
     enabled: bool = True  # publish the dense tracks' points (False: the estimator's landmarks)
-    max_tracks: int = 3000  # dense tracks kept per frame (the estimator's tracker is separate)
-    min_distance_px: int = 2  # minimum distance between dense tracks (a square, not a disc)
+    max_tracks: int = 900  # dense tracks kept per frame (the estimator's tracker is separate)
+    min_distance_px: int = 5  # minimum distance between dense tracks (a square, not a disc)
     quality_level: float = 0.001  # Shi-Tomasi quality relative to the best corner
     win_size_px: int = 9  # KLT window of the dense tracker (small: cheap, local motion)
     pyr_levels: int = 3  # KLT pyramid levels
     fb_check: bool = False  # forward-backward check (True: twice the KLT cost; the multi-view
     # reprojection gate catches the same drifting tracks)
     klt_max_iter: int = 10  # KLT iterations per pyramid level
-    top_up_every: int = 1  # new corners every this many frames (2: ~40 % less tracker time,
+    top_up_every: int = 2  # new corners every this many frames (2: ~40 % less tracker time,
     # ~7 % fewer points on the demo drive, whose tracks die in bursts; round 9)
     ransac_thresh_px: float = 1.0  # F-RANSAC threshold of the dense tracker (undistorted px)
     bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
     bucket_rows: int = 5
-    history_frames: int = 16  # frames of observations (and poses) a track is triangulated from
+    history_frames: int = 10  # frames of observations (and poses) a track is triangulated from
     min_views: int = 3  # observations needed (the keyframe's included)
     min_parallax_deg: float = 1.0  # largest ray angle between the keyframe and another view
     # (0.3: the same points on the demo drive, a worse metrized depth on KITTI; round 9)
-    max_reproj_px: float = 0.8  # largest reprojection error over the views after refinement
+    max_reproj_px: float = 0.6  # largest reprojection error over the views after refinement
     min_depth_m: float = 0.5  # depth range in the keyframe
     max_depth_m: float = 100.0
     pixel_sigma_px: float = 0.5  # KLT noise assumed for the covariance (at least the residual)
     max_depth_rel_sigma: float = 0.05  # 1-sigma depth / depth above this: dropped
     omega_rel_sigma: float = 0.02  # omega = 1 / (1 + (sigma_z / z / this)^2)
-    view_stride: int = 3  # frames older than the last 3 are used every this many frames
+    view_stride: int = 1  # frames older than the last 3 are used every this many frames
     # (triangulation cost is linear in the frames; round 9)
-    gn_iterations: int = 1  # Gauss-Newton iterations of the refinement (from the DLT start, 1,
+    gn_iterations: int = 2  # Gauss-Newton iterations of the refinement (from the DLT start, 1,
     # 2 and 4 give the same points on the demo drive; round 9)
     edge_radius_px: float = 8.0  # neighbours this close in the image are compared ...
-    edge_rel_jump: float = 0.05  # ... and a relative depth jump larger than this marks an edge
-    edge_rule: str = "unsupported"  # "both_sides": drop both sides of every jump
+    edge_rel_jump: float = 0.1  # ... and a relative depth jump larger than this marks an edge
+    edge_rule: str = "both_sides"  # "both_sides": drop both sides of every jump
     # (depth_edge_flags); "unsupported": drop points no close neighbour agrees with
     # (unsupported_depth_flags; round 9)
     patch_radius_px: int = 3  # photometric check: (2r+1)^2 patch around the point in the
-    min_patch_zncc: float = 0.85  # keyframe against its oldest view, moved by the point's own
+    min_patch_zncc: float = 0.8  # keyframe against its oldest view, moved by the point's own
     # depth: a patch straddling a depth edge does not match (ZNCC below this: dropped)
     two_view_min_zncc: float = 0.9  # with min_views 2: a point seen in 2 views only needs at
     # least this ZNCC (one residual degree of freedom: the reprojection gate sees little)
     suspect_zncc: float = 0.95  # a point with a lower ZNCC ...
     suspect_reproj_px: float = 0.3  # ... or a larger reprojection error ...
     suspect_weight: float = 0.25  # ... keeps this share of its omega
-    reproject_keyframes: int = 6  # the last keyframes whose points join a new keyframe's fresh
+    reproject_keyframes: int = 3  # the last keyframes whose points join a new keyframe's fresh
     # ones where they still match (0: none)
-    reproject_min_zncc: float = 0.7  # their patch against the previous keyframe's, at least this
+    reproject_min_zncc: float = 0.9  # their patch against the previous keyframe's, at least this
     carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward,
     carry_max_motion_m: float = 0.25  # if the camera moved less than this since (standstill:
     # moving on, occluders move over the old points and they no longer hold)
