@@ -197,7 +197,7 @@ class DepthPriorNode(Node):
         """The frontend's pose of a frame; only tracked frames (not initialising, not reset). A
         reset starts a new world: the frames kept so far are in the old one."""
         if msg.status == "reset":
-            self.sequence.frames.clear()
+            self.sequence.forget_frames()
             self._frame_poses.clear()
         if msg.status == "tracking":
             self._frame_poses[int(msg.stamp_ns)] = np.asarray(msg.T_world_cam, np.float64)
@@ -206,15 +206,8 @@ class DepthPriorNode(Node):
     def _pair_frames(self) -> None:
         """Give the sequence every frame with both its image and its pose, at the prior's scale."""
         for stamp in sorted(set(self._frame_images) & set(self._frame_poses)):
-            msg = self._frame_images.pop(stamp)
-            rgb = msg.data[..., ::-1] if msg.encoding == "bgr8" else msg.data  # or mono8
-            rgb = np.ascontiguousarray(rgb)
-            scale = self.budget.scale
-            if scale < 1.0:
-                H, W = rgb.shape[:2]
-                size = (round(W * scale), round(H * scale))
-                rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-            self.sequence.add_frame(stamp, rgb, self._frame_poses.pop(stamp))
+            image, _ = self._at_budget_scale(self._frame_images.pop(stamp).rgb_or_mono())
+            self.sequence.add_frame(stamp, image, self._frame_poses.pop(stamp))
         for waiting in (self._frame_images, self._frame_poses):  # never paired: the oldest go
             while len(waiting) > FRAME_QUEUE:
                 waiting.pop(min(waiting))
@@ -322,14 +315,22 @@ class DepthPriorNode(Node):
         )
         self.log.debug("keyframe %d: prior %s", kf.keyframe_id, extra)
 
+    def _at_budget_scale(
+        self, image: np.ndarray, K: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """``image`` (and its ``K``) at the time budget's scale (worker_budget.py): keyframes
+        and the frames kept as their flow references are resized alike."""
+        scale = self.budget.scale
+        if scale >= 1.0:
+            return image, K
+        H, W = image.shape[:2]
+        size = (round(W * scale), round(H * scale))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        return image, None if K is None else PinholeCamera.from_K(K, W, H).scaled(*size).K
+
     def _flow(self, kf: msgs.Keyframe):
         scale = self.budget.scale
-        image, K = kf.image, kf.K
-        if scale < 1.0:  # the time budget's scale (worker_budget.py)
-            H, W = image.shape[:2]
-            cam = PinholeCamera.from_K(K, W, H).scaled(round(W * scale), round(H * scale))
-            image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
-            K = cam.K
+        image, K = self._at_budget_scale(kf.image, kf.K)
         t0 = time.monotonic()
         prior, refs = self.sequence.next(kf.keyframe_id, image, K, kf.T_world_cam, kf.stamp_ns)
         if self.budget.observe(time.monotonic() - t0) != scale:

@@ -108,6 +108,10 @@ class PriorSequence:
             self.frames.pop(min(self.frames))
         return True
 
+    def forget_frames(self) -> None:
+        """Drop the kept frames (a frontend reset: their poses are in another world)."""
+        self.frames.clear()
+
     def _references(
         self, stamp_ns: int | None, T_world_cam: NDArray, past: list[_Past], shape: tuple
     ) -> tuple[list[tuple[NDArray, NDArray]], list[int], list[tuple[NDArray, NDArray]]]:
@@ -125,7 +129,7 @@ class PriorSequence:
             pool.sort(key=lambda e: e[0])
         Th = np.array([e[2] for e in pool]) if pool else np.zeros((0, 4, 4))
         refs = choose_references(T_world_cam, Th, self.flow)
-        road = self._road_references(pool, refs)
+        road = self._road_references(refs)
         return (
             [(pool[j][1], pool[j][2]) for j in refs],
             [pool[j][3] for j in refs],
@@ -149,9 +153,10 @@ class PriorSequence:
             self._pending.pop(min(self._pending))
         return True
 
-    def _road_references(self, past: list, refs: list[int]) -> list[int]:
-        """The keyframe before the nearest reference, when far enough: the road it saw may have
-        been hidden from the nearest one (``road.extra_references`` of them)."""
+    def _road_references(self, refs: list[int]) -> list[int]:
+        """The references' pool entries (keyframes and kept frames, oldest first) before the
+        nearest reference and not chosen already: the road they saw may have been hidden from
+        the nearest one (``road.extra_references`` of them)."""
         out: list[int] = []
         if not refs:
             return out

@@ -211,9 +211,7 @@ class FrontendNode(Node):
         self._image_seen_s[int(msg.stamp_ns)] = time.monotonic()
         while len(self._image_seen_s) > 256:  # frames the frontend dropped: forget the oldest
             self._image_seen_s.pop(next(iter(self._image_seen_s)))
-        img = msg.data
-        if msg.encoding == "bgr8":
-            img = np.ascontiguousarray(img[..., ::-1])
+        img = msg.rgb_or_mono()
         fe = self.frontend
         assert fe is not None
         pending = fe.pending_stamps_ns

@@ -78,6 +78,10 @@ class Image(Message):
     encoding: str
     data: np.ndarray
 
+    def rgb_or_mono(self) -> np.ndarray:
+        """The pixels in RGB order (``bgr8`` flipped), or ``[H, W]`` for ``mono8``; contiguous."""
+        return np.ascontiguousarray(self.data[..., ::-1] if self.encoding == "bgr8" else self.data)
+
 
 @dataclass(eq=False)
 class Imu(Message):
