@@ -59,6 +59,8 @@ class GroundParams:
     # (textureless or washed-out road: the Gauss-Newton step would leave the guess unchanged)
     max_residual: float = 12.0  # mean absolute photometric residual (grey levels) to accept
     min_pixels: int = 400  # valid road pixels at the finest level to accept
+    sfm_search_span: float = 4.0  # initialisation (road_scale_of_sfm): search_span of each step
+    sfm_min_share: float = 0.5  # ... and the share of the steps that must give a measurement
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.camera_height_m) or self.camera_height_m < 0:
@@ -73,6 +75,8 @@ class GroundParams:
             raise ConfigError("ground: gate_rel > 0, gate_window >= 1, max_spread > 0")
         if self.search_span < 1 or self.relative_sigma <= 0 or self.max_pixels < 100:
             raise ConfigError("ground: search_span >= 1, relative_sigma > 0, max_pixels >= 100")
+        if self.sfm_search_span < 1 or not 0 < self.sfm_min_share <= 1:
+            raise ConfigError("ground: sfm_search_span >= 1, 0 < sfm_min_share <= 1")
 
     @property
     def enabled(self) -> bool:
@@ -305,22 +309,19 @@ def road_scale_of_sfm(
     normal_cam: NDArray,
     params: GroundParams,
     step_guess_m: NDArray,
-    *,
-    search_span: float = 4.0,
-    min_share: float = 0.5,
 ) -> float | None:
     """Metric scale of an up-to-scale visual SfM window (the dynamic initialisation's) from the
     road: the median over consecutive frames of measured / SfM step length.
 
     ``grays`` [F] images, ``T_c0_ci`` [F, 4, 4] SfM camera poses, ``normal_cam`` a road normal guess
     in the camera frame (fixed to the car, so the same in every frame), ``step_guess_m`` [F - 1] a guess of each metric step (searched
-    within ``search_span`` either way). None when fewer than ``min_share`` of the steps give a
-    measurement."""
+    within ``params.sfm_search_span`` either way). None when fewer than ``params.sfm_min_share``
+    of the steps give a measurement."""
     T = check_array("T_c0_ci", T_c0_ci, shape=(len(grays), 4, 4), finite=True)
     steps = check_array("step_guess_m", step_guess_m, shape=(len(grays) - 1,))
     if len(grays) < 2:
         return None
-    p = replace(params, search_span=search_span)
+    p = replace(params, search_span=params.sfm_search_span)
     ratios = []
     for k in range(len(grays) - 1):
         T_cur_prev = np.linalg.inv(T[k + 1]) @ T[k]
@@ -341,7 +342,7 @@ def road_scale_of_sfm(
         )
         if m is not None:
             ratios.append(m.distance_m / sfm_step)
-    if len(ratios) < max(1, min_share * (len(grays) - 1)):
+    if len(ratios) < max(1, params.sfm_min_share * (len(grays) - 1)):
         return None
     med = float(np.median(ratios))
     if np.median(np.abs(np.asarray(ratios) / med - 1)) > params.max_spread:

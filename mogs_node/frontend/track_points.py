@@ -38,7 +38,12 @@ from scipy.spatial import cKDTree
 
 from mogs_node.errors import ConfigError
 from mogs_node.frontend.tracker import TrackerParams
-from mogs_node.frontend.triangulation import RefinedPoints, refine_points, triangulate_dlt
+from mogs_node.frontend.triangulation import (
+    RefinedPoints,
+    RefineParams,
+    refine_points,
+    triangulate_dlt,
+)
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse, transform_points
 
 __all__ = [
@@ -139,6 +144,10 @@ class TrackPointsParams:
             raise ConfigError(
                 "points: bucket_cols, bucket_rows, gn_iterations, reproject_keyframes >= 0"
             )
+
+    def refine(self) -> RefineParams:
+        """Settings of the Gauss-Newton refinement (:func:`refine_points`)."""
+        return RefineParams(iterations=self.gn_iterations, pixel_sigma_px=self.pixel_sigma_px)
 
     def tracker(self) -> TrackerParams:
         """Parameters of the dense :class:`~mogs_node.frontend.tracker.FeatureTracker`."""
@@ -507,14 +516,7 @@ def keyframe_points(
     enough = np.isfinite(views.uv_px[..., 0]).sum(axis=1) >= params.min_views
     ids, uv = views.ids[enough], views.uv_px[enough]
     X0 = triangulate_dlt(uv, T_ref_cams, camera)
-    pts = refine_points(
-        uv,
-        T_ref_cams,
-        camera,
-        X0,
-        iterations=params.gn_iterations,
-        pixel_sigma_px=params.pixel_sigma_px,
-    )
+    pts = refine_points(uv, T_ref_cams, camera, X0, params.refine())
     keep, omega = gate_points(pts, params)
     idx = np.flatnonzero(keep)
     zncc = np.ones(len(ids))

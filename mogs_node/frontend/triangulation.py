@@ -16,7 +16,15 @@ from numpy.typing import NDArray
 
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse
 
-__all__ = ["RefinedPoints", "refine_points", "triangulate_dlt"]
+__all__ = ["RefineParams", "RefinedPoints", "refine_points", "triangulate_dlt"]
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """Settings of :func:`refine_points`."""
+
+    iterations: int = 4  # Gauss-Newton steps (from the DLT start one is often enough)
+    pixel_sigma_px: float = 0.5  # floor of the residual scale behind the covariance
 
 
 @dataclass
@@ -87,9 +95,7 @@ def refine_points(
     T_ref_cams: NDArray,
     camera: PinholeCamera,
     xyz_ref_init_m: NDArray,
-    *,
-    iterations: int = 4,
-    pixel_sigma_px: float = 0.5,
+    params: RefineParams = RefineParams(),
 ) -> RefinedPoints:
     """Gauss-Newton refinement of the reprojection error (paper IV-A), vectorised over points.
 
@@ -98,7 +104,7 @@ def refine_points(
     ``R_cam_ref (a, b, 1) + t_cam_ref rho``: finite as ``rho -> 0``. ``uv_px`` [N, F, 2] (NaN:
     unseen) and ``T_ref_cams`` [F, 4, 4] as in :func:`triangulate_dlt`; ``xyz_ref_init_m`` [N, 3]
     the start (NaN or ``z <= 0``: the point comes back NaN). The covariance is
-    ``s^2 (J^T J)^-1`` with ``s = max(pixel_sigma_px, RMS residual)``, mapped to ``xyz``.
+    ``s^2 (J^T J)^-1`` with ``s = max(params.pixel_sigma_px, RMS residual)``, mapped to ``xyz``.
     """
     uv, T_cam_ref, valid = _check_views(uv_px, T_ref_cams)
     X0 = check_array("xyz_ref_init_m", xyz_ref_init_m, shape=(len(uv), 3)).astype(np.float64)
@@ -126,7 +132,7 @@ def refine_points(
         )  # [N, F, 2, 3]
         return r.reshape(N, 2 * n_f), J.reshape(N, 2 * n_f, 3), q[..., 2]
 
-    for _ in range(iterations):
+    for _ in range(params.iterations):
         r, J, _ = linearise(theta)
         Jt = np.swapaxes(J, 1, 2)
         H = Jt @ J
@@ -140,7 +146,7 @@ def refine_points(
     rms = np.sqrt((err**2).sum(axis=1) / np.maximum(n_views, 1))
     H = np.swapaxes(J, 1, 2) @ J
     H += np.eye(3) * (1e-12 + 1e-9 * np.trace(H, axis1=1, axis2=2))[:, None, None]
-    s = np.maximum(pixel_sigma_px, rms)
+    s = np.maximum(params.pixel_sigma_px, rms)
     cov_theta = np.linalg.inv(H) * (s**2)[:, None, None]
     a, b, rho = theta.T
     rho_ok = rho > 1e-12

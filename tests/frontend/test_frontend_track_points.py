@@ -29,6 +29,7 @@ from mogs_node.frontend.track_points import (
     unsupported_depth_flags,
 )
 from mogs_node.frontend.tracker import FeatureTracker
+from mogs_node.frontend.triangulation import RefineParams
 from mogs_node.geometry import PinholeCamera, make_T, se3_inverse, so3_exp, transform_points
 
 CAM = PinholeCamera(360.77, 361.73, 304.53, 86.41, 621, 188)
@@ -86,7 +87,7 @@ def test_noisy_points_have_percent_level_error_and_a_covariance_that_matches_it(
     X = _scene(400, rng, (5.0, 25.0))
     T = _poses(8, rng=rng)
     uv = _project(X, T) + rng.normal(0, 0.3, (400, 8, 2))
-    pts = refine_points(uv, T, CAM, triangulate_dlt(uv, T, CAM), pixel_sigma_px=0.3)
+    pts = refine_points(uv, T, CAM, triangulate_dlt(uv, T, CAM), RefineParams(pixel_sigma_px=0.3))
     keep, _ = gate_points(pts, TrackPointsParams())
     rel = np.abs(pts.xyz_ref_m[keep, 2] - X[keep, 2]) / X[keep, 2]
     assert keep.mean() > 0.5
