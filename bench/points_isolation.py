@@ -1,11 +1,11 @@
 """Why more frontend points can make the metrized depth worse (issue 16, item 2 of h16f's brief):
 the demo's keyframes metrized with one kind of sparse points swapped at a time.
 
-    python bench/points_isolation.py [--launch launch/demo.yaml] [--set points.FIELD=VALUE ...]
-        [--json OUT]
+    python bench/points_isolation.py [--launch launch/demo.yaml] [--round9]
+        [--set GROUP.FIELD=VALUE ...] [--priors lfm,flow] [--sparse frontend,...] [--json OUT]
 
-Runs the demo's frontend in-process (:func:`mogs_node.eval.pipeline_stages.prepare_keyframes`,
-``--set`` overrides its ``points`` group), then metrizes every keyframe with the simulated LFM and
+Runs the demo's frontend in-process (:func:`mogs_node.eval.pipeline_stages.prepare_keyframes`;
+``--set`` overrides a field of a frontend group, e.g. ``points.max_tracks=3000``), then metrizes every keyframe with the simulated LFM and
 the flow prior (graph masks) and each of these sparse inputs:
 
 - ``frontend``: the points as published;
@@ -132,7 +132,10 @@ def point_errors(kfs, frontend: list) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--launch", default=None, help="demo launch file (default launch/demo.yaml)")
-    ap.add_argument("--set", action="append", default=[], metavar="points.FIELD=VALUE")
+    ap.add_argument(
+        "--round9", action="store_true", help="round 9's points (bench/frontend.py: ROUND9)"
+    )
+    ap.add_argument("--set", action="append", default=[], metavar="GROUP.FIELD=VALUE")
     ap.add_argument("--json", default=None, metavar="PATH")
     ap.add_argument("--priors", default="lfm,flow", help="comma-separated: lfm, flow")
     ap.add_argument("--sparse", default=None, help="comma-separated subset of the variants")
@@ -140,6 +143,10 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     params = demo_params(args.launch)
     fe = params.setdefault("frontend", {})
+    if args.round9:
+        from bench.frontend import ROUND9
+
+        fe["points"] = {**fe.get("points", {}), **ROUND9}
     for item in args.set:
         key, value = item.split("=", 1)
         group, field = key.split(".", 1)
@@ -155,12 +162,16 @@ def main() -> None:
         priors=tuple(args.priors.split(",")),
         masks=("graph",),
     )
-    res = {"points": point_errors(kfs, inputs["sparse"]["frontend"]), "set": args.set}
+    res = {
+        "points": point_errors(kfs, inputs["sparse"]["frontend"]),
+        "set": args.set,
+        "keyframe_frames": [s.frame_index for s in kfs],
+    }
     for key, c in fig["combos"].items():
         res[key] = {k: c[k] for k in ("absrel", "coverage", "keyframes")}
         res[key]["per_keyframe_absrel"] = [round(a, 4) for a, _ in c["per_keyframe"]]
         print(f"{key:40s} AbsRel {c['absrel']:.4f} coverage {c['coverage']:.3f}", flush=True)
-    print(json.dumps(res["points"]))
+    print(json.dumps(res["points"]), "keyframe frames", res["keyframe_frames"])
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))
 
