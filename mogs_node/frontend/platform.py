@@ -30,6 +30,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: a person's step cadence (steps per second); a car body's bounce on its suspension is 1-1.5 Hz
+#: and weaker, a multicopter's vibration is far above
+WALK_CADENCE_HZ = (1.4, 2.6)
+
 
 @dataclass(frozen=True)
 class PlatformProfile:
@@ -139,11 +143,6 @@ def motion_violation(
             f"{np.degrees(p.max_angular_rate_rad_s):.0f} deg/s"
         )
     return None
-
-
-#: a person's step cadence (steps per second); a car body's bounce on its suspension is 1-1.5 Hz
-#: and weaker, a multicopter's vibration is far above
-WALK_CADENCE_HZ = (1.4, 2.6)
 
 
 @dataclass(frozen=True)
