@@ -38,6 +38,7 @@ from mogs_node.frontend.estimator_types import (
     WindowFrame,
     X,
     lookup,
+    outlier_gate_px,
     sorted_map,
 )
 from mogs_node.frontend.keyframes import landmark_covariance, triangulate_midpoint
@@ -64,9 +65,8 @@ class VioEstimator:
     ) -> None:
         self.params = params
         self.camera = camera
-        self.T_imu_cam = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True).astype(
-            float
-        )
+        T_ic = check_array("T_imu_cam", T_imu_cam, shape=(4, 4), finite=True)
+        self.T_imu_cam = T_ic.astype(float)
         self.noise = noise
         self._pim_params = make_params(noise)
         self._cal = gtsam.Cal3_S2(camera.fx_px, camera.fy_px, 0.0, camera.cx_px, camera.cy_px)
@@ -434,7 +434,7 @@ class VioEstimator:
 
     def _reject_outliers(self) -> int:
         _, lids, tids, err = self._reproj()
-        bad = np.unique(tids[err > self.params.outlier_reproj_px])
+        bad = np.unique(tids[err > outlier_gate_px(err, self.params)])
         if len(bad):
             self._touch()
         gone = []

@@ -21,6 +21,7 @@ __all__ = [
     "WindowFrame",
     "X",
     "lookup",
+    "outlier_gate_px",
     "sorted_map",
 ]
 
@@ -79,6 +80,11 @@ class EstimatorParams:
     min_depth_m: float = 0.5  # landmark depth bounds at triangulation
     max_depth_m: float = 150.0
     outlier_reproj_px: float = 5.0  # a landmark with a larger reprojection error is removed
+    outlier_reproj_rel: float | None = None  # > 0: the gate is at most this many times the
+    # window's median reprojection error (never below outlier_reproj_min_px): drifting KLT tracks
+    # bias the walk's scale low long before they reach a fixed gate; 0: the fixed gate. None: the
+    # platform profile's (handheld 4, car and drone 0; docs/frontend.md round 11)
+    outlier_reproj_min_px: float = 1.0
     marginalize_landmarks: bool = False  # Schur-complement the oldest keyframe's landmarks too
     # (True: restarts every landmark it saw; False: they stay variables, see keep_visual_prior)
     keep_visual_prior: bool | None = None  # the oldest keyframe's observations go into the
@@ -106,11 +112,28 @@ class EstimatorParams:
             self.window_size < 2
             or self.lm_iterations < 1
             or min(self.pixel_sigma_px, self.visual_prior_sigma) <= 0
+            or (self.outlier_reproj_rel or 0.0) < 0
+            or not 0 < self.outlier_reproj_min_px <= self.outlier_reproj_px
         ):
             raise ConfigError(
                 "estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px and "
-                "visual_prior_sigma > 0"
+                "visual_prior_sigma > 0, outlier_reproj_rel >= 0, "
+                "0 < outlier_reproj_min_px <= outlier_reproj_px"
             )
+
+
+def outlier_gate_px(err_px: NDArray, params: EstimatorParams) -> float:
+    """The reprojection error above which a track is an outlier: ``outlier_reproj_px``, or with
+    ``outlier_reproj_rel`` that many times the median of the window's errors ``err_px`` [N] when
+    smaller, never below ``outlier_reproj_min_px``. A gate that follows the tracker's accuracy: a
+    drifting track stands out against the window's typical error long before a fixed gate."""
+    p = params
+    k = p.outlier_reproj_rel or 0.0  # None (no platform said): the fixed gate
+    fin = err_px[np.isfinite(err_px)]
+    if k <= 0 or len(fin) < 20:
+        return p.outlier_reproj_px
+    rel = k * float(np.median(fin))
+    return min(p.outlier_reproj_px, max(p.outlier_reproj_min_px, rel))
 
 
 @dataclass

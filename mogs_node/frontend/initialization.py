@@ -41,7 +41,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class InitParams:
-    """Initialisation parameters."""
+    """Initialisation parameters: when the platform counts as still (static initialisation from
+    the accelerometer's gravity), and the dynamic initialisation's window, SfM and scale search."""
 
     still_window_s: float = 1.0  # IMU span inspected for stillness / averaged by the static init
     still_gyro_std_rad_s: float = 0.1  # stillness: gyro standard deviation below this (vibration)

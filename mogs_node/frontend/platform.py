@@ -30,6 +30,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: a person's step cadence (steps per second); a car body's bounce on its suspension is 1-1.5 Hz
+#: and weaker, a multicopter's vibration is far above
+WALK_CADENCE_HZ = (1.4, 2.6)
+
 
 @dataclass(frozen=True)
 class PlatformProfile:
@@ -44,6 +48,7 @@ class PlatformProfile:
     window_interval_s: float = 0.0  # the estimator window's frame spacing when the view does
     # not move (FrontendParams.window_interval_s; 0: every frame stays in the window)
     keep_visual_prior: bool = False  # EstimatorParams.keep_visual_prior when not set
+    outlier_reproj_rel: float = 0.0  # EstimatorParams.outlier_reproj_rel when not set
 
     def __post_init__(self) -> None:
         vals = (
@@ -52,7 +57,11 @@ class PlatformProfile:
             self.max_angular_rate_rad_s,
             self.max_vertical_speed_m_s,
         )
-        if min(vals) <= 0 or self.keyframe_min_interval_s < 0 or self.window_interval_s < 0:
+        if (
+            min(vals) <= 0
+            or min(self.keyframe_min_interval_s, self.window_interval_s, self.outlier_reproj_rel)
+            < 0
+        ):
             raise ConfigError(f"platform {self.name!r}: bounds must be positive")
 
 
@@ -70,6 +79,7 @@ PLATFORMS: dict[str, PlatformProfile] = {
         0.5,
         window_interval_s=0.2,
         keep_visual_prior=True,
+        outlier_reproj_rel=4.0,
     ),
     "drone": PlatformProfile("drone", 20.0, 25.0, 8.0, 8.0, 0.25),
 }
@@ -139,11 +149,6 @@ def motion_violation(
             f"{np.degrees(p.max_angular_rate_rad_s):.0f} deg/s"
         )
     return None
-
-
-#: a person's step cadence (steps per second); a car body's bounce on its suspension is 1-1.5 Hz
-#: and weaker, a multicopter's vibration is far above
-WALK_CADENCE_HZ = (1.4, 2.6)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ averaging of consecutive samples, and checks of the sample stream.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import gtsam
 import numpy as np
@@ -38,16 +38,10 @@ class ImuNoise:
     gravity_m_s2: float = 9.81  # magnitude of gravity; world z is up
 
     def __post_init__(self) -> None:
-        vals = (
-            self.gyro_noise_rad_s_rthz,
-            self.accel_noise_m_s2_rthz,
-            self.gyro_walk_rad_s2_rthz,
-            self.accel_walk_m_s3_rthz,
-            self.integration_sigma,
-            self.gravity_m_s2,
-        )
-        if not all(np.isfinite(v) and v > 0 for v in vals):
-            raise ConfigError(f"imu noise: every value must be finite and > 0, got {vals}")
+        vals = {f.name: getattr(self, f.name) for f in fields(self)}  # every field is a density
+        bad = {k: v for k, v in vals.items() if not (np.isfinite(v) and v > 0)}
+        if bad:
+            raise ConfigError(f"imu noise: every value must be finite and > 0, got {bad}")
 
 
 @dataclass

@@ -22,7 +22,9 @@ from mogs_node.params import check_choice
 from mogs_node.sim.imu import ImuNoise, ImuNoiseParams, simulate_imu_noise
 from mogs_node.sim.trajectory import (
     GRAVITY_WORLD_M_S2,
+    CarMotion,
     Trajectory,
+    WalkMotion,
     handheld_trajectory,
     oxts_trajectory,
     synthetic_trajectory,
@@ -163,22 +165,20 @@ def make_sequence(config: SimConfig | None = None) -> SimSequence:
     )
     margin_s = cfg.imu_margin_s + 0.5
     if cfg.trajectory == "synthetic" and cfg.motion == "handheld":
-        traj = handheld_trajectory(
-            duration_s,
-            rng=rng,
+        walk = WalkMotion(
             speed_m_s=1.4 if cfg.speed_m_s is None else cfg.speed_m_s,
             imu_height_m=HANDHELD_CAMERA_HEIGHT_M - float(T_imu_cam[2, 3]),
             margin_s=margin_s,
             static_start_s=cfg.static_start_s,
         )
+        traj = handheld_trajectory(duration_s, rng=rng, motion=walk)
     elif cfg.trajectory == "synthetic":
-        traj = synthetic_trajectory(
-            duration_s,
-            rng=rng,
+        car = CarMotion(
             speed_m_s=10.0 if cfg.speed_m_s is None else cfg.speed_m_s,
             margin_s=margin_s,
             static_start_s=cfg.static_start_s,
         )
+        traj = synthetic_trajectory(duration_s, rng=rng, motion=car)
     elif cfg.trajectory == "oxts":
         if cfg.static_start_s > 0 or cfg.motion != "car":
             raise ConfigError("static_start_s / motion: only for the synthetic trajectory")

@@ -23,7 +23,9 @@ from mogs_node.shared_data import shared_data_dir
 
 __all__ = [
     "GRAVITY_WORLD_M_S2",
+    "CarMotion",
     "Trajectory",
+    "WalkMotion",
     "handheld_trajectory",
     "oxts_trajectory",
     "synthetic_trajectory",
@@ -91,19 +93,41 @@ def _quintic(t: np.ndarray, y: np.ndarray) -> BSpline:
     return make_interp_spline(t, y, k=5, axis=0)
 
 
+@dataclass(frozen=True)
+class CarMotion:
+    """How :func:`synthetic_trajectory` drives (defaults: a car at 10 m/s)."""
+
+    speed_m_s: float = 10.0  # mean speed
+    speed_variation: float = 0.15  # relative amplitude of the speed's sinusoid
+    imu_height_m: float = 0.93  # IMU above the road (plane z = 0)
+    min_turn_radius_m: float = 70.0
+    margin_s: float = 1.0  # the splines extend this far beyond [0, duration]
+    static_start_s: float = 0.0  # standing still (heading +x) from t = 0 until then
+    accel_time_s: float = 4.0  # from rest to cruising speed (smootherstep)
+
+
+@dataclass(frozen=True)
+class WalkMotion:
+    """How :func:`handheld_trajectory` walks (defaults: a person at 1.4 m/s)."""
+
+    speed_m_s: float = 1.4  # mean walking speed (+-5 %)
+    imu_height_m: float = 1.45  # IMU above the ground
+    step_hz: float = 1.9  # step frequency (vertical bounce; lateral sway at half of it)
+    bounce_m: float = 0.02
+    sway_m: float = 0.015
+    max_head_rate_deg_s: float = 90.0  # peak head-turn rate (uniform in [0.5, 1] x this)
+    head_turn_deg: tuple[float, float] = (20.0, 45.0)  # head-turn amplitude range
+    shake_deg: float = 0.4  # hand shake per axis at most
+    min_turn_radius_m: float = 25.0
+    margin_s: float = 1.0
+    static_start_s: float = 0.0  # standing still (heading +x, no shake) until then
+    accel_time_s: float = 1.5  # from rest to walking speed
+
+
 def synthetic_trajectory(
-    duration_s: float,
-    *,
-    rng: np.random.Generator,
-    speed_m_s: float = 10.0,
-    speed_variation: float = 0.15,
-    imu_height_m: float = 0.93,
-    min_turn_radius_m: float = 70.0,
-    margin_s: float = 1.0,
-    static_start_s: float = 0.0,
-    accel_time_s: float = 4.0,
+    duration_s: float, *, rng: np.random.Generator, motion: CarMotion | None = None
 ) -> Trajectory:
-    """A car-like drive at about ``speed_m_s``: random smooth curves, speed changes, body sway.
+    """A car-like drive at about ``motion.speed_m_s``: random smooth curves, speed changes, sway.
 
     Heading follows a curvature profile made of smooth (raised-cosine) turns of radius at least
     ``min_turn_radius_m``; speed ``v(t) = v0 (1 + speed_variation sin(...))``; pitch and roll follow
@@ -112,18 +136,20 @@ def synthetic_trajectory(
     stands still (heading +x) until then and reaches its cruising speed ``accel_time_s`` later
     (smootherstep profile), for testing static IMU initialisation.
     """
+    mo = motion or CarMotion()
+    speed_m_s, speed_variation, static_start_s = mo.speed_m_s, mo.speed_variation, mo.static_start_s
     if duration_s < 0 or speed_m_s <= 0:
         raise ConfigError(f"duration_s/speed_m_s: need >= 0 / > 0, got {duration_s}/{speed_m_s}")
-    t0, t1 = -margin_s, duration_s + margin_s
+    t0, t1 = -mo.margin_s, duration_s + mo.margin_s
     # speed profile and arc length at dense times (analytic integral of the sinusoid)
     w = 2 * np.pi / rng.uniform(6.0, 10.0)
     phase = rng.uniform(0, 2 * np.pi)
     tk = np.arange(t0 - 0.5, t1 + 0.5 + 1e-9, 0.1)
     if static_start_s > 0:
-        if accel_time_s <= 0:
-            raise ConfigError(f"accel_time_s: must be positive, got {accel_time_s}")
+        if mo.accel_time_s <= 0:
+            raise ConfigError(f"accel_time_s: must be positive, got {mo.accel_time_s}")
         td = np.arange(tk[0], tk[-1] + 1e-9, 0.002)
-        x = np.clip((td - static_start_s) / accel_time_s, 0.0, 1.0)
+        x = np.clip((td - static_start_s) / mo.accel_time_s, 0.0, 1.0)
         ramp = x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
         vd = speed_m_s * (1.0 + speed_variation * np.sin(w * td + phase)) * ramp
         sd = np.concatenate([[0.0], np.cumsum(0.5 * (vd[1:] + vd[:-1]) * np.diff(td))])
@@ -132,12 +158,14 @@ def synthetic_trajectory(
         s_of_t = speed_m_s * (
             tk - speed_variation / w * (np.cos(w * tk + phase) - np.cos(w * t0 + phase))
         )
-    s, heading, x, y = _turning_path(float(s_of_t[-1] - s_of_t[0]) + 10.0, rng, min_turn_radius_m)
+    s, heading, x, y = _turning_path(
+        float(s_of_t[-1] - s_of_t[0]) + 10.0, rng, mo.min_turn_radius_m
+    )
     sk = s_of_t - s_of_t[0]
-    pk = np.stack([np.interp(sk, s, x), np.interp(sk, s, y), np.full_like(sk, imu_height_m)], -1)
+    pk = np.stack([np.interp(sk, s, x), np.interp(sk, s, y), np.full_like(sk, mo.imu_height_m)], -1)
     # start at the origin heading +x at t = 0
     i0 = int(np.argmin(np.abs(tk)))
-    pk = pk - pk[i0] + np.array([0.0, 0.0, imu_height_m])
+    pk = pk - pk[i0] + np.array([0.0, 0.0, mo.imu_height_m])
     position = _quintic(tk, pk)
     v = position(tk, 1)
     a = position(tk, 2)
@@ -201,23 +229,9 @@ def _planar_path(
 
 
 def handheld_trajectory(
-    duration_s: float,
-    *,
-    rng: np.random.Generator,
-    speed_m_s: float = 1.4,
-    imu_height_m: float = 1.45,
-    step_hz: float = 1.9,
-    bounce_m: float = 0.02,
-    sway_m: float = 0.015,
-    max_head_rate_deg_s: float = 90.0,
-    head_turn_deg: tuple[float, float] = (20.0, 45.0),
-    shake_deg: float = 0.4,
-    min_turn_radius_m: float = 25.0,
-    margin_s: float = 1.0,
-    static_start_s: float = 0.0,
-    accel_time_s: float = 1.5,
+    duration_s: float, *, rng: np.random.Generator, motion: WalkMotion | None = None
 ) -> Trajectory:
-    """A person walking with a handheld camera + IMU at about ``speed_m_s`` along a street.
+    """A person walking with a handheld camera + IMU at about ``motion.speed_m_s`` along a street.
 
     The path curves like :func:`synthetic_trajectory`'s (gentler speed changes, +-5 %). On top:
     the step bounce (vertical ``bounce_m`` at the step frequency ``step_hz``, lateral ``sway_m``
@@ -227,30 +241,32 @@ def handheld_trajectory(
     ``static_start_s`` the walker stands still (heading +x, no shake) until then and reaches the
     walking speed ``accel_time_s`` later. Body frame as everywhere in the sim: x forward, z up.
     """
+    mo = motion or WalkMotion()
+    speed_m_s, accel_time_s, static_start_s = mo.speed_m_s, mo.accel_time_s, mo.static_start_s
     if duration_s < 0 or speed_m_s <= 0 or accel_time_s <= 0:
         raise ConfigError(
             f"duration_s/speed_m_s/accel_time_s: need >= 0 / > 0 / > 0, got "
             f"{duration_s}/{speed_m_s}/{accel_time_s}"
         )
-    t0, t1 = -margin_s - 0.5, duration_s + margin_s + 0.5
+    t0, t1 = -mo.margin_s - 0.5, duration_s + mo.margin_s + 0.5
     tk = np.arange(t0, t1 + 1e-9, 0.02)  # knots at 50 Hz: the step and the shake are < 5 Hz
     walk = _smootherstep((tk - static_start_s) / accel_time_s) if static_start_s > 0 else 1.0
     w = 2 * np.pi / rng.uniform(8.0, 14.0)
     speed = speed_m_s * (1.0 + 0.05 * np.sin(w * tk + rng.uniform(0, 2 * np.pi))) * walk
-    xy, heading = _planar_path(tk, np.broadcast_to(speed, tk.shape), rng, min_turn_radius_m)
+    xy, heading = _planar_path(tk, np.broadcast_to(speed, tk.shape), rng, mo.min_turn_radius_m)
     i0 = int(np.argmin(np.abs(tk)))
     xy -= xy[i0]
-    step = 2 * np.pi * step_hz * tk
+    step = 2 * np.pi * mo.step_hz * tk
     left = np.stack([-np.sin(heading), np.cos(heading)], -1)
-    xy = xy + (walk * sway_m * np.sin(0.5 * step))[:, None] * left
-    z = imu_height_m + walk * bounce_m * np.cos(step)
+    xy = xy + (walk * mo.sway_m * np.sin(0.5 * step))[:, None] * left
+    z = mo.imu_height_m + walk * mo.bounce_m * np.cos(step)
     position = _quintic(tk, np.c_[xy, z])
     # head turns: out and back, yaw(t) = A (1 - cos(2 pi (t - ts) / T)) / 2, peak rate A pi / T
     head = np.zeros_like(tk)
     ts = max(static_start_s + accel_time_s, 0.0) + rng.uniform(1.0, 3.0)
     while ts < t1:
-        amp = np.deg2rad(rng.uniform(*head_turn_deg)) * rng.choice([-1.0, 1.0])
-        rate = np.deg2rad(max_head_rate_deg_s) * rng.uniform(0.5, 1.0)
+        amp = np.deg2rad(rng.uniform(*mo.head_turn_deg)) * rng.choice([-1.0, 1.0])
+        rate = np.deg2rad(mo.max_head_rate_deg_s) * rng.uniform(0.5, 1.0)
         dur = np.pi * abs(amp) / rate
         m = (tk >= ts) & (tk < ts + dur)
         head[m] += amp * 0.5 * (1 - np.cos(2 * np.pi * (tk[m] - ts) / dur))
@@ -259,7 +275,7 @@ def handheld_trajectory(
     for axis in range(3):
         for _ in range(3):
             f = rng.uniform(1.0, 5.0)
-            a = np.deg2rad(shake_deg) * rng.uniform(0.3, 1.0) / 3.0
+            a = np.deg2rad(mo.shake_deg) * rng.uniform(0.3, 1.0) / 3.0
             shake[:, axis] += a * np.sin(2 * np.pi * f * tk + rng.uniform(0, 2 * np.pi))
     shake *= np.asarray(walk).reshape(-1, 1) if static_start_s > 0 else 1.0
     pitch_step = walk * np.deg2rad(0.5) * np.sin(step)

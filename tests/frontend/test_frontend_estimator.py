@@ -6,10 +6,13 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mogs_node.errors import ConfigError
 from mogs_node.eval.traj import trajectory_metrics
 from mogs_node.frontend.estimator import EstimatorParams, VioEstimator
+from mogs_node.frontend.estimator_types import outlier_gate_px
 from mogs_node.frontend.initialization import (
     DynamicInitializer,
     InitParams,
@@ -395,3 +398,47 @@ def test_cached_projection_factors_match_a_fresh_graph():
     assert cached.error(est.values) == pytest.approx(fresh.error(est.values), rel=1e-12)
     keys = lambda g: sorted(tuple(g.at(i).keys()) for i in range(g.size()))  # noqa: E731
     assert keys(cached) == keys(fresh)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    med=st.floats(0.01, 10.0),
+    rel=st.floats(0.0, 10.0),
+    n=st.integers(0, 60),
+)
+def test_outlier_gate_follows_the_window_median(med, rel, n):
+    """The gate is ``outlier_reproj_px`` when the relative gate is off or the window has too few
+    errors, else ``rel x median`` clipped to [floor, outlier_reproj_px]."""
+    p = EstimatorParams(outlier_reproj_rel=rel, outlier_reproj_min_px=1.0, outlier_reproj_px=5.0)
+    err = np.r_[np.full(n, med), [np.inf]]  # an observation behind the camera does not count
+    g = outlier_gate_px(err, p)
+    if rel == 0 or n < 20:
+        assert g == 5.0
+    else:
+        assert 1.0 <= g <= 5.0
+        assert g == pytest.approx(min(5.0, max(1.0, rel * med)))
+
+
+def test_outlier_gate_params_are_checked():
+    with pytest.raises(ConfigError, match="outlier_reproj_min_px"):
+        EstimatorParams(outlier_reproj_min_px=6.0)
+    with pytest.raises(ConfigError, match="outlier_reproj_rel"):
+        EstimatorParams(outlier_reproj_rel=-1.0)
+
+
+def test_inaccurate_tracks_are_removed_by_the_relative_gate():
+    """Twenty tracks are six times less accurate than the rest (1.2 px against 0.2 px: a KLT
+    track sliding on its texture): they stay under the fixed 5 px gate but stand out against the
+    window's median error, so the relative gate removes (nearly) all; the accurate ones stay."""
+    s = make_scene(3.0, seed=2, px_noise=0.2)
+    rng = np.random.default_rng(7)
+    bad = np.unique(np.concatenate([ids for ids, _ in s["frames"]]))[::7][:20]
+    for ids, uv in s["frames"]:
+        m = np.isin(ids, bad)
+        uv[m] += rng.normal(0.0, 1.2, (int(m.sum()), 2))
+    kept = {}
+    for rel in (0.0, 4.0):
+        est, _, _ = run_window(s, EstimatorParams(pixel_sigma_px=1.0, outlier_reproj_rel=rel))
+        kept[rel] = set(est._lid_of_track) & set(bad.tolist())
+        assert len(est._lid_of_track) > 50  # the accurate tracks stay
+    assert len(kept[0.0]) >= 5 and len(kept[4.0]) <= 2  # measured: 9 and 2 of 20

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from mogs_node.errors import ConfigError
 from mogs_node.eval.frontend_runs import run_frontend
 from mogs_node.frontend.camera import CameraModel
+from mogs_node.frontend.estimator_types import EstimatorParams, outlier_gate_px
 from mogs_node.frontend.frontend import Frontend, FrontendParams
 from mogs_node.frontend.keyframes import keeps_in_window
 from mogs_node.frontend.platform import (
@@ -300,6 +301,20 @@ def test_estimator_settings_from_the_platform() -> None:
         assert params.estimator_for(platform_profile(name)).keep_visual_prior is keep
     off = replace(params, estimator=replace(params.estimator, keep_visual_prior=False))
     assert off.estimator_for(platform_profile("handheld")).keep_visual_prior is False
+
+
+def test_outlier_gate_from_the_platform() -> None:
+    """The gate relative to the window's median error (docs/frontend.md round 11) is the walk's:
+    car and drone keep the fixed 5 px gate; an estimator no platform set (None) uses the fixed
+    gate too."""
+    assert platform_profile("handheld").outlier_reproj_rel == 4.0
+    assert platform_profile("car").outlier_reproj_rel == 0.0
+    assert platform_profile("drone").outlier_reproj_rel == 0.0
+    est = EstimatorParams()
+    assert est.outlier_reproj_rel is None
+    err = np.full(50, 0.2)
+    assert outlier_gate_px(err, est) == est.outlier_reproj_px
+    assert outlier_gate_px(err, replace(est, outlier_reproj_rel=4.0)) == 1.0  # the floor
 
 
 def test_keeps_in_window_rule() -> None:
