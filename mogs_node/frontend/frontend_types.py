@@ -85,6 +85,8 @@ class FrontendParams:
         est = self.estimator
         if est.keep_visual_prior is None:
             est = replace(est, keep_visual_prior=profile.keep_visual_prior)
+        if est.outlier_reproj_rel is None:
+            est = replace(est, outlier_reproj_rel=profile.outlier_reproj_rel)
         return est
 
 

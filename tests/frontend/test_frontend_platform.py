@@ -301,6 +301,11 @@ def test_estimator_settings_from_the_platform() -> None:
         assert params.estimator_for(platform_profile(name)).keep_visual_prior is keep
     off = replace(params, estimator=replace(params.estimator, keep_visual_prior=False))
     assert off.estimator_for(platform_profile("handheld")).keep_visual_prior is False
+    # the window's outlier gate relative to its median error: the walk's only (round 11)
+    for name, rel in (("car", 0.0), ("drone", 0.0), ("handheld", 4.0)):
+        assert params.estimator_for(platform_profile(name)).outlier_reproj_rel == rel
+    fixed = replace(params, estimator=replace(params.estimator, outlier_reproj_rel=0.0))
+    assert fixed.estimator_for(platform_profile("handheld")).outlier_reproj_rel == 0.0
 
 
 def test_outlier_gate_from_the_platform() -> None:
