@@ -13,6 +13,7 @@ from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.fill import (
+    PlaneSelect,
     complete_planar_masks,
     consistent_seeds,
     edge_aware_fill,
@@ -367,7 +368,11 @@ def compose(
         if holes.any() and not global_only:
             n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
     n_plane_fill = 0
-    if p.mask_plane_fill and not global_only and special is not None:
+    if (
+        p.mask_plane_fill
+        and not global_only
+        and (special is not None or p.mask_plane_replace_below > 0)
+    ):
         # departure (docs/metrizer.md, "Whole masks"): a supported object's plane over its holes
         n_plane_fill = complete_planar_masks(
             depth.reshape(H, W),
@@ -378,7 +383,11 @@ def compose(
             inlier_rel=p.mask_plane_inlier_rel,
             min_depth_m=p.mask_plane_min_depth_m,
             max_depth_m=p.sky_depth_frac * p.d_max_m,
+            min_pixels=p.mask_plane_min_pixels,
             min_out_m=p.d_min_m,
+            select=PlaneSelect(
+                conf.reshape(H, W), p.mask_plane_fit_min_conf, p.mask_plane_replace_below
+            ),
         )
     stats.update(
         n_model_output_px=n_model_px,

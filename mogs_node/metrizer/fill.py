@@ -7,11 +7,14 @@ resolution for speed, so values spread along surfaces and stop at colour edges.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "PlaneSelect",
     "complete_planar_masks",
     "consistent_seeds",
     "edge_aware_fill",
@@ -157,6 +160,23 @@ def smooth_field(
     return cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)
 
 
+@dataclass(frozen=True)
+class PlaneSelect:
+    """Which pixels :func:`complete_planar_masks` fits and which it gives the plane's depth.
+
+    ``prior_conf`` ``[H, W]``: the prior's confidence (None: the output confidence); the plane is
+    fitted to pixels with ``prior_conf >= fit_min_conf`` only, and pixels with a depth but
+    ``prior_conf < replace_below`` are replaced like holes (0: holes only). Near textureless
+    objects (pillars, a bonnet) hold background depth seen through a partial prior at low
+    confidence; fitted to the confident pixels only, their plane replaces it (docs/metrizer.md,
+    "Whole masks from the confident pixels").
+    """
+
+    prior_conf: NDArray[np.float32] | None = None
+    fit_min_conf: float = 0.0
+    replace_below: float = 0.0
+
+
 def complete_planar_masks(
     depth_m: NDArray[np.float32],
     confidence: NDArray[np.float32],
@@ -172,6 +192,7 @@ def complete_planar_masks(
     extrapolation: float = 1.25,
     iterations: int = 4,
     min_out_m: float = 0.0,
+    select: PlaneSelect | None = None,
 ) -> int:
     """Give the uncovered pixels of a well-supported object the depth of its plane (in place).
 
@@ -187,19 +208,25 @@ def complete_planar_masks(
     ``[z_min / extrapolation, z_max * extrapolation]`` of the inliers and in
     ``[min_out_m, max_depth_m]``. The filled pixels'
     confidence: half the mean confidence of the object's fitted pixels times its inlier share.
+    ``select`` (:class:`PlaneSelect`) fits the plane only to pixels the prior is confident of and
+    also replaces the depth of the pixels it is not confident of.
     Returns the number of pixels filled. Vectorised over objects (``bincount`` moments).
     """
     H, W = depth_m.shape
     d = depth_m.ravel()
     cf = confidence.ravel()
-    hidx = np.flatnonzero(d <= 0)
+    sel = select or PlaneSelect()
+    pc = cf if sel.prior_conf is None else np.asarray(sel.prior_conf).ravel()
+    weak = (d > 0) & (d <= max_depth_m) & (pc < sel.replace_below)
+    hidx = np.flatnonzero((d <= 0) | weak)
     if len(hidx) == 0:  # a fully covered frame (a learned prior) costs nothing
         return 0
     obj = np.asarray(objects).ravel().astype(np.intp, copy=False)
     G = int(n_objects)
     has_hole = np.bincount(obj[hidx], minlength=G)[:G] > 0
     n_obj = np.bincount(obj, minlength=G)[:G]
-    idx = np.flatnonzero((d >= min_depth_m * 0.5) & (d <= max_depth_m))
+    fit = (d > 0) & (d >= min_depth_m * 0.5) & (d <= max_depth_m)
+    idx = np.flatnonzero(fit & (pc >= sel.fit_min_conf))
     n_fit = np.bincount(obj[idx], minlength=G)[:G]
     cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj) & has_hole
     idx = idx[cand[obj[idx]]]

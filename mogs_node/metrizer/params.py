@@ -49,6 +49,9 @@ class MetrizerParams:
     mask_plane_min_share: float = 0.3  # ... at least this share of the object has a depth
     mask_plane_inlier_rel: float = 0.02  # ... half of those within this relative depth of it
     mask_plane_min_depth_m: float = 5.0  # ... and their (geometric) mean depth at least this
+    mask_plane_min_pixels: int = 30  # ... and at least this many fitted pixels
+    mask_plane_fit_min_conf: float = 0.0  # fit only pixels of prior confidence >= this ...
+    mask_plane_replace_below: float = 0.0  # ... and replace those below this (0: holes only)
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
     fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
     # of the same object, or "edge_aware" (FGS normalised convolution of the features)
