@@ -301,6 +301,33 @@ def apply_residual_field(
     np.clip(depth, np.float32(p.d_min_m), f32_below(p.d_max_m), out=depth)
 
 
+def _plane_pass(
+    fr: Frame,
+    depth: NDArray[np.float32],
+    out_conf: NDArray[np.float32],
+    min_share: float,
+    inlier_rel: float,
+    min_depth_m: float,
+    select: PlaneSelect | None,
+) -> int:
+    """One :func:`~mogs_node.metrizer.fill.complete_planar_masks` pass over the merged objects
+    (``depth`` / ``out_conf`` flat, changed in place); returns the pixels it gave depth."""
+    p: MetrizerParams = fr.p
+    return complete_planar_masks(
+        depth.reshape(fr.H, fr.W),
+        out_conf.reshape(fr.H, fr.W),
+        fr.gobj.reshape(fr.H, fr.W),
+        fr.G,
+        min_share=min_share,
+        inlier_rel=inlier_rel,
+        min_depth_m=min_depth_m,
+        max_depth_m=p.sky_depth_frac * p.d_max_m,
+        min_pixels=p.confident_plane_min_pixels if select is not None else 30,
+        min_out_m=p.d_min_m,
+        select=select,
+    )
+
+
 def compose(
     fr: Frame, tm: StageTimer, models: ShapeModels, theta: F64, global_only: bool
 ) -> MetrizedDepth:
@@ -367,33 +394,39 @@ def compose(
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
             n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
-    n_plane_fill = 0
-    if (
-        p.mask_plane_fill
-        and not global_only
-        and (special is not None or p.mask_plane_replace_below > 0)
-    ):
+    n_conf_plane = n_plane_fill = 0
+    if p.confident_planes and not global_only:
+        # departure (docs/metrizer.md, "Whole objects from the confident pixels"): the plane of
+        # an object's confidently measured pixels over its weak pixels and holes
+        select = PlaneSelect(
+            conf.reshape(H, W), p.confident_plane_fit_conf, p.confident_plane_replace_below
+        )
+        n_conf_plane = _plane_pass(
+            fr,
+            depth,
+            out_conf,
+            p.confident_plane_min_share,
+            p.confident_plane_inlier_rel,
+            0.0,
+            select,
+        )
+    if p.mask_plane_fill and not global_only and special is not None:
         # departure (docs/metrizer.md, "Whole masks"): a supported object's plane over its holes
-        n_plane_fill = complete_planar_masks(
-            depth.reshape(H, W),
-            out_conf.reshape(H, W),
-            gobj.reshape(H, W),
-            G,
-            min_share=p.mask_plane_min_share,
-            inlier_rel=p.mask_plane_inlier_rel,
-            min_depth_m=p.mask_plane_min_depth_m,
-            max_depth_m=p.sky_depth_frac * p.d_max_m,
-            min_pixels=p.mask_plane_min_pixels,
-            min_out_m=p.d_min_m,
-            select=PlaneSelect(
-                conf.reshape(H, W), p.mask_plane_fit_min_conf, p.mask_plane_replace_below
-            ),
+        n_plane_fill = _plane_pass(
+            fr,
+            depth,
+            out_conf,
+            p.mask_plane_min_share,
+            p.mask_plane_inlier_rel,
+            p.mask_plane_min_depth_m,
+            None,
         )
     stats.update(
         n_model_output_px=n_model_px,
         n_hole_px_model=n_model_fill,
         n_hole_px_fill=n_edge_fill,
         n_hole_px_plane=n_plane_fill,
+        n_px_confident_plane=n_conf_plane,
     )
     tm.lap("sky_holes")
     # final guarantees: finite, 0 or within (0, d_max], confidence in [0, 1] and 0 without depth

@@ -169,7 +169,7 @@ class PlaneSelect:
     ``prior_conf < replace_below`` are replaced like holes (0: holes only). Near textureless
     objects (pillars, a bonnet) hold background depth seen through a partial prior at low
     confidence; fitted to the confident pixels only, their plane replaces it (docs/metrizer.md,
-    "Whole masks from the confident pixels").
+    "Whole objects from the confident pixels").
     """
 
     prior_conf: NDArray[np.float32] | None = None
