@@ -217,8 +217,10 @@ def complete_planar_masks(
     cf = confidence.ravel()
     sel = select or PlaneSelect()
     pc = cf if sel.prior_conf is None else np.asarray(sel.prior_conf).ravel()
-    weak = (d > 0) & (d <= max_depth_m) & (pc < sel.replace_below)
-    hidx = np.flatnonzero((d <= 0) | weak)
+    hole = d <= 0
+    if sel.replace_below > 0:
+        hole |= (d <= max_depth_m) & (pc < sel.replace_below)
+    hidx = np.flatnonzero(hole)
     if len(hidx) == 0:  # a fully covered frame (a learned prior) costs nothing
         return 0
     obj = np.asarray(objects).ravel().astype(np.intp, copy=False)
@@ -226,7 +228,9 @@ def complete_planar_masks(
     has_hole = np.bincount(obj[hidx], minlength=G)[:G] > 0
     n_obj = np.bincount(obj, minlength=G)[:G]
     fit = (d > 0) & (d >= min_depth_m * 0.5) & (d <= max_depth_m)
-    idx = np.flatnonzero(fit & (pc >= sel.fit_min_conf))
+    if sel.fit_min_conf > 0:
+        fit &= pc >= sel.fit_min_conf
+    idx = np.flatnonzero(fit)
     n_fit = np.bincount(obj[idx], minlength=G)[:G]
     cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj) & has_hole
     idx = idx[cand[obj[idx]]]

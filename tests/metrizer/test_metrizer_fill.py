@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -153,3 +154,13 @@ def test_plane_select_output_is_finite_and_bounded(seed, fit_min, replace, scale
     keep = (pc >= replace) & (before > 0)
     np.testing.assert_array_equal(depth[keep], before[keep])
     assert conf.min() >= 0 and conf.max() <= 1
+
+
+def test_confident_plane_params_are_checked():
+    from mogs_node.errors import ConfigError
+    from mogs_node.metrizer.params import MetrizerParams
+
+    with pytest.raises(ConfigError, match="confident_plane"):
+        MetrizerParams(confident_plane_fit_conf=1.5)
+    with pytest.raises(ConfigError, match="confident_plane"):
+        MetrizerParams(confident_plane_replace_below=-0.1)
