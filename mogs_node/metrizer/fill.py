@@ -175,6 +175,34 @@ class PlaneSelect:
     prior_conf: NDArray[np.float32] | None = None
     fit_min_conf: float = 0.0
     replace_below: float = 0.0
+    max_gap_px: float = 0.0  # > 0: only pixels this close to an inlier of their object
+
+
+def _near_own_inliers(
+    inliers: tuple[NDArray[np.intp], NDArray[np.intp]],
+    pixels: tuple[NDArray[np.intp], NDArray[np.intp]],
+    hw: tuple[int, int],
+    max_gap_px: float,
+) -> NDArray[np.bool_]:
+    """Whether each of ``pixels`` (flat index, object) lies within ``max_gap_px`` of one of the
+    ``inliers`` (flat index, object) of its own object: the nearest inlier's object, by one
+    labelled distance transform. A plane is not carried across an object to pixels far from
+    what it was fitted to (an under-segmented object: its confident pixels on the background)."""
+    (in_idx, in_obj), (idx, obj) = inliers, pixels
+    H, W = hw
+    free = np.ones(H * W, np.uint8)
+    free[in_idx] = 0
+    dist, lab = cv2.distanceTransformWithLabels(
+        free.reshape(H, W), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # DIST_LABEL_PIXEL numbers the zero pixels 1.. in raster order: map each to its object
+    owner = np.full(H * W + 1, -1, np.intp)
+    order = np.sort(in_idx)
+    pix_obj = np.full(H * W, -1, np.intp)
+    pix_obj[in_idx] = in_obj
+    owner[1 : len(order) + 1] = pix_obj[order]
+    near = owner[lab.ravel()[idx]]
+    return (near == obj) & (dist.ravel()[idx] <= max_gap_px)
 
 
 def complete_planar_masks(
@@ -280,6 +308,8 @@ def complete_planar_masks(
         z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0)
     keep = (z >= zlo[hg] / extrapolation) & (z <= zhi[hg] * extrapolation)
     keep &= (z >= min_out_m) & (z <= max_depth_m) & (z > 0)
+    if sel.max_gap_px > 0:
+        keep &= _near_own_inliers((idx[inl], g[inl]), (hidx, hg), (H, W), sel.max_gap_px)
     depth_m.ravel()[hidx[keep]] = z[keep].astype(np.float32)
     confidence.ravel()[hidx[keep]] = conf_g[hg[keep]].astype(np.float32)
     return int(keep.sum())

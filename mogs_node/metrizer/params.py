@@ -57,6 +57,8 @@ class MetrizerParams:
     confident_plane_min_share: float = 0.02  # ... this share of the object is fitted,
     confident_plane_min_pixels: int = 20  # ... at least this many pixels,
     confident_plane_inlier_rel: float = 0.03  # ... half of them within this of the plane
+    confident_plane_max_gap: float = 0.0  # > 0: only pixels within this fraction of the image
+    # width of an inlier of their object get its plane
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
     fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
     # of the same object, or "edge_aware" (FGS normalised convolution of the features)

@@ -127,8 +127,9 @@ def test_confident_pixels_plane_replaces_weak_background(weak_share: float, hole
     fit_min=st.floats(0.0, 1.0),
     replace=st.floats(0.0, 1.0),
     scale=st.floats(1e-2, 1e3),
+    gap=st.floats(0.0, 50.0),
 )
-def test_plane_select_output_is_finite_and_bounded(seed, fit_min, replace, scale):
+def test_plane_select_output_is_finite_and_bounded(seed, fit_min, replace, scale, gap):
     """Any depths, confidences and thresholds: finite output, 0 or within its range, confident
     pixels never changed, confidences in [0, 1]."""
     rng = np.random.default_rng(seed)
@@ -147,7 +148,7 @@ def test_plane_select_output_is_finite_and_bounded(seed, fit_min, replace, scale
         min_depth_m=0.0,
         max_depth_m=max_depth,
         min_share=0.0,
-        select=PlaneSelect(pc, fit_min, replace),
+        select=PlaneSelect(pc, fit_min, replace, gap),
     )
     assert np.all(np.isfinite(depth)) and np.all(np.isfinite(conf))
     assert np.all((depth == 0) | ((depth > 0) & (depth <= max(max_depth, before.max()))))
@@ -164,3 +165,25 @@ def test_confident_plane_params_are_checked():
         MetrizerParams(confident_plane_fit_conf=1.5)
     with pytest.raises(ConfigError, match="confident_plane"):
         MetrizerParams(confident_plane_replace_below=-0.1)
+
+
+def test_max_gap_keeps_a_plane_off_the_far_part_of_an_under_segmented_object():
+    """One object holding a background wall (confident, 10 m, top rows) and a near bonnet without
+    depth below it: without a gap limit the wall's plane fills the bonnet; with ``max_gap_px``
+    only the rows within reach of the wall's inliers get it."""
+    truth = plane_depth(np.array([0.0, 0.0, 1.0]), 10.0)
+    depth = truth.copy()
+    depth[20:] = 0  # the bonnet: no prior
+    prior_conf = np.where(depth > 0, 0.8, 0.0).astype(np.float32)
+    objects = np.zeros((H, W), np.int32)
+    kw = dict(min_depth_m=0.0, min_share=0.02, inlier_rel=0.03, extrapolation=10.0)
+    d0 = depth.copy()
+    complete_planar_masks(
+        d0, prior_conf * 0.5, objects, 1, select=PlaneSelect(prior_conf, 0.4, 0.3), **kw
+    )
+    assert np.all(d0[20:] > 0)
+    d1 = depth.copy()
+    sel = PlaneSelect(prior_conf, 0.4, 0.3, max_gap_px=5.0)
+    n = complete_planar_masks(d1, prior_conf * 0.5, objects, 1, select=sel, **kw)
+    assert n == 5 * W  # rows 20-24: within 5 px of row 19
+    assert np.all(d1[25:] == 0) and np.all(d1[20:25] > 0)
