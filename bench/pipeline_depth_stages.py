@@ -163,6 +163,7 @@ def main() -> None:
     inputs = stage_inputs(kfs, params)
     fig = evaluate_stages(kfs, inputs, params)
     info.pop("K_sim", None)
+    info.pop("tracked_frames", None)  # images, not figures (the stage priors do not use them)
     fig["info"] = info
     if args.live or args.live_runs:
         launches = (("live", args.launch or "launch/demo.yaml"), ("live_lfm", LFM_LAUNCH))

@@ -3,6 +3,7 @@
 from mogs_node.depth_prior.dense_prior import (
     DensePrior,
     FusionParams,
+    PriorHistory,
     compute_dense_prior,
 )
 from mogs_node.depth_prior.flow_prior import (
@@ -20,6 +21,7 @@ from mogs_node.depth_prior.warp import forward_warp_depth
 __all__ = [
     "DensePrior",
     "FusionParams",
+    "PriorHistory",
     "PriorSequence",
     "RoadPriorParams",
     "compute_dense_prior",

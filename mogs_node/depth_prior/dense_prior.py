@@ -63,6 +63,7 @@ __all__ = [
     "SOURCES",
     "DensePrior",
     "FusionParams",
+    "PriorHistory",
     "compute_dense_prior",
     "confidence_from_error",
     "error_from_confidence",
@@ -70,6 +71,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+F32 = NDArray[np.float32]
+_DepthErr = tuple[F32, F32]  # a source's (depth in m, predicted relative error), [H, W] each
 
 #: source codes of :attr:`DensePrior.source` (0 = none)
 SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4}
@@ -108,6 +112,32 @@ class FusionParams:
             raise ConfigError("fusion: conflict_ratio and carry_growth must be >= 1")
         if self.verify_max_err <= 0 or self.verify_min_pixels < 1 or self.verify_window_px < 1:
             raise ConfigError("fusion: need verify_max_err > 0 and verify_min_pixels >= 1")
+
+
+@dataclass(frozen=True)
+class PriorHistory:
+    """What earlier keyframes give a new keyframe's prior (:func:`compute_dense_prior`; the
+    node's :class:`~mogs_node.depth_prior.sequence.PriorSequence` assembles it).
+
+    Attributes:
+        references: ``(image, T_world_cam)`` of earlier keyframes for the flow (nearest first,
+            see :func:`~mogs_node.depth_prior.flow_prior.choose_references`); may be empty.
+        earlier_depth: ``(depth_m, confidence, T_world_cam[, image])`` metrized depths of
+            earlier keyframes, most recent first (at most ``FusionParams.warp_sources`` used),
+            with their image for the photometric check; may be empty.
+        previous_prior: ``(depth_m, confidence, T_world_cam[, image])`` of the previous
+            keyframe's own prior (carried when ``FusionParams.carry``), or None.
+        road_references: ``(image, T_world_cam)`` of further earlier keyframes the road plane
+            is verified against (photometrically), besides ``references``.
+        ground_heights_m: earlier keyframes' measurements of the camera height
+            (``road.auto_height`` with no ``flow.camera_height_m`` given).
+    """
+
+    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = ()
+    earlier_depth: Sequence[tuple] = ()
+    previous_prior: tuple | None = None
+    road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = ()
+    ground_heights_m: Sequence[float] = ()
 
 
 @dataclass
@@ -222,14 +252,10 @@ def _warp_in(
     return depth, conf
 
 
-def _verify(
-    d_w: NDArray[np.float32],
-    e_w: NDArray[np.float32],
-    d_meas: NDArray[np.float32],
-    e_meas: NDArray[np.float32],
-    params: FusionParams,
-) -> tuple[NDArray[np.float32], float]:
+def _verify(cand: _DepthErr, meas: _DepthErr, params: FusionParams) -> tuple[F32, float]:
     """Raise a warped source's error to what this keyframe's measurements say of it.
+
+    ``cand``: the warped source's ``(depth, error)``; ``meas``: the fresh measurements'.
 
     Where fresh measurements (flow / road, predicted error below ``verify_max_err``) overlap the
     warped depth, their relative disagreement measures how wrong the carried depth is (a bad
@@ -238,6 +264,7 @@ def _verify(
     image, is ``r``; every warped pixel's error becomes ``sqrt(e^2 + r^2)``. Returns the new
     errors and the image median (NaN when the overlap is too small to tell).
     """
+    (d_w, e_w), (d_meas, e_meas) = cand, meas
     both = (d_w > 0) & np.isfinite(e_w) & (d_meas > 0) & (e_meas < params.verify_max_err)
     if not params.verify_warp or int(both.sum()) < params.verify_min_pixels:
         return e_w, float("nan")
@@ -425,36 +452,25 @@ def compute_dense_prior(
     image_k: NDArray[np.uint8],
     K: NDArray[np.float64],
     T_world_cam_k: NDArray[np.float64],
-    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
-    earlier_depth: Sequence[tuple] = (),
-    previous_prior: tuple | None = None,
-    road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = (),
+    past: PriorHistory = PriorHistory(),
     *,
     flow_params: FlowPriorParams | None = None,
     road_params: RoadPriorParams | None = None,
     params: FusionParams | None = None,
-    ground_heights_m: Sequence[float] = (),
 ) -> DensePrior:
     """Dense prior of keyframe ``k`` (module docstring).
 
     Args:
         image_k: ``[H, W, 3]`` RGB or ``[H, W]`` uint8 keyframe; K: ``[3, 3]`` intrinsics.
         T_world_cam_k: ``[4, 4]`` pose of the keyframe (frontend, metric).
-        references: ``(image, T_world_cam)`` of earlier keyframes for the flow (nearest first,
-            see :func:`~mogs_node.depth_prior.flow_prior.choose_references`); may be empty.
-        earlier_depth: ``(depth_m, confidence, T_world_cam[, image])`` metrized depths of
-            earlier keyframes, most recent first (at most ``params.warp_sources`` used), with
-            their image for the photometric check; may be empty.
-        previous_prior: ``(depth_m, confidence, T_world_cam[, image])`` of the previous
-            keyframe's own prior (carried when ``params.carry``), or None.
-        road_references: ``(image, T_world_cam)`` of further earlier keyframes the road plane
-            is verified against (photometrically), besides ``references``.
+        past: flow and road references, earlier metrized depths, the previous prior and height
+            measurements (:class:`PriorHistory`; default: none). This keyframe's own height
+            measurement is in the stats (``ground_height_fit_m``, NaN: none), the height used
+            in ``ground_height_m``.
         flow_params, road_params, params: the sources' and the fusion's parameters (None:
             defaults).
-        ground_heights_m: earlier keyframes' measurements of the camera height (``road.auto_height``
-            with no ``flow.camera_height_m`` given); this keyframe's own is in the stats
-            (``ground_height_fit_m``, NaN: none) and the height used in ``ground_height_m``.
     """
+    references = past.references
     flow_params = flow_params or FlowPriorParams()
     road_params = road_params or RoadPriorParams()
     params = params or FusionParams()
@@ -469,7 +485,7 @@ def compute_dense_prior(
         up = up_in_camera(Tk, road_params.up_world, flow_params.ground_up_cam)
     if road_params.enabled and road_params.auto_height and height_m <= 0:
         fit_m, height_m = _measured_height(
-            grey, K, Tk, references, flow, up, road_params, ground_heights_m
+            grey, K, Tk, references, flow, up, road_params, past.ground_heights_m
         )
         stats.update(ground_height_fit_m=fit_m, ground_height_m=height_m)
         if height_m > 0:  # the flow depth's bound at the ground, as a given height sets it
@@ -485,22 +501,22 @@ def compute_dense_prior(
     names = ["flow"]
     if road_params.enabled and height_m > 0:
         road_d, road_e = _road(
-            grey, K, Tk, references, road_references, flow, height_m, up, road_params
+            grey, K, Tk, references, past.road_references, flow, height_m, up, road_params
         )
         # the plane checked against the flow depth as the warped sources are (a wrong up direction
         # or a poor pose moves the whole plane): the local disagreement raises its error
-        road_e, r_road = _verify(road_d, road_e, cands_d[0], cands_e[0], params)
+        road_e, r_road = _verify((road_d, road_e), (cands_d[0], cands_e[0]), params)
         cands_d.append(road_d)
         cands_e.append(road_e)
         names.append("road")
     if len(names) > 1:
         stats["road_disagreement"] = r_road
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
-    warped = _warped(grey, Tk, K, earlier_depth, previous_prior, flow_params, params)
+    warped = _warped(grey, Tk, K, past.earlier_depth, past.previous_prior, flow_params, params)
     T_r_k = [se3_inverse(np.asarray(T, np.float64)) @ Tk for _, T in references]
     for name, d_w, e_w in warped:
         e_w, stats[f"{name}_flow_rejected"] = _flow_check(d_w, e_w, flow, K, T_r_k, params)
-        e_w, r = _verify(d_w, e_w, d_meas, e_meas, params)
+        e_w, r = _verify((d_w, e_w), (d_meas, e_meas), params)
         stats[f"{name}_disagreement"] = r
         cands_d.append(d_w)
         cands_e.append(e_w)

@@ -16,7 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.depth_prior.dense_prior import DensePrior, FusionParams, compute_dense_prior
+from mogs_node.depth_prior.dense_prior import (
+    DensePrior,
+    FusionParams,
+    PriorHistory,
+    compute_dense_prior,
+)
 from mogs_node.depth_prior.flow_prior import FlowPriorParams, _grey, choose_references
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.geometry import check_array
@@ -190,18 +195,15 @@ class PriorSequence:
         carried = None
         if last is not None and last.prior is not None:
             carried = (last.prior[0], last.prior[1], last.T_world_cam, last.grey)
+        past_in = PriorHistory(references, earlier, carried, road_refs, self.ground_heights_m)
         prior = compute_dense_prior(
             grey,
             K,
             T_world_cam,
-            references,
-            earlier,
-            carried,
-            road_refs,
+            past_in,
             flow_params=self.flow,
             road_params=self.road,
             params=self.fusion,
-            ground_heights_m=self.ground_heights_m,
         )
         fit = prior.stats.get("ground_height_fit_m", float("nan"))
         if np.isfinite(fit):

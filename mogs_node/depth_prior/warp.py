@@ -106,7 +106,7 @@ def forward_warp_depth(
     # pass 3: magnified points cover their footprint, over empty pixels and over pixels
     # farther than 1 + occlusion_rel times them (background seen through the gaps)
     if np.isfinite(occlusion_rel):
-        splats = _magnified_splats(u, v, P[2], z[front], max_footprint)
+        splats = _magnified_splats(u, v, z[front] / np.maximum(P[2], 1e-9), max_footprint)
         if splats:
             pi = np.concatenate([p for p, _, _ in splats])
             uu = np.concatenate([a for _, a, _ in splats])
@@ -130,21 +130,16 @@ def forward_warp_depth(
 
 
 def _magnified_splats(
-    u: NDArray[np.float64],
-    v: NDArray[np.float64],
-    z_k: NDArray[np.float64],
-    z_j: NDArray[np.float64],
-    max_footprint: int,
+    u: NDArray[np.float64], v: NDArray[np.float64], mag: NDArray[np.float64], max_footprint: int
 ) -> list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]]:
     """Footprint splats of magnified points: ``(point index, u, v)`` per offset.
 
-    Approaching a near object magnifies it by about ``z_j / z_k``: its points land that many
+    Approaching a near object magnifies it by about ``mag = z_j / z_k``: its points land that many
     pixels apart, and what lies behind it would show through the gaps a 2x2 splat cannot close
     (background depth on a pole one metre ahead: a relative error of 10 or more). A point
     magnified more than 1.5x covers a ``k x k`` square around its projection, ``k`` the odd size
     at or above its magnification (at most ``max_footprint``).
     """
-    mag = z_j / np.maximum(z_k, 1e-9)
     size = np.clip(2 * np.ceil(0.5 * (mag - 1)).astype(np.int64) + 1, 1, max_footprint)
     big = np.flatnonzero((mag > 1.5) & (size >= 3))
     out = []

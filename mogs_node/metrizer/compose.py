@@ -13,6 +13,7 @@ from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.fill import (
+    PlaneSelect,
     complete_planar_masks,
     consistent_seeds,
     edge_aware_fill,
@@ -300,6 +301,49 @@ def apply_residual_field(
     np.clip(depth, np.float32(p.d_min_m), f32_below(p.d_max_m), out=depth)
 
 
+def _plane_pass(
+    fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.float32], confident: bool
+) -> int:
+    """One :func:`~mogs_node.metrizer.fill.complete_planar_masks` pass over the merged objects
+    (``depth`` / ``out_conf`` flat, changed in place): the confident-pixel pass
+    (``confident_plane_*``) or the whole-mask pass (``mask_plane_*``). Returns the pixels it
+    gave a depth."""
+    p: MetrizerParams = fr.p
+    H, W = fr.H, fr.W
+    if confident:
+        share, inl, min_depth, min_px = (
+            p.confident_plane_min_share,
+            p.confident_plane_inlier_rel,
+            0.0,
+            p.confident_plane_min_pixels,
+        )
+        gap = p.confident_plane_max_gap * W
+        select = PlaneSelect(
+            fr.conf.reshape(H, W), p.confident_plane_fit_conf, p.confident_plane_replace_below, gap
+        )
+    else:
+        share, inl, min_depth, min_px = (
+            p.mask_plane_min_share,
+            p.mask_plane_inlier_rel,
+            p.mask_plane_min_depth_m,
+            30,
+        )
+        select = None
+    return complete_planar_masks(
+        depth.reshape(H, W),
+        out_conf.reshape(H, W),
+        fr.gobj.reshape(H, W),
+        fr.G,
+        min_share=share,
+        inlier_rel=inl,
+        min_depth_m=min_depth,
+        max_depth_m=p.sky_depth_frac * p.d_max_m,
+        min_pixels=min_px,
+        min_out_m=p.d_min_m,
+        select=select,
+    )
+
+
 def compose(
     fr: Frame, tm: StageTimer, models: ShapeModels, theta: F64, global_only: bool
 ) -> MetrizedDepth:
@@ -366,25 +410,19 @@ def compose(
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
             n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
-    n_plane_fill = 0
-    if p.mask_plane_fill and not global_only and special is not None:
-        # departure (docs/metrizer.md, "Whole masks"): a supported object's plane over its holes
-        n_plane_fill = complete_planar_masks(
-            depth.reshape(H, W),
-            out_conf.reshape(H, W),
-            gobj.reshape(H, W),
-            G,
-            min_share=p.mask_plane_min_share,
-            inlier_rel=p.mask_plane_inlier_rel,
-            min_depth_m=p.mask_plane_min_depth_m,
-            max_depth_m=p.sky_depth_frac * p.d_max_m,
-            min_out_m=p.d_min_m,
-        )
+    n_conf_plane = n_plane_fill = 0
+    if not global_only:  # departures: docs/metrizer.md, "Whole objects from the confident
+        # pixels" (weak pixels and holes), then "Whole masks" (holes)
+        if p.confident_planes:
+            n_conf_plane = _plane_pass(fr, depth, out_conf, confident=True)
+        if p.mask_plane_fill and special is not None:
+            n_plane_fill = _plane_pass(fr, depth, out_conf, confident=False)
     stats.update(
         n_model_output_px=n_model_px,
         n_hole_px_model=n_model_fill,
         n_hole_px_fill=n_edge_fill,
         n_hole_px_plane=n_plane_fill,
+        n_px_confident_plane=n_conf_plane,
     )
     tm.lap("sky_holes")
     # final guarantees: finite, 0 or within (0, d_max], confidence in [0, 1] and 0 without depth

@@ -7,11 +7,14 @@ resolution for speed, so values spread along surfaces and stop at colour edges.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "PlaneSelect",
     "complete_planar_masks",
     "consistent_seeds",
     "edge_aware_fill",
@@ -157,6 +160,51 @@ def smooth_field(
     return cv2.resize(f, (W, H), interpolation=cv2.INTER_LINEAR)
 
 
+@dataclass(frozen=True)
+class PlaneSelect:
+    """Which pixels :func:`complete_planar_masks` fits and which it gives the plane's depth.
+
+    ``prior_conf`` ``[H, W]``: the prior's confidence (None: the output confidence); the plane is
+    fitted to pixels with ``prior_conf >= fit_min_conf`` only, and pixels with a depth but
+    ``prior_conf < replace_below`` are replaced like holes (0: holes only). Near textureless
+    objects (pillars, a bonnet) hold background depth seen through a partial prior at low
+    confidence; fitted to the confident pixels only, their plane replaces it (docs/metrizer.md,
+    "Whole objects from the confident pixels").
+    """
+
+    prior_conf: NDArray[np.float32] | None = None
+    fit_min_conf: float = 0.0
+    replace_below: float = 0.0
+    max_gap_px: float = 0.0  # > 0: only pixels this close to an inlier of their object
+
+
+def _near_own_inliers(
+    inliers: tuple[NDArray[np.intp], NDArray[np.intp]],
+    pixels: tuple[NDArray[np.intp], NDArray[np.intp]],
+    hw: tuple[int, int],
+    max_gap_px: float,
+) -> NDArray[np.bool_]:
+    """Whether each of ``pixels`` (flat index, object) lies within ``max_gap_px`` of one of the
+    ``inliers`` (flat index, object) of its own object: the nearest inlier's object, by one
+    labelled distance transform. A plane is not carried across an object to pixels far from
+    what it was fitted to (an under-segmented object: its confident pixels on the background)."""
+    (in_idx, in_obj), (idx, obj) = inliers, pixels
+    H, W = hw
+    free = np.ones(H * W, np.uint8)
+    free[in_idx] = 0
+    dist, lab = cv2.distanceTransformWithLabels(
+        free.reshape(H, W), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # DIST_LABEL_PIXEL numbers the zero pixels 1.. in raster order: map each to its object
+    owner = np.full(H * W + 1, -1, np.intp)
+    order = np.sort(in_idx)
+    pix_obj = np.full(H * W, -1, np.intp)
+    pix_obj[in_idx] = in_obj
+    owner[1 : len(order) + 1] = pix_obj[order]
+    near = owner[lab.ravel()[idx]]
+    return (near == obj) & (dist.ravel()[idx] <= max_gap_px)
+
+
 def complete_planar_masks(
     depth_m: NDArray[np.float32],
     confidence: NDArray[np.float32],
@@ -172,6 +220,7 @@ def complete_planar_masks(
     extrapolation: float = 1.25,
     iterations: int = 4,
     min_out_m: float = 0.0,
+    select: PlaneSelect | None = None,
 ) -> int:
     """Give the uncovered pixels of a well-supported object the depth of its plane (in place).
 
@@ -187,19 +236,29 @@ def complete_planar_masks(
     ``[z_min / extrapolation, z_max * extrapolation]`` of the inliers and in
     ``[min_out_m, max_depth_m]``. The filled pixels'
     confidence: half the mean confidence of the object's fitted pixels times its inlier share.
+    ``select`` (:class:`PlaneSelect`) fits the plane only to pixels the prior is confident of and
+    also replaces the depth of the pixels it is not confident of.
     Returns the number of pixels filled. Vectorised over objects (``bincount`` moments).
     """
     H, W = depth_m.shape
     d = depth_m.ravel()
     cf = confidence.ravel()
-    hidx = np.flatnonzero(d <= 0)
+    sel = select or PlaneSelect()
+    pc = cf if sel.prior_conf is None else np.asarray(sel.prior_conf).ravel()
+    hole = d <= 0
+    if sel.replace_below > 0:
+        hole |= (d <= max_depth_m) & (pc < sel.replace_below)
+    hidx = np.flatnonzero(hole)
     if len(hidx) == 0:  # a fully covered frame (a learned prior) costs nothing
         return 0
     obj = np.asarray(objects).ravel().astype(np.intp, copy=False)
     G = int(n_objects)
     has_hole = np.bincount(obj[hidx], minlength=G)[:G] > 0
     n_obj = np.bincount(obj, minlength=G)[:G]
-    idx = np.flatnonzero((d >= min_depth_m * 0.5) & (d <= max_depth_m))
+    fit = (d > 0) & (d >= min_depth_m * 0.5) & (d <= max_depth_m)
+    if sel.fit_min_conf > 0:
+        fit &= pc >= sel.fit_min_conf
+    idx = np.flatnonzero(fit)
     n_fit = np.bincount(obj[idx], minlength=G)[:G]
     cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj) & has_hole
     idx = idx[cand[obj[idx]]]
@@ -249,6 +308,8 @@ def complete_planar_masks(
         z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0)
     keep = (z >= zlo[hg] / extrapolation) & (z <= zhi[hg] * extrapolation)
     keep &= (z >= min_out_m) & (z <= max_depth_m) & (z > 0)
+    if sel.max_gap_px > 0:
+        keep &= _near_own_inliers((idx[inl], g[inl]), (hidx, hg), (H, W), sel.max_gap_px)
     depth_m.ravel()[hidx[keep]] = z[keep].astype(np.float32)
     confidence.ravel()[hidx[keep]] = conf_g[hg[keep]].astype(np.float32)
     return int(keep.sum())

@@ -49,6 +49,16 @@ class MetrizerParams:
     mask_plane_min_share: float = 0.3  # ... at least this share of the object has a depth
     mask_plane_inlier_rel: float = 0.02  # ... half of those within this relative depth of it
     mask_plane_min_depth_m: float = 5.0  # ... and their (geometric) mean depth at least this
+    confident_planes: bool = False  # departure (issue 16): before that, an object's plane
+    # fitted to its pixels of prior confidence >= confident_plane_fit_conf replaces its pixels
+    # below confident_plane_replace_below and fills its holes (fill.PlaneSelect), when at least
+    confident_plane_fit_conf: float = 0.4
+    confident_plane_replace_below: float = 0.3
+    confident_plane_min_share: float = 0.02  # ... this share of the object is fitted,
+    confident_plane_min_pixels: int = 20  # ... at least this many pixels,
+    confident_plane_inlier_rel: float = 0.03  # ... half of them within this of the plane
+    confident_plane_max_gap: float = 0.0  # > 0: only pixels within this fraction of the image
+    # width of an inlier of their object get its plane
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
     fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
     # of the same object, or "edge_aware" (FGS normalised convolution of the features)
@@ -98,6 +108,10 @@ class MetrizerParams:
             raise ConfigError(
                 f"MetrizerParams: anchor_shrink >= 0 required, got {self.anchor_shrink}"
             )
+        if not (
+            0 <= self.confident_plane_fit_conf <= 1 and 0 <= self.confident_plane_replace_below <= 1
+        ):
+            raise ConfigError("MetrizerParams: confident_plane_* confidences must be in [0, 1]")
         if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
             raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")
 

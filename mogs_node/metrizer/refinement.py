@@ -218,12 +218,18 @@ def solve_cdr(prob: CdrProblem, params: CdrParams = CdrParams()) -> F64:
         if not np.all(np.isfinite(sol)):
             log.warning("CDR: singular system, keeping the previous estimate")
             break
-        new = sol.reshape(n, 2)
-        step = np.max(np.abs(new - theta) / (np.abs(theta) + 1e-12))
-        theta = new
-        if step < params.tol and it > 0:
+        theta, done = _irls_update(theta, sol, params.tol, it)
+        if done:
             break
     return theta
+
+
+def _irls_update(theta: F64, sol: F64, tol: float, it: int) -> tuple[F64, bool]:
+    """The new ``[n, 2]`` estimate from a solve and whether the iteration has converged (the
+    largest relative change of a parameter below ``tol``, from the second iteration on)."""
+    new = sol.reshape(theta.shape)
+    step = np.max(np.abs(new - theta) / (np.abs(theta) + 1e-12))
+    return new, bool(step < tol and it > 0)
 
 
 def solve_cdr_reference(prob: CdrProblem, params: CdrParams = CdrParams()) -> F64:
@@ -268,9 +274,7 @@ def solve_cdr_reference(prob: CdrProblem, params: CdrParams = CdrParams()) -> F6
                 w.append(rw)
         sw = np.sqrt(np.asarray(w))
         sol = np.linalg.lstsq(np.asarray(J) * sw[:, None], np.asarray(r) * sw, rcond=None)[0]
-        new = sol.reshape(n, 2)
-        step = np.max(np.abs(new - theta) / (np.abs(theta) + 1e-12))
-        theta = new
-        if step < params.tol and it > 0:
+        theta, done = _irls_update(theta, sol, params.tol, it)
+        if done:
             break
     return theta

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from mogs_node.depth_prior.dense_prior import (
     SOURCES,
     FusionParams,
+    PriorHistory,
     compute_dense_prior,
     confidence_from_error,
     error_from_confidence,
@@ -205,7 +206,7 @@ def test_carried_depth_contradicted_by_the_flow_is_dropped(views) -> None:
     stats = {}
     for name, depth in (("true", d1), ("wrong", 2.0 * d1)):
         carried = (depth.astype(np.float32), conf, T1, g1)  # same pose and image: photo passes
-        p = compute_dense_prior(g1, K, T1, [(g0, T0)], [carried], **kw)
+        p = compute_dense_prior(g1, K, T1, PriorHistory([(g0, T0)], [carried]), **kw)
         stats[name] = p.stats["warp_flow_rejected"]
     assert stats["true"] < 0.05
     assert stats["wrong"] > 0.4
@@ -213,8 +214,7 @@ def test_carried_depth_contradicted_by_the_flow_is_dropped(views) -> None:
         g1,
         K,
         T1,
-        [(g0, T0)],
-        [(2.0 * d1, conf, T1, g1)],
+        PriorHistory([(g0, T0)], [(2.0 * d1, conf, T1, g1)]),
         params=FusionParams(flow_check=False),
         **kw,
     )
@@ -319,9 +319,16 @@ def test_confidence_and_error_are_inverse(e: float, ref: float) -> None:
 def test_dense_prior_fills_the_ground_and_is_metric(views) -> None:
     (g0, _, T0), (g1, d1, T1) = views
     flow_only = compute_dense_prior(
-        g1, K, T1, [(g0, T0)], flow_params=FLOW, road_params=RoadPriorParams(enabled=False)
+        g1,
+        K,
+        T1,
+        PriorHistory([(g0, T0)]),
+        flow_params=FLOW,
+        road_params=RoadPriorParams(enabled=False),
     )
-    dense = compute_dense_prior(g1, K, T1, [(g0, T0)], flow_params=FLOW, road_params=ROAD)
+    dense = compute_dense_prior(
+        g1, K, T1, PriorHistory([(g0, T0)]), flow_params=FLOW, road_params=ROAD
+    )
     assert (dense.confidence > 0).mean() > (flow_only.confidence > 0).mean() + 0.02
     assert (dense.source == SOURCES["road"]).mean() > 0.05
     m = dense.confidence > 0
@@ -334,7 +341,9 @@ def test_dense_prior_fills_the_ground_and_is_metric(views) -> None:
 def test_confidence_is_calibrated_on_the_two_view_scene(views) -> None:
     """Higher confidence, lower error: the top half of the pixels by confidence beats the rest."""
     (g0, _, T0), (g1, d1, T1) = views
-    dense = compute_dense_prior(g1, K, T1, [(g0, T0)], flow_params=FLOW, road_params=ROAD)
+    dense = compute_dense_prior(
+        g1, K, T1, PriorHistory([(g0, T0)]), flow_params=FLOW, road_params=ROAD
+    )
     m = dense.confidence > 0
     c, rel = dense.confidence[m], np.abs(dense.depth_m[m] - d1[m]) / d1[m]
     hi = c >= np.median(c)
@@ -346,13 +355,13 @@ def test_zero_baseline_carries_earlier_depth(views) -> None:
     (g0, d0, T0), _ = views
     conf = np.full(HW, 0.8, np.float32)
     p = compute_dense_prior(
-        g0, K, T0, [], [(d0.astype(np.float32), conf, T0, g0)], road_params=ROAD
+        g0, K, T0, PriorHistory((), [(d0.astype(np.float32), conf, T0, g0)]), road_params=ROAD
     )
     m = p.confidence > 0
     assert m.mean() > 0.95
     np.testing.assert_allclose(p.depth_m[m], d0[m], rtol=1e-4)  # zero motion: the same depth
     assert np.all(p.source[m] == SOURCES["warp"])
-    empty = compute_dense_prior(g0, K, T0, [], road_params=ROAD)
+    empty = compute_dense_prior(g0, K, T0, road_params=ROAD)
     assert not empty.confidence.any() and not empty.depth_m.any()
 
 
@@ -361,7 +370,9 @@ def test_warped_depth_through_an_unknown_occluder_is_dropped(views) -> None:
     (g0, d0, T0), _ = views
     g_other = (255 - g0).astype(np.uint8)  # the earlier view saw something else there
     conf = np.full(HW, 0.8, np.float32)
-    p = compute_dense_prior(g0, K, T0, [], [(d0, conf, T0, g_other)], road_params=ROAD)
+    p = compute_dense_prior(
+        g0, K, T0, PriorHistory((), [(d0, conf, T0, g_other)]), road_params=ROAD
+    )
     assert (p.confidence > 0).mean() < 0.5
 
 
@@ -374,10 +385,10 @@ def test_dense_prior_rejects_non_finite_poses(views, bad: float, where: str) -> 
     conf = np.ones(HW, np.float32)
     if where == "pose":
         with pytest.raises(ShapeError, match="T_world_cam_k"):
-            compute_dense_prior(g0, K, T, [], [(d0, conf, T0)])
+            compute_dense_prior(g0, K, T, PriorHistory((), [(d0, conf, T0)]))
     else:
         with pytest.raises(ShapeError, match=r"earlier_depth\[0\].T_world_cam"):
-            compute_dense_prior(g0, K, T0, [], [(d0, conf, T)])
+            compute_dense_prior(g0, K, T0, PriorHistory((), [(d0, conf, T)]))
 
 
 def test_dense_prior_with_non_finite_earlier_depth_stays_finite(views) -> None:
@@ -387,7 +398,7 @@ def test_dense_prior_with_non_finite_earlier_depth_stays_finite(views) -> None:
     d[1::3] = np.inf
     c = np.full(HW, 0.5, np.float32)
     c[:, ::5] = np.nan
-    p = compute_dense_prior(g0, K, T0, [], [(d, c, T0, g0)], road_params=ROAD)
+    p = compute_dense_prior(g0, K, T0, PriorHistory((), [(d, c, T0, g0)]), road_params=ROAD)
     assert np.all(np.isfinite(p.depth_m)) and np.all(np.isfinite(p.confidence))
     assert p.confidence.min() >= 0 and p.confidence.max() <= 1
 
@@ -461,10 +472,10 @@ def test_carry_min_confidence_drops_weak_carried_depth(views) -> None:
     conf = np.where(np.arange(HW[1])[None, :] < HW[1] // 2, 0.02, 0.6).astype(np.float32)
     conf = np.broadcast_to(conf, HW).copy()
     prev = (d0.astype(np.float32), conf, T0, g0)
-    kw = {"road_params": ROAD, "previous_prior": prev}
-    every = compute_dense_prior(g0, K, T0, [], **kw)
+    past = PriorHistory(previous_prior=prev)
+    every = compute_dense_prior(g0, K, T0, past, road_params=ROAD)
     strong = compute_dense_prior(
-        g0, K, T0, [], params=FusionParams(carry_min_confidence=0.05), **kw
+        g0, K, T0, past, road_params=ROAD, params=FusionParams(carry_min_confidence=0.05)
     )
     left, right = np.s_[:, : HW[1] // 2 - 2], np.s_[:, HW[1] // 2 + 2 :]
     assert (every.confidence[left] > 0).mean() > 0.9

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mogs_node.depth_prior.dense_prior import compute_dense_prior
+from mogs_node.depth_prior.dense_prior import PriorHistory, compute_dense_prior
 from mogs_node.depth_prior.flow_prior import FlowPriorParams
 from mogs_node.depth_prior.ground_height import (
     MIN_VERIFIED,
@@ -128,24 +128,18 @@ def test_the_dense_prior_measures_the_height_when_none_is_given():
     Tr[:3, :3] = R_w_c
     Tr[:3, 3] = R_w_c @ T_w_r[:3, 3]
     del T_w_k
+    past, flow = (
+        PriorHistory([(img_r, Tr)]),
+        FlowPriorParams(camera_height_m=0.0, min_baseline_m=0.1),
+    )
     prior = compute_dense_prior(
-        img_k,
-        K,
-        Tk,
-        [(img_r, Tr)],
-        flow_params=FlowPriorParams(camera_height_m=0.0, min_baseline_m=0.1),
-        road_params=RoadPriorParams(auto_height=True),
+        img_k, K, Tk, past, flow_params=flow, road_params=RoadPriorParams(auto_height=True)
     )
     # the flow depth's band (~2 % high here) refined by the road plane's own tests
     assert prior.stats["ground_height_fit_m"] == pytest.approx(height, rel=0.015)
     assert prior.stats["ground_height_m"] == prior.stats["ground_height_fit_m"]
     given = compute_dense_prior(
-        img_k,
-        K,
-        Tk,
-        [(img_r, Tr)],
-        flow_params=FlowPriorParams(camera_height_m=0.0, min_baseline_m=0.1),
-        road_params=RoadPriorParams(auto_height=False),
+        img_k, K, Tk, past, flow_params=flow, road_params=RoadPriorParams(auto_height=False)
     )
     assert "ground_height_m" not in given.stats
     assert prior.stats["share_road"] > given.stats["share_road"] == 0.0

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mogs_node.metrizer.fill import complete_planar_masks
+from mogs_node.metrizer.fill import PlaneSelect, complete_planar_masks
 
 H, W = 60, 80
 K = np.array([[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]])
@@ -82,3 +83,107 @@ def test_sky_and_empty_inputs():
     assert complete_planar_masks(depth, np.ones_like(depth), np.zeros((H, W), np.int32), 1) == 0
     z = np.zeros((H, W), np.float32)
     assert complete_planar_masks(z, z.copy(), np.zeros((H, W), np.int32), 1) == 0
+
+
+def pillar(weak_share: float, hole_share: float) -> tuple[np.ndarray, ...]:
+    """A near fronto-parallel plane (a pillar 1.5 m ahead): confident prior on its left part,
+    background depth (12 m, seen through it) at low confidence in the middle, a hole on the
+    right. Returns the truth, depth, output confidence and prior confidence."""
+    truth = plane_depth(np.array([0.1, 0.0, 1.0]) / np.linalg.norm([0.1, 0.0, 1.0]), 1.5)
+    u = np.arange(W)[None, :] * np.ones((H, 1))
+    weak = (u >= (1 - weak_share - hole_share) * W) & (u < (1 - hole_share) * W)
+    hole = u >= (1 - hole_share) * W
+    depth = np.where(weak, 12.0, truth).astype(np.float32)
+    depth[hole] = 0
+    prior_conf = np.where(weak, 0.03, 0.6).astype(np.float32)
+    prior_conf[hole] = 0
+    return truth, depth, prior_conf * 0.5, prior_conf
+
+
+@settings(max_examples=30, deadline=None)
+@given(weak_share=st.floats(0.05, 0.5), hole_share=st.floats(0.0, 0.3))
+def test_confident_pixels_plane_replaces_weak_background(weak_share: float, hole_share: float):
+    """``PlaneSelect``: the plane of the confident pixels replaces the weak (background) depth and
+    fills the hole; without it (the default) a near object is left as it was."""
+    truth, depth, conf, prior_conf = pillar(weak_share, hole_share)
+    weak = (prior_conf > 0) & (prior_conf < 0.3)
+    target = weak | (prior_conf == 0)
+    before = depth.copy()
+    objects = np.zeros((H, W), np.int32)
+    sel = PlaneSelect(prior_conf, fit_min_conf=0.4, replace_below=0.3)
+    kw = dict(min_depth_m=0.0, min_share=0.02, inlier_rel=0.03, extrapolation=10.0)
+    n = complete_planar_masks(depth, conf, objects, 1, select=sel, **kw)
+    assert n == target.sum()
+    np.testing.assert_allclose(depth[target], truth[target], rtol=1e-4)
+    np.testing.assert_array_equal(depth[~target], before[~target])  # confident pixels kept
+    d0, c0 = before.copy(), conf.copy()
+    complete_planar_masks(d0, c0, objects, 1, **kw)  # default: fitted to the background too
+    assert np.all(d0[weak] == 12.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    fit_min=st.floats(0.0, 1.0),
+    replace=st.floats(0.0, 1.0),
+    scale=st.floats(1e-2, 1e3),
+    gap=st.floats(0.0, 50.0),
+)
+def test_plane_select_output_is_finite_and_bounded(seed, fit_min, replace, scale, gap):
+    """Any depths, confidences and thresholds: finite output, 0 or within its range, confident
+    pixels never changed, confidences in [0, 1]."""
+    rng = np.random.default_rng(seed)
+    depth = (rng.uniform(0.0, 2.0, (H, W)) * scale).astype(np.float32)
+    depth[rng.random((H, W)) < 0.3] = 0
+    pc = rng.random((H, W)).astype(np.float32)
+    conf = (pc * 0.5).astype(np.float32)
+    objects = rng.integers(0, 4, (H, W)).astype(np.int32)
+    before = depth.copy()
+    max_depth = 1.5 * scale
+    complete_planar_masks(
+        depth,
+        conf,
+        objects,
+        4,
+        min_depth_m=0.0,
+        max_depth_m=max_depth,
+        min_share=0.0,
+        select=PlaneSelect(pc, fit_min, replace, gap),
+    )
+    assert np.all(np.isfinite(depth)) and np.all(np.isfinite(conf))
+    assert np.all((depth == 0) | ((depth > 0) & (depth <= max(max_depth, before.max()))))
+    keep = (pc >= replace) & (before > 0)
+    np.testing.assert_array_equal(depth[keep], before[keep])
+    assert conf.min() >= 0 and conf.max() <= 1
+
+
+def test_confident_plane_params_are_checked():
+    from mogs_node.errors import ConfigError
+    from mogs_node.metrizer.params import MetrizerParams
+
+    with pytest.raises(ConfigError, match="confident_plane"):
+        MetrizerParams(confident_plane_fit_conf=1.5)
+    with pytest.raises(ConfigError, match="confident_plane"):
+        MetrizerParams(confident_plane_replace_below=-0.1)
+
+
+def test_max_gap_keeps_a_plane_off_the_far_part_of_an_under_segmented_object():
+    """One object holding a background wall (confident, 10 m, top rows) and a near bonnet without
+    depth below it: without a gap limit the wall's plane fills the bonnet; with ``max_gap_px``
+    only the rows within reach of the wall's inliers get it."""
+    truth = plane_depth(np.array([0.0, 0.0, 1.0]), 10.0)
+    depth = truth.copy()
+    depth[20:] = 0  # the bonnet: no prior
+    prior_conf = np.where(depth > 0, 0.8, 0.0).astype(np.float32)
+    objects = np.zeros((H, W), np.int32)
+    kw = dict(min_depth_m=0.0, min_share=0.02, inlier_rel=0.03, extrapolation=10.0)
+    d0 = depth.copy()
+    complete_planar_masks(
+        d0, prior_conf * 0.5, objects, 1, select=PlaneSelect(prior_conf, 0.4, 0.3), **kw
+    )
+    assert np.all(d0[20:] > 0)
+    d1 = depth.copy()
+    sel = PlaneSelect(prior_conf, 0.4, 0.3, max_gap_px=5.0)
+    n = complete_planar_masks(d1, prior_conf * 0.5, objects, 1, select=sel, **kw)
+    assert n == 5 * W  # rows 20-24: within 5 px of row 19
+    assert np.all(d1[25:] == 0) and np.all(d1[20:25] > 0)
