@@ -25,6 +25,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from mogs_node import msgs
 from mogs_node.errors import MogsError
 
 __all__ = [
@@ -57,6 +58,10 @@ class ImuSample:
     t_ns: int
     gyro_rad_s: tuple[float, float, float]
     accel_m_s2: tuple[float, float, float]
+
+    def message(self, frame_id: str) -> msgs.Imu:
+        """This sample as the ``/imu`` message of frame ``frame_id``."""
+        return msgs.Imu(self.t_ns, frame_id, self.gyro_rad_s, self.accel_m_s2)
 
 
 def _float(text: str, name: str) -> float:

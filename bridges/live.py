@@ -208,15 +208,7 @@ class _ImuPublisher(Node):
 
     def _emit(self, s: ImuSample | None) -> None:
         if s is not None:
-            self.publish(
-                self._imu_topic,
-                msgs.Imu(
-                    stamp_ns=s.t_ns,
-                    frame_id=self._imu_frame,
-                    gyro_rad_s=s.gyro_rad_s,
-                    accel_m_s2=s.accel_m_s2,
-                ),
-            )
+            self.publish(self._imu_topic, s.message(self._imu_frame))
             self.counters["imu_published"] = self.parser.accepted
         for r, n in self.parser.rejected.items():
             self.counters[f"imu_rejected_{r}"] = n

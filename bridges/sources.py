@@ -22,15 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mogs_node import msgs
-from mogs_node.datasets import (
-    BagTopics,
-    Sequence,
-    read_bag,
-    read_euroc,
-    read_kitti_odometry,
-    read_kitti_raw,
-)
+from mogs_node import datasets, msgs
+from mogs_node.datasets import BagTopics, Sequence
 from mogs_node.datasets.base import Frame, ImuSamples, Trajectory
 from mogs_node.errors import ConfigError, DatasetError, GeometryError
 from mogs_node.geometry import PinholeCamera, rigid_transform
@@ -41,6 +34,13 @@ __all__ = ["SOURCE_KINDS", "camera_info_of", "open_sequence", "sequence_from_sim
 log = logging.getLogger(__name__)
 
 SOURCE_KINDS = ("kitti", "kitti_odometry", "euroc", "vi_folder", "bag", "sim")
+# the kinds read from a folder by path alone ("bag" takes topics and a camera; "sim" no path)
+_FOLDER_READERS = {
+    "kitti": datasets.read_kitti_raw,
+    "kitti_odometry": datasets.read_kitti_odometry,
+    "euroc": datasets.read_euroc,
+    "vi_folder": datasets.read_vi_folder,
+}
 # dataset distortion names -> the frontend's (CameraModel) names
 _DISTORTION_NAMES = {
     "none": "none",
@@ -180,16 +180,8 @@ def open_sequence(
     p = Path(path).expanduser()
     if not p.exists():
         raise DatasetError(f"{p}: no such file or folder")
-    if kind == "kitti":
-        return read_kitti_raw(p)
-    if kind == "kitti_odometry":
-        return read_kitti_odometry(p)
-    if kind == "euroc":
-        return read_euroc(p)
-    if kind == "vi_folder":
-        from mogs_node.datasets.vi_folder import read_vi_folder
-
-        return read_vi_folder(p)
+    if kind in _FOLDER_READERS:
+        return _FOLDER_READERS[kind](p)
     camera = None
     if intrinsics:
         if len(intrinsics) != 6:
@@ -198,4 +190,4 @@ def open_sequence(
             )
         fx, fy, cx, cy, w, h = intrinsics
         camera = PinholeCamera(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
-    return read_bag(p, topics=bag_topics, camera=camera)
+    return datasets.read_bag(p, topics=bag_topics, camera=camera)

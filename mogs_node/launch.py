@@ -368,14 +368,7 @@ class Launcher:
             seen = self._heartbeats.get(child.name)
         if seen is None or seen.pid != child.proc.pid:
             seen = None  # not heard from this process yet: start-up (imports, model loading)
-        why = kill_reason(
-            seen,
-            now,
-            started_at=child.started_at,
-            heartbeat_timeout_s=spec.heartbeat_timeout_s,
-            progress_timeout_s=spec.progress_timeout_s,
-            startup_timeout_s=spec.startup_timeout_s,
-        )
+        why = kill_reason(seen, now, started_at=child.started_at, timeouts=spec)
         if why is None:
             return
         cause, text = why

@@ -22,7 +22,7 @@ import signal
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from mogs_node.node import EXIT_CONFIG
 
@@ -31,6 +31,7 @@ __all__ = [
     "CHECKPOINT_FILES",
     "EXIT_NODE_FAILED",
     "JOURNAL_FILES",
+    "LivenessTimeouts",
     "SUBMAP_FILES",
     "error_of",
     "failure_reason",
@@ -128,25 +129,31 @@ class Beat:
 STOPPED_EXIT_TIMEOUTS = 4
 
 
+class LivenessTimeouts(Protocol):
+    """A node's liveness timeouts in seconds, 0 = check off (a launch file's ``NodeSpec``)."""
+
+    heartbeat_timeout_s: float
+    progress_timeout_s: float
+    startup_timeout_s: float
+
+
 def kill_reason(
-    beat: Beat | None,
-    now: float,
-    *,
-    started_at: float,
-    heartbeat_timeout_s: float,
-    progress_timeout_s: float,
-    startup_timeout_s: float,
+    beat: Beat | None, now: float, *, started_at: float, timeouts: LivenessTimeouts
 ) -> tuple[str, str] | None:
     """``(cause, text)`` when a running node must be killed, else None.
 
-    ``beat``: the node's latest heartbeat from its current process (None: none yet). Causes:
+    ``beat``: the node's latest heartbeat from its current process (None: none yet); the
+    timeouts are those of ``timeouts`` (the node's spec). Causes:
     ``"heartbeat"``, silent for ``heartbeat_timeout_s`` (before its first heartbeat: for the
     larger of that and ``startup_timeout_s``); ``"progress"``, busy without progress for
     ``progress_timeout_s`` (its reported ``busy_s`` plus the time since that heartbeat). A timeout
     of 0 turns that check off. A node whose last heartbeat said "stopped" is exiting: it is killed
     only after :data:`STOPPED_EXIT_TIMEOUTS` heartbeat timeouts.
     """
+    heartbeat_timeout_s = timeouts.heartbeat_timeout_s
+    progress_timeout_s = timeouts.progress_timeout_s
     if beat is None:
+        startup_timeout_s = timeouts.startup_timeout_s
         silent = now - started_at
         timeout = max(heartbeat_timeout_s, startup_timeout_s) if heartbeat_timeout_s > 0 else 0
         if timeout > 0 and silent > timeout:

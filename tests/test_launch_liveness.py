@@ -6,6 +6,7 @@ import json
 import signal
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import yaml
@@ -56,8 +57,15 @@ def test_a_step_three_times_the_heartbeat_timeout_is_not_killed(
     assert "killing it" not in text and "respawning" not in text  # (shutdown may SIGKILL it)
 
 
+def _timeouts(heartbeat_s: float, progress_s: float, startup_s: float) -> SimpleNamespace:
+    """A node spec's three liveness timeouts (what ``kill_reason`` reads of a ``NodeSpec``)."""
+    return SimpleNamespace(
+        heartbeat_timeout_s=heartbeat_s, progress_timeout_s=progress_s, startup_timeout_s=startup_s
+    )
+
+
 def test_kill_reason_tells_hung_from_stuck_from_working() -> None:
-    kw = {"heartbeat_timeout_s": 2.0, "progress_timeout_s": 10.0, "startup_timeout_s": 30.0}
+    kw = {"timeouts": _timeouts(2.0, 10.0, 30.0)}
     # not heard from yet: the start-up allowance applies
     assert kill_reason(None, 29.0, started_at=0.0, **kw) is None
     assert kill_reason(None, 31.0, started_at=0.0, **kw)[0] == "heartbeat"
@@ -70,7 +78,7 @@ def test_kill_reason_tells_hung_from_stuck_from_working() -> None:
     assert kill_reason(Beat(100.0, 1, 0.0), 102.5, started_at=0.0, **kw)[0] == "heartbeat"
     # idle (busy_s 0) for ever is not stuck; a timeout of 0 turns a check off
     assert kill_reason(Beat(100.0, 1, 0.0), 101.0, started_at=0.0, **kw) is None
-    off = {**kw, "progress_timeout_s": 0.0}
+    off = {"timeouts": _timeouts(2.0, 0.0, 30.0)}
     assert kill_reason(Beat(100.0, 1, 1e6), 100.1, started_at=0.0, **off) is None
 
 
@@ -78,7 +86,7 @@ def test_a_node_that_said_it_stopped_is_left_to_exit() -> None:
     """Issue 18: the player said "stopped" and its interpreter then took over 30 s to exit at load
     ~100; the launcher killed it for a missing heartbeat and failed a finished run. A stopped
     node is killed only after STOPPED_EXIT_TIMEOUTS heartbeat timeouts of silence."""
-    kw = {"heartbeat_timeout_s": 2.0, "progress_timeout_s": 10.0, "startup_timeout_s": 30.0}
+    kw = {"timeouts": _timeouts(2.0, 10.0, 30.0)}
     stopped = Beat(100.0, 1, 0.0, "", stopped=True)
     assert (
         kill_reason(stopped, 100.0 + 2.0 * STOPPED_EXIT_TIMEOUTS - 0.1, started_at=0.0, **kw)

@@ -17,9 +17,9 @@ import argparse
 import functools
 import json
 import logging
-from typing import Any
 
 from mogs_node.commands.broker import bus_from_args
+from mogs_node.commands.options import field_option, fields_from_args
 from mogs_node.errors import ConfigError
 
 HELP = "stream a KITTI / EuRoC / bag / synthetic sequence onto the bus"
@@ -40,17 +40,9 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
 _PLAYER = "player."
 
 
-def _player_option(g: argparse._ArgumentGroup, flag: str, param: str, **kw: Any) -> None:
-    """An option that sets the player node's parameter ``param``: its ``dest`` names it, so that
-    :func:`params_from_args` needs no list of its own."""
-    if kw.get("action") is None and "choices" not in kw:
-        kw.setdefault("metavar", flag[2:].upper().replace("-", "_"))  # argparse's, not the dest's
-    g.add_argument(flag, dest=_PLAYER + param, **kw)
-
-
 def _play_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("playback")
-    opt = functools.partial(_player_option, g)
+    opt = functools.partial(field_option, g, _PLAYER)  # sets the player parameter it names
     opt("--rate", "rate", type=float, default=1.0, help="speed factor (1 = recorded rate)")
     fast_help = "as fast as the pipeline accepts (flow control on --ack-topic)"
     opt("--fast", "fast", action="store_true", help=fast_help)
@@ -108,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def params_from_args(args: argparse.Namespace) -> dict:
     """The player node's parameters (a JSON-able dict) from the parsed command line."""
-    params = {k[len(_PLAYER) :]: v for k, v in vars(args).items() if k.startswith(_PLAYER)}
+    params = fields_from_args(args, _PLAYER)
     if args.kind == "kitti":
         params.update(source="kitti_odometry" if args.odometry else "kitti", path=args.path)
     elif args.kind == "euroc":

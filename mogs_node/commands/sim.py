@@ -11,6 +11,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 from dataclasses import replace
 from pathlib import Path
@@ -18,12 +19,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from mogs_node.commands.options import field_option, fields_from_args
 from mogs_node.errors import ConfigError
 
 HELP = "generate a synthetic driving sequence with ground truth"
 FORMATS = ("kitti", "rosbag2", "mcap", "rosbag1", "kitti-odometry", "vi-folder")
 
 log = logging.getLogger(__name__)
+
+#: the ``dest`` prefix of the options that set a ``SimConfig`` field (the rest of the ``dest``)
+_SIM = "sim."
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -47,27 +52,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--format", choices=FORMATS, default="kitti", help="output format (default kitti)"
     )
-    parser.add_argument("--frames", type=int, default=30, help="number of frames (default 30)")
+    opt = functools.partial(field_option, parser, _SIM)  # sets the SimConfig field it names
+    opt("--frames", "n_frames", type=int, default=30, help="number of frames (default 30)")
     parser.add_argument(
         "--size", default="1242x375", help="image size WxH (default 1242x375, KITTI)"
     )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
+    opt("--seed", "seed", type=int, default=0)
+    opt(
         "--trajectory",
+        "trajectory",
         choices=["synthetic", "oxts"],
         default="synthetic",
         help="random curvy drive, or the real KITTI OXTS drive in ../shared/data",
     )
-    parser.add_argument("--oxts-dir", default=None, help="OXTS folder for --trajectory oxts")
-    parser.add_argument(
+    opt("--oxts-dir", "oxts_dir", default=None, help="OXTS folder for --trajectory oxts")
+    opt(
         "--motion",
+        "motion",
         choices=["car", "handheld"],
         default="car",
         help="synthetic: a car drive, or a handheld walk (1.4 m/s, step bounce, head turns up "
         "to 90 deg/s, hand shake)",
     )
-    parser.add_argument(
+    opt(
         "--speed",
+        "speed_m_s",
         type=float,
         default=None,
         help="mean speed of the synthetic trajectory (m/s; default 10 car, 1.4 handheld)",
@@ -80,13 +89,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="camera stamps shifted against the IMU: a frame taken at IMU time t is stamped "
         "t - MS (the frontend's time_offset_ns convention, t_imu = t_cam + offset); all formats",
     )
-    parser.add_argument("--fps", type=float, default=10.0, help="camera frame rate (Hz)")
-    parser.add_argument("--imu-rate", type=float, default=200.0, help="IMU rate (Hz)")
+    opt("--fps", "frame_rate_hz", type=float, default=10.0, help="camera frame rate (Hz)")
+    opt("--imu-rate", "imu_rate_hz", type=float, default=200.0, help="IMU rate (Hz)")
     parser.add_argument(
         "--no-imu-noise", action="store_true", help="exact IMU readings, zero biases"
     )
-    parser.add_argument(
+    opt(
         "--static-start",
+        "static_start_s",
         type=float,
         default=0.0,
         metavar="S",
@@ -117,20 +127,8 @@ def command(args: argparse.Namespace) -> int:
     from mogs_node.sim.preview import preview_strip
 
     w, h = parse_size(args.size)
-    cfg = SimConfig(
-        seed=args.seed,
-        n_frames=args.frames,
-        width=w,
-        height=h,
-        frame_rate_hz=args.fps,
-        speed_m_s=args.speed,
-        trajectory=args.trajectory,
-        oxts_dir=args.oxts_dir,
-        imu_rate_hz=args.imu_rate,
-        static_start_s=args.static_start,
-        motion=args.motion,
-        time_offset_ns=int(round(args.time_offset_ms * 1e6)),
-    )
+    offset_ns = int(round(args.time_offset_ms * 1e6))
+    cfg = SimConfig(width=w, height=h, time_offset_ns=offset_ns, **fields_from_args(args, _SIM))
     if args.no_imu_noise:
         cfg = replace(cfg, imu_noise=ImuNoiseParams(enabled=False))
     if args.out is None and args.preview is None and args.poses_out is None:

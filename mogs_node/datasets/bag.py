@@ -294,8 +294,18 @@ class BagWriter:
         *,
         topic: str | None = None,
         frame_id: str = "camera",
+        compress: str | None = None,
     ) -> None:
-        """uint8 ``[H, W, 3]`` RGB -> rgb8, ``[H, W]`` -> mono8, float32 ``[H, W]`` -> 32FC1."""
+        """uint8 ``[H, W, 3]`` RGB -> rgb8, ``[H, W]`` -> mono8, float32 ``[H, W]`` -> 32FC1;
+        with ``compress`` ('png' or 'jpeg') a uint8 RGB or grey image -> CompressedImage."""
+        if compress is not None:
+            msg = self._compressed(image, compress, stamp_ns, frame_id)
+            msgtype = "sensor_msgs/msg/CompressedImage"
+        else:
+            msgtype, msg = "sensor_msgs/msg/Image", self._raw_image(image, stamp_ns, frame_id)
+        self._write(topic or self.topics.image, msgtype, msg, stamp_ns)
+
+    def _raw_image(self, image: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
         img = np.ascontiguousarray(image)
         if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
             enc, step = "rgb8", img.shape[1] * 3
@@ -305,7 +315,7 @@ class BagWriter:
             enc, step = "32FC1", img.shape[1] * 4
         else:
             raise DatasetError(f"image: unsupported array {img.dtype} {img.shape}")
-        msg = self.ts.types["sensor_msgs/msg/Image"](
+        return self.ts.types["sensor_msgs/msg/Image"](
             header=self._header(stamp_ns, frame_id),
             height=img.shape[0],
             width=img.shape[1],
@@ -314,26 +324,15 @@ class BagWriter:
             step=step,
             data=img.reshape(-1).view(np.uint8),
         )
-        self._write(topic or self.topics.image, "sensor_msgs/msg/Image", msg, stamp_ns)
 
-    def compressed_image(
-        self,
-        stamp_ns: int,
-        image_rgb: np.ndarray,
-        *,
-        topic: str | None = None,
-        fmt: str = "png",
-        frame_id: str = "camera",
-    ) -> None:
-        """uint8 RGB or grey image -> sensor_msgs/CompressedImage (png or jpeg)."""
+    def _compressed(self, image_rgb: np.ndarray, fmt: str, stamp_ns: int, frame_id: str) -> Any:
         img = image_rgb if image_rgb.ndim == 2 else cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR)
         ok, buf = cv2.imencode("." + fmt, img)
         if not ok:
-            raise DatasetError(f"compressed_image: cannot encode as {fmt}")
-        msg = self.ts.types["sensor_msgs/msg/CompressedImage"](
+            raise DatasetError(f"image: cannot compress as {fmt}")
+        return self.ts.types["sensor_msgs/msg/CompressedImage"](
             header=self._header(stamp_ns, frame_id), format=fmt, data=buf.reshape(-1)
         )
-        self._write(topic or self.topics.image, "sensor_msgs/msg/CompressedImage", msg, stamp_ns)
 
     def camera_info(
         self, stamp_ns: int, camera: PinholeCamera, *, frame_id: str = "camera"

@@ -318,10 +318,7 @@ def write_sim_bag(
             f = seq.render(k)
             if tp.camera_info is not None:
                 w.camera_info(t, seq.camera)
-            if compressed:
-                w.compressed_image(t, f.rgb)
-            else:
-                w.image(t, f.rgb)
+            w.image(t, f.rgb, compress="png" if compressed else None)
             if tp.pose is not None:
                 w.pose(t, f.T_world_cam)
             if with_depth and tp.depth is not None:

@@ -65,9 +65,8 @@ def absorb_groups(fr: Frame, group, adjacency, model, Xf, samples):
     dm = model_depth(grid[si], us, kind_g, Am, bm, cm, W, K)
     d_glob = depth_from_space(norm_grid[si], prior_kind, p.d_min_m, p.d_max_m)
     s_ok = model_agrees(dm, zlo[us], zhi[us], d_glob, p.absorb_prior_gate)
-    target = absorb_into_models(
-        pg, pu, np.concatenate([frow, srow]), np.concatenate([f_ok, s_ok]), G, p.consensus.tau
-    )
+    evidence = (np.concatenate([frow, srow]), np.concatenate([f_ok, s_ok]))
+    target = absorb_into_models((pg, pu), evidence, G, p.consensus.tau)
     if np.array_equal(target, np.arange(G)):
         return None
     keep_ids, remap = np.unique(target, return_inverse=True)

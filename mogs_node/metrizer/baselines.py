@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from mogs_node.metrizer.fill import edge_aware_fill, nearest_fill
-from mogs_node.metrizer.inputs import MetrizerInputs, sanitise
+from mogs_node.metrizer.inputs import MetrizerInputs
 from mogs_node.metrizer.pipeline import MetrizedDepth, MetrizerParams, metrize_depth
 
 __all__ = ["BASELINES", "interp_edge_aware", "interp_nearest"]
@@ -30,8 +30,8 @@ def _sparse(kw: dict[str, Any]):
     c = MetrizerInputs(**fields_).checked()
     labels = c.labels
     H, W = labels.shape
-    uv, z, w, _, _ = sanitise(c.uv, c.z, c.w, c.prior, c.conf, p.d_min_m, p.d_max_m, H, W)
-    image = c.image
+    uv, z, w, _, _ = c.sanitised(p.d_min_m, p.d_max_m)
+    image = c.image_rgb
     u = np.clip(np.round(uv[:, 0]).astype(np.intp), 0, W - 1)
     v = np.clip(np.round(uv[:, 1]).astype(np.intp), 0, H - 1)
     return p, labels, u, v, z, image

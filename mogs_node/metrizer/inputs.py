@@ -19,7 +19,7 @@ from mogs_node.errors import ConfigError, GeometryError
 from mogs_node.geometry import check_array
 from mogs_node.metrizer.alignment import PRIOR_KINDS
 
-__all__ = ["CheckedInputs", "MetrizerInputs", "sanitise"]
+__all__ = ["MetrizerInputs"]
 
 F64 = NDArray[np.float64]
 
@@ -54,8 +54,9 @@ class MetrizerInputs:
             raise KeyError(name)
         return getattr(self, name)
 
-    def checked(self, mode: str = "full", modes: tuple[str, ...] = ("full",)) -> CheckedInputs:
-        """Shapes, dtypes and intrinsics checked (one clear error naming the bad field)."""
+    def checked(self, mode: str = "full", modes: tuple[str, ...] = ("full",)) -> MetrizerInputs:
+        """These inputs with shapes, dtypes and intrinsics checked (one clear error naming the bad
+        field) and ``K`` as float64."""
         if self.prior_kind not in PRIOR_KINDS:
             raise ConfigError(f"prior_kind: expected one of {PRIOR_KINDS}, got {self.prior_kind!r}")
         if mode not in modes:
@@ -76,56 +77,43 @@ class MetrizerInputs:
         image = self.image_rgb
         if image is not None:
             image = check_array("image_rgb", image, shape=(H, W, 3), dtype=np.uint8)
-        return CheckedInputs(K, labels, uv, z, w, prior, conf, self.prior_kind, image)
+        return MetrizerInputs(K, labels, uv, z, w, prior, conf, self.prior_kind, image)
 
+    def sanitised(
+        self, d_min_m: float, d_max_m: float
+    ) -> tuple[F64, F64, F64, NDArray[np.float32], NDArray[np.float32]]:
+        """Of these (checked) inputs: the usable features ``uv, z, w`` and the flat float32 prior
+        and confidence (non-finite -> no prior).
 
-@dataclass(frozen=True)
-class CheckedInputs:
-    """:class:`MetrizerInputs` after :meth:`MetrizerInputs.checked` (K as float64)."""
-
-    K: F64
-    labels: NDArray[np.integer]
-    uv: NDArray[np.number]
-    z: NDArray[np.number]
-    w: NDArray[np.number]
-    prior: NDArray[np.number]
-    conf: NDArray[np.number]
-    prior_kind: str
-    image: NDArray[np.uint8] | None
-
-
-def sanitise(
-    uv, z, w, prior, conf, d_min_m: float, d_max_m: float, H: int, W: int, kind: str = ""
-) -> tuple[F64, F64, F64, NDArray[np.float32], NDArray[np.float32]]:
-    """Flat float32 prior / confidence (non-finite -> no prior) and the usable features.
-
-    A depth-space prior (``relative_depth`` / ``metric``) has no value where it is not positive.
-    Features with a non-finite value, outside the image or outside ``[d_min_m, d_max_m]`` are
-    dropped; weights are clipped to be non-negative (plus 1e-6).
-    """
-    prior = np.ascontiguousarray(prior, dtype=np.float32).ravel()
-    conf = np.ascontiguousarray(conf, dtype=np.float32).ravel()
-    good_p, good_c = np.isfinite(prior).all(), np.isfinite(conf).all()
-    if not (good_p and good_c) or conf.min(initial=0.0) < 0 or conf.max(initial=0.0) > 1:
-        good = np.isfinite(prior) & np.isfinite(conf)
-        conf = np.where(good, np.clip(conf, 0.0, 1.0), 0.0).astype(np.float32)
-        prior = np.where(good & (conf > 0), prior, 0.0).astype(np.float32)
-    if kind in (DepthKind.RELATIVE_DEPTH, DepthKind.METRIC) and prior.min(initial=1.0) <= 0:
-        conf = np.where(prior > 0, conf, 0.0).astype(np.float32)
-    uv = uv.astype(np.float64)
-    z = z.astype(np.float64)
-    w = w.astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        keep = (
-            np.all(np.isfinite(uv), axis=1)
-            & np.isfinite(z)
-            & np.isfinite(w)
-            & (z >= d_min_m)
-            & (z <= d_max_m)
-            & (uv[:, 0] > -0.5)
-            & (uv[:, 0] < W - 0.5)
-            & (uv[:, 1] > -0.5)
-            & (uv[:, 1] < H - 0.5)
-        )
-    w = np.maximum(w[keep], 0.0) + 1e-6
-    return uv[keep], z[keep], w, prior, conf
+        A depth-space prior (``relative_depth`` / ``metric``) has no value where it is not
+        positive. Features with a non-finite value, outside the image or outside
+        ``[d_min_m, d_max_m]`` are dropped; weights are clipped to be non-negative (plus 1e-6).
+        """
+        H, W = self.labels.shape
+        kind, prior, conf = self.prior_kind, self.prior, self.prior_confidence
+        prior = np.ascontiguousarray(prior, dtype=np.float32).ravel()
+        conf = np.ascontiguousarray(conf, dtype=np.float32).ravel()
+        good_p, good_c = np.isfinite(prior).all(), np.isfinite(conf).all()
+        if not (good_p and good_c) or conf.min(initial=0.0) < 0 or conf.max(initial=0.0) > 1:
+            good = np.isfinite(prior) & np.isfinite(conf)
+            conf = np.where(good, np.clip(conf, 0.0, 1.0), 0.0).astype(np.float32)
+            prior = np.where(good & (conf > 0), prior, 0.0).astype(np.float32)
+        if kind in (DepthKind.RELATIVE_DEPTH, DepthKind.METRIC) and prior.min(initial=1.0) <= 0:
+            conf = np.where(prior > 0, conf, 0.0).astype(np.float32)
+        uv = self.feature_uv_px.astype(np.float64)
+        z = self.feature_depth_m.astype(np.float64)
+        w = self.feature_weight.astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            keep = (
+                np.all(np.isfinite(uv), axis=1)
+                & np.isfinite(z)
+                & np.isfinite(w)
+                & (z >= d_min_m)
+                & (z <= d_max_m)
+                & (uv[:, 0] > -0.5)
+                & (uv[:, 0] < W - 0.5)
+                & (uv[:, 1] > -0.5)
+                & (uv[:, 1] < H - 0.5)
+            )
+        w = np.maximum(w[keep], 0.0) + 1e-6
+        return uv[keep], z[keep], w, prior, conf

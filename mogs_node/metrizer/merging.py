@@ -16,7 +16,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["group_medians", "merge_undersupported"]
+__all__ = ["absorb_into_models", "group_medians", "merge_undersupported"]
+
+Idx = NDArray[np.intp]
+Pairs = tuple[Idx, Idx]  # two aligned index arrays: edges (k, l) or candidate pairs (g, u)
+MAX_ROUNDS = 100  # merge rounds at most (each round merges every candidate at once)
 
 
 def _find_all(parent: NDArray[np.intp]) -> NDArray[np.intp]:
@@ -45,23 +49,17 @@ def group_medians(
 
 
 def merge_undersupported(
-    n_obj: int,
-    adj_k: NDArray[np.intp],
-    adj_l: NDArray[np.intp],
-    feat_obj: NDArray[np.intp],
-    feat_z: NDArray[np.float64],
-    n_min: int = 9,
-    rho: float = 0.1,
-    max_rounds: int = 100,
-) -> tuple[NDArray[np.intp], int]:
+    n_obj: int, adjacency: Pairs, feat_obj: Idx, feat_z: NDArray[np.float64], n_min: int, rho: float
+) -> tuple[Idx, int]:
     """Group id per object ``[M]`` (compact, ``0..G-1``) and the number of merges performed.
 
-    ``adj_k, adj_l`` ``[E]``: adjacent object pairs; ``feat_obj`` ``[N]`` object per feature (all
-    ``>= 0``), ``feat_z`` ``[N]`` metric depths.
+    ``adjacency = (adj_k, adj_l)`` ``[E]``: adjacent object pairs; ``feat_obj`` ``[N]`` object per
+    feature (all ``>= 0``), ``feat_z`` ``[N]`` metric depths.
     """
+    adj_k, adj_l = adjacency
     parent = np.arange(n_obj)
     merges = 0
-    for _ in range(max_rounds):
+    for _ in range(MAX_ROUNDS):
         root = _find_all(parent)
         counts, med = group_medians(root[feat_obj], feat_z, n_obj)
         gk, gl = root[adj_k], root[adj_l]
@@ -92,22 +90,19 @@ def merge_undersupported(
 
 
 def absorb_into_models(
-    pair_g: NDArray[np.intp],
-    pair_u: NDArray[np.intp],
-    row_pair: NDArray[np.intp],
-    row_ok: NDArray[np.bool_],
-    n_groups: int,
-    min_fraction: float,
-) -> NDArray[np.intp]:
+    candidates: Pairs, evidence: tuple[Idx, NDArray[np.bool_]], n_groups: int, min_fraction: float
+) -> Idx:
     """Second, shape-driven merging scale: absorb groups into an adjacent group's accepted shape.
 
-    ``pair_g, pair_u`` ``[P]``: candidate pairs (group ``g`` without an accepted model, adjacent
-    group ``u`` with one); ``row_pair`` ``[R]`` the pair of each evidence row (a feature of ``g``, or
-    a sample pixel of a featureless ``g``) and ``row_ok`` ``[R]`` whether ``u``'s model explains it.
+    ``candidates = (pair_g, pair_u)`` ``[P]``: candidate pairs (group ``g`` without an accepted
+    model, adjacent group ``u`` with one); ``evidence = (row_pair, row_ok)`` ``[R]``: the pair of
+    each evidence row (a feature of ``g``, or a sample pixel of a featureless ``g``) and whether
+    ``u``'s model explains it.
     ``g`` is absorbed into the ``u`` that explains the largest fraction of its rows, if that
     fraction is at least ``min_fraction``. Returns the new group of every group ``[G]`` (not
     compacted; absorbed groups point at their host, hosts never move).
     """
+    (pair_g, pair_u), (row_pair, row_ok) = candidates, evidence
     target = np.arange(n_groups)
     if len(pair_g) == 0:
         return target

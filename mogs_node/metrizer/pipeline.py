@@ -57,7 +57,7 @@ from mogs_node.metrizer.frame import (
     model_depth,
     object_map,
 )
-from mogs_node.metrizer.inputs import MetrizerInputs, sanitise
+from mogs_node.metrizer.inputs import MetrizerInputs
 from mogs_node.metrizer.merging import merge_undersupported
 from mogs_node.metrizer.params import MODES, MetrizedDepth, MetrizerParams
 from mogs_node.metrizer.refinement import CdrProblem, solve_cdr
@@ -102,11 +102,9 @@ def metrize(
     tm = StageTimer()
     p = params
     c = inputs.checked(mode, MODES)
-    K, labels, image, prior_kind = c.K, c.labels, c.image, c.prior_kind
+    K, labels, image, prior_kind = c.K, c.labels, c.image_rgb, c.prior_kind
     H, W = labels.shape
-    uv, z, w, prior, conf = sanitise(
-        c.uv, c.z, c.w, c.prior, c.conf, p.d_min_m, p.d_max_m, H, W, prior_kind
-    )
+    uv, z, w, prior, conf = c.sanitised(p.d_min_m, p.d_max_m)
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")
 
@@ -276,7 +274,7 @@ def _merge_and_sample(
         adj_k, adj_l, _ = region_adjacency(obj2d, n_obj, pairs)
         adjacency = (adj_k, adj_l)
         group, n_merges = merge_undersupported(
-            n_obj, adj_k, adj_l, feat_obj, z, p.n_min, p.rho_contiguity
+            n_obj, adjacency, feat_obj, z, p.n_min, p.rho_contiguity
         )
     else:
         group, n_merges = np.arange(n_obj), 0

@@ -21,14 +21,58 @@ from mogs_node.msgs.fields import (
     _make_fast_scalars,
 )
 
+FloatOrNaN = float
+"""A float field that may be NaN ("not known"); every other float field must be finite."""
 
+# annotation (a string: ``from __future__ import annotations``) -> scalar kind (``fields``)
+_SCALAR_KIND_OF = {
+    "int": "int",
+    "str": "str",
+    "bool": "bool",
+    "float": "float",
+    "FloatOrNaN": "float_or_nan",
+    "tuple[float, float, float]": "vec3",
+    "dict[str, float]": "dict_num",
+    "dict[str, Any]": "dict_any",
+}
+_ARRAY_ANNOTATIONS = ("np.ndarray", "np.ndarray | None")
+
+
+@dataclass(eq=False)
 class Message:
-    """Base of every message dataclass: ``TYPE``, ``VERSION``, scalar kinds and array specs."""
+    """Base of every message dataclass: the header fields (``stamp_ns``, ``frame_id``, first in
+    every message), ``TYPE``, ``VERSION``, scalar kinds and array specs.
+
+    A subclass declares its fields once, as annotations; ``SCALARS`` (field -> scalar kind, in
+    field order) is derived from them, and every ``np.ndarray`` field must have its ``ARRAYS``
+    spec (and every spec a field), checked when the class is defined.
+    """
 
     TYPE: ClassVar[str]
     VERSION: ClassVar[int] = 1
     SCALARS: ClassVar[dict[str, str]]
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
+
+    stamp_ns: int
+    frame_id: str
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        scalars: dict[str, str] = {}
+        arrays: list[str] = []
+        declared = [k.__dict__.get("__annotations__", {}) for k in reversed(cls.__mro__)]
+        for name, ann in (item for anns in declared for item in anns.items()):
+            if ann.startswith("ClassVar["):
+                continue
+            if ann in _ARRAY_ANNOTATIONS:
+                arrays.append(name)
+            elif ann in _SCALAR_KIND_OF:
+                scalars[name] = _SCALAR_KIND_OF[ann]
+            else:  # a schema author's mistake, caught on import
+                raise TypeError(f"{cls.__name__}.{name}: no wire kind for annotation {ann!r}")
+        if set(arrays) != set(cls.ARRAYS):
+            raise TypeError(f"{cls.__name__}: array fields {arrays} != ARRAYS {list(cls.ARRAYS)}")
+        cls.SCALARS = scalars
 
     def validate(self) -> None:
         """Check the message against its own spec (the same checks the decoder applies)."""
@@ -59,7 +103,8 @@ _F64 = ("<f8",)
 _I32 = ("<i4",)
 _I64 = ("<i8",)
 _I8 = ("|i1",)
-_BASE = {"stamp_ns": "int", "frame_id": "str"}
+_POSE = ArraySpec(_F64, ((4, 4),), finite=True)  # a rigid transform T_a_b
+_INTRINSICS = ArraySpec(_F64, ((3, 3),), finite=True)  # a pinhole K
 
 
 @dataclass(eq=False)
@@ -67,14 +112,11 @@ class Image(Message):
     """A camera image (``/camera/image``)."""
 
     TYPE: ClassVar[str] = "Image"
-    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "encoding": "str"}
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {
         "data": ArraySpec(_U8, (("H", "W"), ("H", "W", 3))),
     }
     ENCODINGS: ClassVar[tuple[str, ...]] = ("mono8", "rgb8", "bgr8")
 
-    stamp_ns: int
-    frame_id: str
     encoding: str
     data: np.ndarray
 
@@ -88,10 +130,7 @@ class Imu(Message):
     """One IMU sample (``/imu``) in the IMU frame."""
 
     TYPE: ClassVar[str] = "Imu"
-    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "gyro_rad_s": "vec3", "accel_m_s2": "vec3"}
 
-    stamp_ns: int
-    frame_id: str
     gyro_rad_s: tuple[float, float, float]
     accel_m_s2: tuple[float, float, float]
 
@@ -101,18 +140,8 @@ class Odometry(Message):
     """Per-frame pose estimate of the frontend (``/frontend/odometry``)."""
 
     TYPE: ClassVar[str] = "Odometry"
-    SCALARS: ClassVar[dict[str, str]] = {
-        **_BASE,
-        "frame_index": "int",
-        "velocity_world_m_s": "vec3",
-        "status": "str",
-    }
-    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
-        "T_world_cam": ArraySpec(_F64, ((4, 4),), finite=True)
-    }
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"T_world_cam": _POSE}
 
-    stamp_ns: int
-    frame_id: str
     frame_index: int
     T_world_cam: np.ndarray
     velocity_world_m_s: tuple[float, float, float]
@@ -128,19 +157,16 @@ class Keyframe(Message):
     """
 
     TYPE: ClassVar[str] = "Keyframe"
-    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int"}
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {
         "image": ArraySpec(_U8, (("H", "W", 3), ("H", "W"))),
-        "K": ArraySpec(_F64, ((3, 3),), finite=True),
-        "T_world_cam": ArraySpec(_F64, ((4, 4),), finite=True),
+        "K": _INTRINSICS,
+        "T_world_cam": _POSE,
         "feature_ids": ArraySpec(_I64, (("N",),)),
         "feature_uv_px": ArraySpec(_F32, (("N", 2),), finite=True),
         "feature_xyz_cam_m": ArraySpec(_F32, (("N", 3),), finite=True),
         "feature_weight": ArraySpec(_F32, (("N",),), finite=True),
     }
 
-    stamp_ns: int
-    frame_id: str
     keyframe_id: int
     image: np.ndarray
     K: np.ndarray
@@ -169,11 +195,8 @@ class Masks(Message):
     """Instance masks of a keyframe as one label image, -1 = no mask (``/seg/masks``)."""
 
     TYPE: ClassVar[str] = "Masks"
-    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int", "backend": "str"}
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {"labels": ArraySpec(_I32, (("H", "W"),))}
 
-    stamp_ns: int
-    frame_id: str
     keyframe_id: int
     labels: np.ndarray
     backend: str
@@ -189,12 +212,6 @@ class DepthMap(Message):
     """
 
     TYPE: ClassVar[str] = "DepthMap"
-    SCALARS: ClassVar[dict[str, str]] = {
-        **_BASE,
-        "keyframe_id": "int",
-        "kind": "str",
-        "source": "str",
-    }
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {
         "depth": ArraySpec(_F32, (("H", "W"),), finite=True),
         "confidence": ArraySpec(_F32, (("H", "W"),), finite=True),
@@ -203,8 +220,6 @@ class DepthMap(Message):
     }
     KINDS: ClassVar[tuple[str, ...]] = DEPTH_KINDS  # mogs_node.depth_kind.DepthKind
 
-    stamp_ns: int
-    frame_id: str
     keyframe_id: int
     kind: str
     depth: np.ndarray
@@ -219,25 +234,13 @@ class MapStats(Message):
     """Mapper statistics after a keyframe (``/mapper/stats``)."""
 
     TYPE: ClassVar[str] = "MapStats"
-    SCALARS: ClassVar[dict[str, str]] = {
-        **_BASE,
-        "keyframe_id": "int",
-        "n_gaussians": "int",
-        "n_keyframes": "int",
-        "iterations": "int",
-        "loss": "float_or_nan",
-        "psnr_db": "float_or_nan",
-        "extra": "dict_num",
-    }
 
-    stamp_ns: int
-    frame_id: str
     keyframe_id: int
     n_gaussians: int
     n_keyframes: int
     iterations: int
-    loss: float
-    psnr_db: float
+    loss: FloatOrNaN
+    psnr_db: FloatOrNaN
     extra: dict[str, float] = field(default_factory=dict)
 
 
@@ -246,14 +249,11 @@ class Render(Message):
     """A rendered view of the map (``/mapper/render``)."""
 
     TYPE: ClassVar[str] = "Render"
-    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int"}
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {
         "image": ArraySpec(_U8, (("H", "W", 3),)),
         "depth": ArraySpec(_F32, (("H", "W"),), finite=True, optional=True),
     }
 
-    stamp_ns: int
-    frame_id: str
     keyframe_id: int
     image: np.ndarray
     depth: np.ndarray | None = None
@@ -264,7 +264,6 @@ class GaussianUpdate(Message):
     """Incremental map change: Gaussians added or changed (by id) and ids removed."""
 
     TYPE: ClassVar[str] = "GaussianUpdate"
-    SCALARS: ClassVar[dict[str, str]] = {**_BASE, "keyframe_id": "int"}
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {
         "ids": ArraySpec(_I64, (("N",),)),
         "means": ArraySpec(_F32, (("N", 3),), finite=True),
@@ -275,8 +274,6 @@ class GaussianUpdate(Message):
         "removed_ids": ArraySpec(_I64, (("M",),)),
     }
 
-    stamp_ns: int
-    frame_id: str
     keyframe_id: int
     ids: np.ndarray
     means: np.ndarray
@@ -292,13 +289,8 @@ class PoseStamped(Message):
     """A pose, e.g. ground truth on ``/groundtruth/pose``."""
 
     TYPE: ClassVar[str] = "PoseStamped"
-    SCALARS: ClassVar[dict[str, str]] = dict(_BASE)
-    ARRAYS: ClassVar[dict[str, ArraySpec]] = {
-        "T_world_cam": ArraySpec(_F64, ((4, 4),), finite=True)
-    }
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"T_world_cam": _POSE}
 
-    stamp_ns: int
-    frame_id: str
     T_world_cam: np.ndarray
 
 
@@ -311,18 +303,7 @@ class Diagnostics(Message):
     """
 
     TYPE: ClassVar[str] = "Diagnostics"
-    SCALARS: ClassVar[dict[str, str]] = {
-        **_BASE,
-        "node": "str",
-        "pid": "int",
-        "uptime_s": "float",
-        "status": "str",
-        "counters": "dict_num",
-        "topics": "dict_any",
-    }
 
-    stamp_ns: int
-    frame_id: str
     node: str
     pid: int
     uptime_s: float
@@ -346,17 +327,8 @@ class CameraInfo(Message):
     """
 
     TYPE: ClassVar[str] = "CameraInfo"
-    SCALARS: ClassVar[dict[str, str]] = {
-        **_BASE,
-        "width": "int",
-        "height": "int",
-        "distortion_model": "str",
-        "camera_height_m": "float_or_nan",
-        "imu_noise": "dict_num",
-        "source": "str",
-    }
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {
-        "K": ArraySpec(_F64, ((3, 3),), finite=True),
+        "K": _INTRINSICS,
         "distortion_coeffs": ArraySpec(_F64, (("D",),), finite=True),
         "T_imu_cam": ArraySpec(_F64, ((4, 4),), finite=True, optional=True),
     }
@@ -366,15 +338,13 @@ class CameraInfo(Message):
         "equidistant": (4,),
     }
 
-    stamp_ns: int
-    frame_id: str
     width: int
     height: int
     K: np.ndarray
     distortion_model: str
     distortion_coeffs: np.ndarray
     T_imu_cam: np.ndarray | None = None
-    camera_height_m: float = float("nan")
+    camera_height_m: FloatOrNaN = float("nan")
     imu_noise: dict[str, float] = field(default_factory=dict)
     source: str = ""
 

@@ -47,6 +47,15 @@ def test_valid_lines_round_trip_exactly(t: int, v: list[float], pad: str) -> Non
     assert s == ImuSample(t, tuple(v[:3]), tuple(v[3:]))
 
 
+@given(t_ns, st.lists(finite, min_size=6, max_size=6))
+def test_a_parsed_sample_is_the_imu_message_it_publishes(t: int, v: list[float]) -> None:
+    m = parse_imu_line(_line(t, v)).message("imu0")
+    assert m == msgs.Imu(
+        stamp_ns=t, frame_id="imu0", gyro_rad_s=tuple(v[:3]), accel_m_s2=tuple(v[3:])
+    )
+    m.validate()
+
+
 @given(st.text(max_size=80))
 def test_arbitrary_text_is_parsed_or_rejected_never_crashes(text: str) -> None:
     try:

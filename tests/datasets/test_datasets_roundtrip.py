@@ -95,8 +95,8 @@ def test_bag_custom_topics_compressed_and_encodings(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     img = rng.integers(0, 255, (12, 20, 3), dtype=np.uint8)
     with BagWriter(tmp_path / "c", "mcap", topics=topics) as w:
-        w.compressed_image(1_000, img)
-        w.compressed_image(2_000, img[..., 0])
+        w.image(1_000, img, compress="png")
+        w.image(2_000, img[..., 0], compress="png")
         w.image(3_000, img, topic="/other")
         w.imu(1_500, np.array([0.1, 0.2, 0.3]), np.array([1.0, 2.0, 9.8]))
     cam = PinholeCamera(10.0, 10.0, 9.5, 5.5, 20, 12)

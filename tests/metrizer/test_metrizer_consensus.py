@@ -156,7 +156,7 @@ def test_merging_picks_contiguous_neighbour_with_smallest_gap():
     adj_l = np.array([2, 2, 3, 4, 4])
     feat_obj = np.array([0] * 9 + [1] * 9 + [2] * 3 + [3] * 2)
     z = np.array([10.0] * 9 + [10.5] * 9 + [10.4] * 3 + [30.0] * 2)
-    group, merges = merge_undersupported(5, adj_k, adj_l, feat_obj, z, n_min=9, rho=0.1)
+    group, merges = merge_undersupported(5, (adj_k, adj_l), feat_obj, z, n_min=9, rho=0.1)
     assert merges == 1
     assert group[2] == group[1] != group[0]
     assert len({group[3], group[4], group[0], group[1]}) == 4
@@ -167,7 +167,7 @@ def test_merging_is_repeated_until_supported():
     adj_k, adj_l = np.array([0, 1, 2]), np.array([1, 2, 3])
     feat_obj = np.repeat(np.arange(4), 3)
     z = np.repeat([10.0, 10.2, 10.4, 10.6], 3)
-    group, merges = merge_undersupported(4, adj_k, adj_l, feat_obj, z, n_min=9, rho=0.1)
+    group, merges = merge_undersupported(4, (adj_k, adj_l), feat_obj, z, n_min=9, rho=0.1)
     counts, _ = group_medians(group[feat_obj], z, int(group.max()) + 1)
     assert counts.min() >= 9 or len(counts) == 1
     assert merges >= 2
@@ -221,12 +221,11 @@ def test_absorb_into_models_picks_best_explaining_neighbour():
     pair_g, pair_u = np.array([0, 0, 1, 2]), np.array([5, 6, 5, 6])
     row_pair = np.array([0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 3])
     row_ok = np.array([1, 1, 1, 0, 1, 1, 1, 1, 1, 0, 0], bool)
-    target = absorb_into_models(pair_g, pair_u, row_pair, row_ok, 7, min_fraction=0.8)
+    target = absorb_into_models((pair_g, pair_u), (row_pair, row_ok), 7, min_fraction=0.8)
     # 0: 3/4 via 5, 4/4 via 6 -> 6; 1: 1/2 -> stays; 2: 0/1 -> stays
     assert target.tolist() == [6, 1, 2, 3, 4, 5, 6]
-    empty = absorb_into_models(
-        np.zeros(0, int), np.zeros(0, int), np.zeros(0, int), np.zeros(0, bool), 3, 0.8
-    )
+    none = (np.zeros(0, int), np.zeros(0, int))
+    empty = absorb_into_models(none, (np.zeros(0, int), np.zeros(0, bool)), 3, 0.8)
     assert empty.tolist() == [0, 1, 2]
 
 

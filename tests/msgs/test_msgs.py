@@ -600,3 +600,42 @@ def test_camera_info_round_trip_and_malformed():
         bad = msgs.CameraInfo(**{**info.__dict__, **over})
         with pytest.raises(_Err, match=field):
             bad.validate()
+
+
+def test_scalar_kinds_come_from_the_field_annotations():
+    """SCALARS is derived from the fields, header first, in field order; FloatOrNaN may be NaN."""
+    assert list(msgs.Odometry.SCALARS.items()) == [
+        ("stamp_ns", "int"),
+        ("frame_id", "str"),
+        ("frame_index", "int"),
+        ("velocity_world_m_s", "vec3"),
+        ("status", "str"),
+    ]
+    assert msgs.MapStats.SCALARS["loss"] == "float_or_nan"
+    assert msgs.Diagnostics.SCALARS["uptime_s"] == "float"
+    assert msgs.Diagnostics.SCALARS["topics"] == "dict_any"
+    assert msgs.CameraInfo.SCALARS["imu_noise"] == "dict_num"
+    assert "K" not in msgs.CameraInfo.SCALARS
+
+
+def test_schema_mistakes_fail_when_the_class_is_defined():
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from mogs_node.msgs.fields import ArraySpec
+    from mogs_node.msgs.schema import Message
+
+    with pytest.raises(TypeError, match="no wire kind"):
+
+        @dataclass(eq=False)
+        class _Bad(Message):
+            TYPE: ClassVar[str] = "Bad"
+            when: list[int]
+
+    with pytest.raises(TypeError, match="array fields"):
+
+        @dataclass(eq=False)
+        class _Unspecified(Message):
+            TYPE: ClassVar[str] = "Unspecified"
+            ARRAYS: ClassVar[dict[str, ArraySpec]] = {"a": ArraySpec(("<f4",), (("N",),))}
+            b: np.ndarray
