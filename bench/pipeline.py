@@ -98,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     kf_t: dict[int, float] = {}  # keyframe id -> arrival of the frontend's keyframe
     depth_t: dict[int, float] = {}
     stats_t: dict[int, float] = {}
+    map_cpu_s: dict[int, float] = {}  # keyframe id -> the mapper's CPU for it (its stats)
     final_t: float | None = None  # the mapper's final (refined) map, when it refines
     cpu: dict[str, list[float]] = {}
     cpu_t: dict[str, list[tuple[float, float]]] = {}  # name -> (time, user + system CPU s)
@@ -121,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
                     final_t = now
                 else:
                     stats_t.setdefault(m.keyframe_id, now)
+                    if "map_cpu_ms" in m.extra:
+                        map_cpu_s[m.keyframe_id] = float(m.extra["map_cpu_ms"]) / 1000
         if now - last_sample >= 0.5:
             last_sample = now
             for child in launcher.children:
@@ -193,6 +196,18 @@ def main(argv: list[str] | None = None) -> int:
         ]
         for k, s in sorted(kf_stamp.items())
     }
+    # the mapper's CPU per keyframe: insertion + iterations as it reports them (map_cpu_ms), and
+    # its whole process during the drive (also decoding, the snapshot, the map update) over the
+    # keyframes mapped
+    if map_cpu_s:
+        figures["mapper_map_cpu_s_per_keyframe_mean"] = round(
+            statistics.mean(map_cpu_s.values()), 3
+        )
+    if "mapper" in cpu and stats_t:
+        pct = drive_cpu_percent(cpu_t["mapper"], first, last)
+        figures["mapper_process_cpu_s_per_keyframe_drive"] = round(
+            pct / 100 * span / len(stats_t), 3
+        )
     for name in cpu:
         figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(cpu[name]), 1)
         figures[f"{name}_cpu_percent_drive"] = drive_cpu_percent(cpu_t[name], first, last)

@@ -157,6 +157,12 @@ class MapperNodeParams:
         )
 
 
+def _map_header(stamp_ns: int, keyframe_id: int) -> dict[str, Any]:
+    """The header fields of a map message (stats, update): the keyframe it follows, in the world
+    frame."""
+    return {"stamp_ns": stamp_ns, "frame_id": "world", "keyframe_id": keyframe_id}
+
+
 def depth_for_keyframe(
     depth: msgs.DepthMap, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -338,9 +344,7 @@ class MapperNode(Node):
         self.publish(
             self.params.stats_topic,
             msgs.MapStats(
-                stamp_ns=stamp_ns,
-                frame_id="world",
-                keyframe_id=keyframe_id,
+                **_map_header(stamp_ns, keyframe_id),
                 n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
                 n_keyframes=int(st["n_keyframes"]),
                 iterations=int(st["iterations"]),
@@ -449,9 +453,7 @@ class MapperNode(Node):
         self.publish(
             self.params.gaussians_topic,
             msgs.GaussianUpdate(
-                stamp_ns=stamp_ns,
-                frame_id="world",
-                keyframe_id=keyframe_id,
+                **_map_header(stamp_ns, keyframe_id),
                 ids=ch.ids,
                 means=ch.means,
                 log_scales=ch.log_scales,
