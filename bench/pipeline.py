@@ -50,6 +50,23 @@ def drive_cpu_percent(samples: list[tuple[float, float]], t0: float, t1: float) 
     return round(100.0 * (cb - ca) / (tb - ta), 1)
 
 
+def mapper_cpu_per_keyframe(
+    map_cpu_s: dict[int, float], samples: list[tuple[float, float]], t0: float, t1: float
+) -> dict[str, float]:
+    """The mapper's CPU per keyframe: insertion + iterations as its stats report them
+    (``map_cpu_ms``, ``map_cpu_s`` by keyframe id), and its whole process during the drive
+    ``t0``-``t1`` (also decoding, the snapshot, the map update; ``samples`` as for
+    :func:`drive_cpu_percent`) over the keyframes mapped."""
+    out: dict[str, float] = {}
+    if map_cpu_s:
+        out["mapper_map_cpu_s_per_keyframe_mean"] = round(statistics.mean(map_cpu_s.values()), 3)
+        pct = drive_cpu_percent(samples, t0, t1)
+        out["mapper_process_cpu_s_per_keyframe_drive"] = round(
+            pct / 100 * (t1 - t0) / len(map_cpu_s), 3
+        )
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -196,18 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         for k, s in sorted(kf_stamp.items())
     }
-    # the mapper's CPU per keyframe: insertion + iterations as it reports them (map_cpu_ms), and
-    # its whole process during the drive (also decoding, the snapshot, the map update) over the
-    # keyframes mapped
-    if map_cpu_s:
-        figures["mapper_map_cpu_s_per_keyframe_mean"] = round(
-            statistics.mean(map_cpu_s.values()), 3
-        )
-    if "mapper" in cpu and stats_t:
-        pct = drive_cpu_percent(cpu_t["mapper"], first, last)
-        figures["mapper_process_cpu_s_per_keyframe_drive"] = round(
-            pct / 100 * span / len(stats_t), 3
-        )
+    figures.update(mapper_cpu_per_keyframe(map_cpu_s, cpu_t.get("mapper", []), first, last))
     for name in cpu:
         figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(cpu[name]), 1)
         figures[f"{name}_cpu_percent_drive"] = drive_cpu_percent(cpu_t[name], first, last)

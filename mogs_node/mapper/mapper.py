@@ -61,6 +61,17 @@ __all__ = ["GaussianMapper", "KeyframeState", "MapperParams", "export_ply", "res
 log = logging.getLogger(__name__)
 
 
+def _upsample_nearest(x: np.ndarray, f: int, height: int, width: int) -> np.ndarray:
+    """``x`` [h, w, ...] rendered at 1/``f`` (:meth:`GaussianMapper._train_camera`: block u'
+    covers u = f u' .. f u' + f - 1) -> [height, width, ...], each block's value repeated; a
+    trailing partial block takes the last value."""
+    if f == 1:
+        return x
+    up = np.repeat(np.repeat(x, f, axis=0), f, axis=1)[:height, :width]
+    pad = [(0, height - up.shape[0]), (0, width - up.shape[1])] + [(0, 0)] * (x.ndim - 2)
+    return np.pad(up, pad, mode="edge")
+
+
 def _scatter_rows(values: torch.Tensor, rows: torch.Tensor, n: int) -> torch.Tensor:
     """``values`` [R] of the rows ``rows`` [R] of an [n] map, as [n] (0 elsewhere)."""
     full = torch.zeros(n, dtype=values.dtype, device=values.device)
@@ -176,14 +187,17 @@ class GaussianMapper:
         seen_ids = np.zeros(0, np.int64)
         seen_w = np.zeros(0, np.float32)
         if len(self.map):
-            r = self.render_view(T)
-            alpha = r.alpha.numpy()
-            rdepth = (r.depth / r.alpha.clamp_min(1e-6)).numpy()
-            rrgb = r.color.numpy()
+            f = self.params.insert_downsample
+            K_f, size_f = self._train_camera(f)
+            r = self.render_view(T, K=K_f, size=size_f)
+            alpha, rdepth, rrgb = (
+                _upsample_nearest(x.numpy(), f, H, W)
+                for x in (r.alpha, r.depth / r.alpha.clamp_min(1e-6), r.color)
+            )
             vis = (r.counts > 0).to(self.device)
             seen_ids = self.map.ids[vis].cpu().numpy()
-            if r.weights is not None:
-                seen_w = r.weights[vis.cpu()].numpy().astype(np.float32)
+            if r.weights is not None:  # in full-resolution pixels
+                seen_w = (r.weights[vis.cpu()] * float(f**2)).numpy().astype(np.float32)
             else:  # no weights from this backend: unknown until the view is trained
                 seen_w = np.zeros(len(seen_ids), np.float32)
                 next_id_before = 0
