@@ -50,6 +50,23 @@ def drive_cpu_percent(samples: list[tuple[float, float]], t0: float, t1: float) 
     return round(100.0 * (cb - ca) / (tb - ta), 1)
 
 
+def mapper_cpu_per_keyframe(
+    map_cpu_s: dict[int, float], samples: list[tuple[float, float]], t0: float, t1: float
+) -> dict[str, float]:
+    """The mapper's CPU per keyframe: insertion + iterations as its stats report them
+    (``map_cpu_ms``, ``map_cpu_s`` by keyframe id), and its whole process during the drive
+    ``t0``-``t1`` (also decoding, the snapshot, the map update; ``samples`` as for
+    :func:`drive_cpu_percent`) over the keyframes mapped."""
+    out: dict[str, float] = {}
+    if map_cpu_s:
+        out["mapper_map_cpu_s_per_keyframe_mean"] = round(statistics.mean(map_cpu_s.values()), 3)
+        pct = drive_cpu_percent(samples, t0, t1)
+        out["mapper_process_cpu_s_per_keyframe_drive"] = round(
+            pct / 100 * (t1 - t0) / len(map_cpu_s), 3
+        )
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -98,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     kf_t: dict[int, float] = {}  # keyframe id -> arrival of the frontend's keyframe
     depth_t: dict[int, float] = {}
     stats_t: dict[int, float] = {}
+    map_cpu_s: dict[int, float] = {}  # keyframe id -> the mapper's CPU for it (its stats)
     final_t: float | None = None  # the mapper's final (refined) map, when it refines
     cpu: dict[str, list[float]] = {}
     cpu_t: dict[str, list[tuple[float, float]]] = {}  # name -> (time, user + system CPU s)
@@ -121,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
                     final_t = now
                 else:
                     stats_t.setdefault(m.keyframe_id, now)
+                    if "map_cpu_ms" in m.extra:
+                        map_cpu_s[m.keyframe_id] = float(m.extra["map_cpu_ms"]) / 1000
         if now - last_sample >= 0.5:
             last_sample = now
             for child in launcher.children:
@@ -193,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         for k, s in sorted(kf_stamp.items())
     }
+    figures.update(mapper_cpu_per_keyframe(map_cpu_s, cpu_t.get("mapper", []), first, last))
     for name in cpu:
         figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(cpu[name]), 1)
         figures[f"{name}_cpu_percent_drive"] = drive_cpu_percent(cpu_t[name], first, last)

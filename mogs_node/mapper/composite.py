@@ -22,6 +22,7 @@ import logging
 import os
 import threading
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
@@ -29,7 +30,13 @@ import torch
 
 from mogs_node.mapper.projection import TileBins
 
-__all__ = ["composite", "composite_torch", "cpp_extension_available", "load_cpp_extension"]
+__all__ = [
+    "CompositeJob",
+    "composite",
+    "composite_torch",
+    "cpp_extension_available",
+    "load_cpp_extension",
+]
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +142,30 @@ def _entry_weights_per_gaussian(
     return w.to(entry_w.dtype)
 
 
+@dataclass(frozen=True)
+class CompositeJob:
+    """What one compositing pass needs: screen-space Gaussians ``means2d`` [N, 2] px,
+    ``conics`` [N, 3], ``opacity`` [N], their features ``feats`` [N, C] (C <= 8) and the
+    background ``bg`` [C], all one float dtype; their depth-sorted tile lists ``bins``, the image
+    size and ``thresholds = (alpha_min, alpha_max, t_min)``."""
+
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    opacity: torch.Tensor
+    feats: torch.Tensor
+    bg: torch.Tensor
+    bins: TileBins
+    width: int
+    height: int
+    thresholds: tuple[float, float, float]
+
+    def tensors(
+        self,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The differentiable inputs, in order: means2d, conics, opacity, feats, bg."""
+        return self.means2d, self.conics, self.opacity, self.feats, self.bg
+
+
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds):
@@ -190,19 +221,12 @@ class _CompositeCpp(torch.autograd.Function):
 
 
 def composite_torch(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacity: torch.Tensor,
-    feats: torch.Tensor,
-    bg: torch.Tensor,
-    bins: TileBins,
-    width: int,
-    height: int,
-    thresholds: tuple[float, float, float],
-    chunk: int = 32,
+    job: CompositeJob, chunk: int = 32
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Pure-PyTorch compositing; same inputs/outputs as :func:`composite`."""
-    alpha_min, alpha_max, t_min = thresholds
+    means2d, conics, opacity, feats, bg = job.tensors()
+    bins, width, height = job.bins, job.width, job.height
+    alpha_min, alpha_max, t_min = job.thresholds
     ts, tx_n, ty_n = bins.tile_px, bins.tiles_x, bins.tiles_y
     n_tiles = tx_n * ty_n
     C = feats.shape[1]
@@ -271,21 +295,11 @@ def composite_torch(
 
 
 def composite(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacity: torch.Tensor,
-    feats: torch.Tensor,
-    bg: torch.Tensor,
-    bins: TileBins,
-    width: int,
-    height: int,
-    thresholds: tuple[float, float, float],
-    backend: str = "auto",
+    job: CompositeJob, backend: str = "auto"
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Composite screen-space Gaussians into ``[H, W, C]`` features.
+    """Composite the screen-space Gaussians of ``job`` into ``[H, W, C]`` features.
 
-    ``means2d`` [N, 2], ``conics`` [N, 3], ``opacity`` [N], ``feats`` [N, C] (C <= 8), ``bg`` [C],
-    all the same float dtype; ``thresholds = (alpha_min, alpha_max, t_min)``. Returns
+    Returns
     ``(out [H, W, C], final_transmittance [H, W], counts [N] int32, weights [N])`` where ``counts``
     is the number of pixels each Gaussian contributed to and ``weights`` its summed blending
     weight ``sum_p alpha_i(p) T_i(p)`` over those pixels (3DGS eq. 3's per-pixel weights; not
@@ -293,9 +307,7 @@ def composite(
     ``"torch"``.
     """
     if backend in ("auto", "cpp") and load_cpp_extension() is not None:
-        return _CompositeCpp.apply(
-            means2d, conics, opacity, feats, bg, bins, width, height, thresholds
-        )
+        return _CompositeCpp.apply(*job.tensors(), job.bins, job.width, job.height, job.thresholds)
     if backend == "cpp":
         log.warning("composite: C++ backend requested but unavailable; using pure PyTorch")
-    return composite_torch(means2d, conics, opacity, feats, bg, bins, width, height, thresholds)
+    return composite_torch(job)

@@ -51,7 +51,7 @@ from mogs_node.mapper.insertion import (
 from mogs_node.mapper.keyframe import KeyframeState
 from mogs_node.mapper.mapper_params import MapperParams, resolve_device
 from mogs_node.mapper.ply import export_ply
-from mogs_node.mapper.projection import cull_gaussians, se3_exp_torch
+from mogs_node.mapper.projection import ScreenView, cull_gaussians, se3_exp_torch
 from mogs_node.mapper.rasterizer import GaussianTensors, RenderOutput, render
 from mogs_node.mapper.support import blending_contribution, rows_of
 from mogs_node.mapper.window import update_window
@@ -59,6 +59,24 @@ from mogs_node.mapper.window import update_window
 __all__ = ["GaussianMapper", "KeyframeState", "MapperParams", "export_ply", "resolve_device"]
 
 log = logging.getLogger(__name__)
+
+
+def _upsample_nearest(x: np.ndarray, f: int, height: int, width: int) -> np.ndarray:
+    """``x`` [h, w, ...] rendered at 1/``f`` (:meth:`GaussianMapper._train_camera`: block u'
+    covers u = f u' .. f u' + f - 1) -> [height, width, ...], each block's value repeated; a
+    trailing partial block takes the last value."""
+    if f == 1:
+        return x
+    up = np.repeat(np.repeat(x, f, axis=0), f, axis=1)[:height, :width]
+    pad = [(0, height - up.shape[0]), (0, width - up.shape[1])] + [(0, 0)] * (x.ndim - 2)
+    return np.pad(up, pad, mode="edge")
+
+
+def _scatter_rows(values: torch.Tensor, rows: torch.Tensor, n: int) -> torch.Tensor:
+    """``values`` [R] of the rows ``rows`` [R] of an [n] map, as [n] (0 elsewhere)."""
+    full = torch.zeros(n, dtype=values.dtype, device=values.device)
+    full[rows.to(values.device)] = values
+    return full
 
 
 class GaussianMapper:
@@ -107,18 +125,21 @@ class GaussianMapper:
         K: tuple[float, float, float, float] | None = None,
         size: tuple[int, int] | None = None,
     ) -> RenderOutput:
-        """Render the current map (no gradients) from ``T_world_cam`` [4, 4]; CPU tensors out."""
+        """Render the current map (no gradients) from ``T_world_cam`` [4, 4]; CPU tensors out.
+
+        Only the rows the view's cheap cull keeps are projected and composited (the image is the
+        whole map's, bit for bit: :meth:`_visible_rows`); ``counts`` and ``weights`` are [N] over
+        the whole map, 0 for the rows culled."""
         T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
-        W, H = size or (self.width, self.height)
+        K, size = K or self.K, size or (self.width, self.height)
+        T_cam_world = torch.as_tensor(se3_inverse(T))
         with torch.no_grad():
-            out = render(
-                self.map.tensors(),
-                torch.as_tensor(se3_inverse(T)),
-                K or self.K,
-                W,
-                H,
-                params=self.params.raster,
-            )
+            rows = self._visible_rows(T_cam_world, K, size)
+            seen = GaussianTensors(*(t[rows] for t in self.map.tensors().tensors()))
+            out = render(seen, T_cam_world, K, size[0], size[1], params=self.params.raster)
+            out.counts = _scatter_rows(out.counts, rows, len(self.map))
+            if out.weights is not None:
+                out.weights = _scatter_rows(out.weights, rows, len(self.map))
             if exposure_ab is not None:
                 out.color = self._expose(out.color, exposure_ab)
         out.color = out.color.clamp(0, 1)
@@ -166,14 +187,17 @@ class GaussianMapper:
         seen_ids = np.zeros(0, np.int64)
         seen_w = np.zeros(0, np.float32)
         if len(self.map):
-            r = self.render_view(T)
-            alpha = r.alpha.numpy()
-            rdepth = (r.depth / r.alpha.clamp_min(1e-6)).numpy()
-            rrgb = r.color.numpy()
+            f = self.params.insert_downsample
+            K_f, size_f = self._train_camera(f)
+            r = self.render_view(T, K=K_f, size=size_f)
+            alpha, rdepth, rrgb = (
+                _upsample_nearest(x.numpy(), f, H, W)
+                for x in (r.alpha, r.depth / r.alpha.clamp_min(1e-6), r.color)
+            )
             vis = (r.counts > 0).to(self.device)
             seen_ids = self.map.ids[vis].cpu().numpy()
-            if r.weights is not None:
-                seen_w = r.weights[vis.cpu()].numpy().astype(np.float32)
+            if r.weights is not None:  # in full-resolution pixels
+                seen_w = (r.weights[vis.cpu()] * float(f**2)).numpy().astype(np.float32)
             else:  # no weights from this backend: unknown until the view is trained
                 seen_w = np.zeros(len(seen_ids), np.float32)
                 next_id_before = 0
@@ -379,23 +403,12 @@ class GaussianMapper:
         """Rows [R] of the Gaussians the training view may draw: a superset of the projection
         step's cull (in front, opacity above ``alpha_min``, support box on screen;
         :func:`cull_gaussians`). Rendering only these gives the same image as the whole map."""
-        r = self.params.raster
         K = self.train_K if K is None else K  # default: the training camera
-        W, H = self.train_size if size is None else size
+        size = self.train_size if size is None else size
         prm = self.map.params
-        valid = cull_gaussians(
-            prm["means"],
-            prm["log_scales"],
-            prm["opacity_logit"],
-            T_cam_world.to(device=self.device, dtype=prm["means"].dtype),
-            K,
-            W,
-            H,
-            near_m=r.near_m,
-            eps2d_px2=r.eps2d_px2,
-            alpha_min=r.alpha_min,
-            log_scale_range=(r.log_scale_min, r.log_scale_max),
-        )
+        T = T_cam_world.to(device=self.device, dtype=prm["means"].dtype)
+        view = ScreenView.of(T, K, size, self.params.raster)
+        valid = cull_gaussians(prm["means"], prm["log_scales"], prm["opacity_logit"], view)
         return torch.nonzero(valid).flatten()
 
     def _train_step(
@@ -421,7 +434,8 @@ class GaussianMapper:
         )
         kf = self.keyframes[i]
         rows = self._visible_rows(kf.T_cam_world, K_f, (W, H))
-        leaves = {k: self.map.params[k][rows].clone().requires_grad_() for k in PARAM_NAMES}
+        # indexing copies: the leaves are the view's own tensors
+        leaves = {k: self.map.params[k][rows].requires_grad_() for k in PARAM_NAMES}
         xi = None
         if refine_pose and p.refine_poses and i in self.window and i != fixed_pose:
             xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)

@@ -28,6 +28,7 @@ class MapperParams:
     # samples from (against forgetting): odd iterations pick uniformly from the older window
     # keyframes plus this many past keyframes drawn afresh
     train_downsample: int = 1  # optimise at 1/n of the resolution (area-averaged targets)
+    insert_downsample: int = 1  # the insertion render at 1/n of the resolution (nearest-upsampled)
     converge_rel: float = 0.0  # end a round once the newest view's L1 error fell by less than
     # this fraction since its previous iteration (0: always run every iteration asked for)
     min_iters: int = 4  # ... but never before this many iterations of the round
@@ -82,9 +83,14 @@ class MapperParams:
             raise ConfigError("MapperParams: refine_lr_scale and refine_lr_final must be > 0")
         if not (self.refine_lambda_depth == -1.0 or 0 <= self.refine_lambda_depth <= 1):
             raise ConfigError("MapperParams.refine_lambda_depth: -1 or in [0, 1]")
-        if self.train_downsample < 1 or self.converge_rel < 0 or self.min_iters < 1:
+        if (
+            self.train_downsample < 1
+            or self.insert_downsample < 1
+            or self.converge_rel < 0
+            or self.min_iters < 1
+        ):
             raise ConfigError(
-                "MapperParams: train_downsample >= 1, converge_rel >= 0, min_iters >= 1"
+                "MapperParams: train_downsample, insert_downsample >= 1, converge_rel >= 0, min_iters >= 1"
             )
         if self.device != "cpu" and not self.device.startswith("cuda"):
             raise ConfigError(f"MapperParams.device: 'cpu' or 'cuda[:N]', got {self.device!r}")

@@ -62,6 +62,7 @@ class MapperNodeParams:
     window_size: int = 8  # keyframes in the optimisation window
     n_random_past: int = 2  # random past keyframes among an iteration's candidate views
     train_downsample: int = 1  # optimise at 1/n of the image resolution
+    insert_downsample: int = 1  # render the map for insertion at 1/n of the resolution
     converge_rel: float = 0.0  # end a keyframe's iterations once the newest view's L1 error
     # falls by less than this fraction per iteration of it (0: always iters_per_keyframe)
     min_iters: int = 4  # ... never before this many
@@ -140,6 +141,7 @@ class MapperNodeParams:
             window_size=self.window_size,
             n_random_past=self.n_random_past,
             train_downsample=self.train_downsample,
+            insert_downsample=self.insert_downsample,
             converge_rel=self.converge_rel,
             min_iters=self.min_iters,
             device=self.device,
@@ -155,6 +157,12 @@ class MapperNodeParams:
             densify=self.densify,
             insertion=InsertionParams(background_depth_m=self.background_depth_m),
         )
+
+
+def _map_header(stamp_ns: int, keyframe_id: int) -> dict[str, Any]:
+    """The header fields of a map message (stats, update): the keyframe it follows, in the world
+    frame."""
+    return {"stamp_ns": stamp_ns, "frame_id": "world", "keyframe_id": keyframe_id}
 
 
 def depth_for_keyframe(
@@ -338,9 +346,7 @@ class MapperNode(Node):
         self.publish(
             self.params.stats_topic,
             msgs.MapStats(
-                stamp_ns=stamp_ns,
-                frame_id="world",
-                keyframe_id=keyframe_id,
+                **_map_header(stamp_ns, keyframe_id),
                 n_gaussians=int(st["n_gaussians"]) + self.submaps.gaussians_on_disk,
                 n_keyframes=int(st["n_keyframes"]),
                 iterations=int(st["iterations"]),
@@ -449,9 +455,7 @@ class MapperNode(Node):
         self.publish(
             self.params.gaussians_topic,
             msgs.GaussianUpdate(
-                stamp_ns=stamp_ns,
-                frame_id="world",
-                keyframe_id=keyframe_id,
+                **_map_header(stamp_ns, keyframe_id),
                 ids=ch.ids,
                 means=ch.means,
                 log_scales=ch.log_scales,

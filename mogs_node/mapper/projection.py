@@ -19,13 +19,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
 from mogs_node.geometry import view_tan_limits
+from mogs_node.mapper.raster_types import RasterParams
 
 __all__ = [
+    "CameraPoints",
     "Projected",
+    "ScreenView",
     "TileBins",
     "bin_tiles",
     "cull_gaussians",
@@ -106,43 +110,96 @@ class Projected:
     extent_px: torch.Tensor
 
 
+class CameraPoints(NamedTuple):
+    """Gaussian centres in a camera, all [N]: ``x``, ``y``, ``z_safe`` the camera coordinates
+    with x = y = 0, z = 1 behind the near plane (nothing divides by a non-positive depth), ``z``
+    the true depth, ``in_front`` (beyond the near plane), ``u``, ``v`` the centre's pixel."""
+
+    x: torch.Tensor
+    y: torch.Tensor
+    z_safe: torch.Tensor
+    z: torch.Tensor
+    in_front: torch.Tensor
+    u: torch.Tensor
+    v: torch.Tensor
+
+
+@dataclass(frozen=True)
+class ScreenView:
+    """What a Gaussian is projected onto: the camera ``T_cam_world`` [4, 4] (world -> camera),
+    ``K = (fx, fy, cx, cy)`` pixels and the image size, with the projection's settings:
+    ``near_m`` (nearer Gaussians are not drawn), ``eps2d_px2`` (screen-space dilation),
+    ``alpha_min`` (smaller alphas are skipped), ``log_scale_range`` (log-scales clamped into it,
+    so that degenerate or exploding scales stay finite) and ``fov_clamp`` (the view-direction
+    clamp of the Jacobian, as a fraction of the half field of view)."""
+
+    T_cam_world: torch.Tensor
+    K: tuple[float, float, float, float]
+    width: int
+    height: int
+    near_m: float
+    eps2d_px2: float
+    alpha_min: float
+    log_scale_range: tuple[float, float]
+    fov_clamp: float = 1.3
+
+    @classmethod
+    def of(
+        cls,
+        T_cam_world: torch.Tensor,
+        K: tuple[float, float, float, float],
+        size: tuple[int, int],
+        params: RasterParams,
+    ) -> ScreenView:
+        """The view of a camera (``size = (width, height)``) with a rasterizer's settings."""
+        return cls(
+            T_cam_world,
+            K,
+            size[0],
+            size[1],
+            near_m=params.near_m,
+            eps2d_px2=params.eps2d_px2,
+            alpha_min=params.alpha_min,
+            log_scale_range=(params.log_scale_min, params.log_scale_max),
+        )
+
+    def camera_points(self, means: torch.Tensor) -> CameraPoints:
+        """``means`` [N, 3] world -> their camera coordinates and centre pixels."""
+        fx, fy, cx, cy = (float(v) for v in self.K)
+        dt = means.dtype
+        p_cam = means @ self.T_cam_world[:3, :3].to(dt).T + self.T_cam_world[:3, 3].to(dt)
+        z = p_cam[:, 2]
+        in_front = z > self.near_m
+        z_s = torch.where(in_front, z, torch.ones_like(z))
+        x_s = torch.where(in_front, p_cam[:, 0], torch.zeros_like(z))
+        y_s = torch.where(in_front, p_cam[:, 1], torch.zeros_like(z))
+        return CameraPoints(x_s, y_s, z_s, z, in_front, fx * x_s / z_s + cx, fy * y_s / z_s + cy)
+
+    def tan_limits(self) -> tuple[float, float]:
+        """The clamp of the view direction's tangents (x, y) in the Jacobian."""
+        fx, fy, cx, cy = (float(v) for v in self.K)
+        return view_tan_limits(fx, fy, cx, cy, self.width, self.height, self.fov_clamp)
+
+
 def project_gaussians(
     means: torch.Tensor,
     quats_wxyz: torch.Tensor,
     log_scales: torch.Tensor,
     opacity_logit: torch.Tensor,
-    T_cam_world: torch.Tensor,
-    K: tuple[float, float, float, float],
-    width: int,
-    height: int,
-    *,
-    near_m: float,
-    eps2d_px2: float,
-    alpha_min: float,
-    log_scale_range: tuple[float, float],
-    fov_clamp: float = 1.3,
+    view: ScreenView,
 ) -> Projected:
-    """Project Gaussians (EWA, 3DGS section 4) for the camera ``T_cam_world`` [4, 4].
+    """Project Gaussians (EWA, 3DGS section 4) onto ``view``.
 
-    ``means`` [N, 3] world, ``quats_wxyz`` [N, 4], ``log_scales`` [N, 3] (clamped to
-    ``log_scale_range`` so that degenerate or exploding scales stay finite), ``opacity_logit``
-    [N], ``K = (fx, fy, cx, cy)`` in pixels. Gaussians behind ``near_m`` are marked invalid and get
-    zero gradients (NaN-safe ``where`` branches, never a division by a non-positive depth).
+    ``means`` [N, 3] world, ``quats_wxyz`` [N, 4], ``log_scales`` [N, 3], ``opacity_logit``
+    [N]. Gaussians behind ``view.near_m`` are marked invalid and get zero gradients (NaN-safe
+    ``where`` branches, never a division by a non-positive depth).
     """
-    fx, fy, cx, cy = (float(v) for v in K)
-    dt = means.dtype
-    R_cw = T_cam_world[:3, :3].to(dt)
-    t_cw = T_cam_world[:3, 3].to(dt)
-    p_cam = means @ R_cw.T + t_cw
-    z = p_cam[:, 2]
-    in_front = z > near_m
-    z_s = torch.where(in_front, z, torch.ones_like(z))
-    x_s = torch.where(in_front, p_cam[:, 0], torch.zeros_like(z))
-    y_s = torch.where(in_front, p_cam[:, 1], torch.zeros_like(z))
-    u = fx * x_s / z_s + cx
-    v = fy * y_s / z_s + cy
+    fx, fy = float(view.K[0]), float(view.K[1])
+    width, height, alpha_min, eps2d_px2 = view.width, view.height, view.alpha_min, view.eps2d_px2
+    R_cw = view.T_cam_world[:3, :3].to(means.dtype)
+    x_s, y_s, z_s, z, in_front, u, v = view.camera_points(means)
     # Jacobian of the perspective map at a clamped view direction (3DGS: avoids huge J off-screen)
-    lim_x, lim_y = view_tan_limits(fx, fy, cx, cy, width, height, fov_clamp)
+    lim_x, lim_y = view.tan_limits()
     tx = (x_s / z_s).clamp(-lim_x, lim_x)
     ty = (y_s / z_s).clamp(-lim_y, lim_y)
     inv_z = 1.0 / z_s
@@ -151,7 +208,7 @@ def project_gaussians(
         [fx * inv_z, zero, -fx * tx * inv_z, zero, fy * inv_z, -fy * ty * inv_z], -1
     ).reshape(-1, 2, 3)
     R = quat_wxyz_to_rotmat_torch(quats_wxyz)
-    s = torch.exp(log_scales.clamp(*log_scale_range))
+    s = torch.exp(log_scales.clamp(*view.log_scale_range))
     M = (J @ R_cw) @ (R * s[:, None, :])  # [N, 2, 3]
     cov = M @ M.transpose(1, 2)
     a = cov[:, 0, 0] + eps2d_px2
@@ -171,19 +228,7 @@ def project_gaussians(
 
 @torch.no_grad()
 def cull_gaussians(
-    means: torch.Tensor,
-    log_scales: torch.Tensor,
-    opacity_logit: torch.Tensor,
-    T_cam_world: torch.Tensor,
-    K: tuple[float, float, float, float],
-    width: int,
-    height: int,
-    *,
-    near_m: float,
-    eps2d_px2: float,
-    alpha_min: float,
-    log_scale_range: tuple[float, float],
-    fov_clamp: float = 1.3,
+    means: torch.Tensor, log_scales: torch.Tensor, opacity_logit: torch.Tensor, view: ScreenView
 ) -> torch.Tensor:
     """[N] bool, a superset of :func:`project_gaussians`'s ``valid`` from centres and the largest
     scale only (no rotations, no 2D covariances): the cheap visibility test of a training view.
@@ -191,16 +236,11 @@ def cull_gaussians(
     The EWA support half-width ``sqrt(2 ln(o / alpha_min) Sigma_2d[0, 0])`` is bounded with
     ``Sigma_2d[0, 0] <= |J_0|^2 s_max^2 + eps`` and ``|J_0|^2 <= fx^2 (1 + lim_x^2) / z^2`` (the
     clamped view direction of :func:`project_gaussians`), with 0.1 % slack for rounding."""
-    fx, fy, cx, cy = (float(v) for v in K)
-    dt = means.dtype
-    p_cam = means @ T_cam_world[:3, :3].to(dt).T + T_cam_world[:3, 3].to(dt)
-    z = p_cam[:, 2]
-    in_front = z > near_m
-    zs = torch.where(in_front, z, torch.ones_like(z))
-    u = fx * p_cam[:, 0] / zs + cx
-    v = fy * p_cam[:, 1] / zs + cy
-    lim_x, lim_y = view_tan_limits(fx, fy, cx, cy, width, height, fov_clamp)
-    s2 = torch.exp(2.0 * log_scales.amax(1).clamp(*log_scale_range))
+    fx, fy = float(view.K[0]), float(view.K[1])
+    width, height, alpha_min, eps2d_px2 = view.width, view.height, view.alpha_min, view.eps2d_px2
+    _, _, zs, _, in_front, u, v = view.camera_points(means)
+    lim_x, lim_y = view.tan_limits()
+    s2 = torch.exp(2.0 * log_scales.amax(1).clamp(*view.log_scale_range))
     opacity = torch.sigmoid(opacity_logit)
     ln2 = 2.0 * torch.log((opacity / alpha_min).clamp_min(1.0))
     bx = (ln2 * (fx * fx * (1 + lim_x * lim_x) * s2 / (zs * zs) + eps2d_px2)).sqrt() * 1.001

@@ -1,4 +1,5 @@
-"""Slow per-pixel reference rasterizer (tests only): every pixel looks at every Gaussian.
+"""Slow per-pixel reference rasterizer (tests only; ``RasterParams(backend="reference")``): every
+pixel looks at every Gaussian.
 
 Written independently of the tile path: full 3x3 covariances, the perspective Jacobian as an
 explicit matrix, the 2D covariance inverted with ``torch.linalg.inv``, no tiles, no support
@@ -12,32 +13,23 @@ from __future__ import annotations
 
 import torch
 
-from mogs_node.geometry import view_tan_limits
-from mogs_node.mapper.projection import quat_wxyz_to_rotmat_torch, se3_exp_torch
-from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, RenderOutput
+from mogs_node.mapper.projection import ScreenView, quat_wxyz_to_rotmat_torch
+from mogs_node.mapper.raster_types import GaussianTensors, RasterParams, RenderOutput
 
 __all__ = ["render_reference"]
 
 
 def render_reference(
-    gaussians: GaussianTensors,
-    T_cam_world: torch.Tensor,
-    K: tuple[float, float, float, float],
-    width: int,
-    height: int,
-    *,
-    background: torch.Tensor | None = None,
-    pose_tangent: torch.Tensor | None = None,
-    params: RasterParams = RasterParams(),  # noqa: B008 - frozen dataclass
+    gaussians: GaussianTensors, view: ScreenView, background: torch.Tensor, params: RasterParams
 ) -> RenderOutput:
-    """Same contract as :func:`mogs_node.mapper.rasterizer.render`; O(H W N), small scenes only."""
-    fx, fy, cx, cy = (float(v) for v in K)
+    """The ``"reference"`` backend of :func:`mogs_node.mapper.rasterizer.render` (pose applied,
+    ``background`` [3] given): same contract; O(H W N), small scenes only."""
+    fx, fy, cx, cy = (float(v) for v in view.K)
+    width, height = view.width, view.height
     g = gaussians
     dt = g.means.dtype
-    T = T_cam_world.to(dt)
-    if pose_tangent is not None:
-        T = se3_exp_torch(pose_tangent.to(dt)) @ T
-    bg = torch.zeros(3, dtype=dt) if background is None else background.to(dt)
+    T = view.T_cam_world.to(dt)
+    bg = background.to(dt)
     R_cw, t_cw = T[:3, :3], T[:3, 3]
     p = g.means @ R_cw.T + t_cw
     n = p.shape[0]
@@ -50,7 +42,7 @@ def render_reference(
     S = torch.diag_embed(torch.exp(g.log_scales.clamp(params.log_scale_min, params.log_scale_max)))
     Sigma = R @ S @ S @ R.transpose(1, 2)
     Sigma_cam = R_cw @ Sigma @ R_cw.T
-    lim_x, lim_y = view_tan_limits(fx, fy, cx, cy, width, height, 1.3)
+    lim_x, lim_y = view.tan_limits()
     tx = (xs / zs).clamp(-lim_x, lim_x) * zs
     ty = (ys / zs).clamp(-lim_y, lim_y) * zs
     J = torch.zeros(n, 2, 3, dtype=dt)

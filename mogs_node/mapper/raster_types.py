@@ -17,7 +17,7 @@ __all__ = ["GaussianTensors", "RasterParams", "RenderOutput"]
 class RasterParams:
     """Rasterizer settings (defaults follow 3DGS / MonoGS)."""
 
-    backend: str = "auto"  # auto | cpp | torch | gsplat
+    backend: str = "auto"  # auto | cpp | torch | gsplat | reference (per pixel, tests only)
     tile_px: int = 16  # square tile size in pixels
     near_m: float = 0.01  # Gaussians with camera z <= near_m are not drawn
     eps2d_px2: float = 0.3  # screen-space dilation added to the 2D covariance (anti-aliasing)
@@ -28,7 +28,7 @@ class RasterParams:
     log_scale_max: float = 8.0
 
     def __post_init__(self) -> None:
-        if self.backend not in ("auto", "cpp", "torch", "gsplat"):
+        if self.backend not in ("auto", "cpp", "torch", "gsplat", "reference"):
             raise ConfigError(f"RasterParams.backend: unknown backend {self.backend!r}")
         if self.tile_px <= 0 or self.near_m <= 0 or not 0 < self.alpha_min < self.alpha_max < 1:
             raise ConfigError(

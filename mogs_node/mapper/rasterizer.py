@@ -8,7 +8,8 @@ parameter and for a 6-DoF camera pose tangent ``pose_tangent`` (left perturbatio
 
 Backends (``RasterParams.backend``): ``"auto"`` picks ``"gsplat"`` when the tensors live on a CUDA
 device and gsplat imports, else the CPU tile rasterizer (C++/OpenMP extension when it compiles,
-pure PyTorch otherwise); ``"cpp"``, ``"torch"``, ``"gsplat"`` force one.
+pure PyTorch otherwise); ``"cpp"``, ``"torch"``, ``"gsplat"`` force one; ``"reference"`` is the
+slow per-pixel reference (:mod:`mogs_node.mapper.raster_reference`, tests and small scenes).
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ import logging
 import torch
 
 from mogs_node.errors import ConfigError, ShapeError
-from mogs_node.mapper.composite import composite
-from mogs_node.mapper.projection import bin_tiles, project_gaussians, se3_exp_torch
+from mogs_node.mapper.composite import CompositeJob, composite
+from mogs_node.mapper.projection import ScreenView, bin_tiles, project_gaussians, se3_exp_torch
 from mogs_node.mapper.raster_types import GaussianTensors, RasterParams, RenderOutput
 
 __all__ = ["GaussianTensors", "RasterParams", "RenderOutput", "check_gaussians", "render"]
@@ -80,6 +81,10 @@ def render(
         else background.to(dtype=dt, device=dev)
     )
     backend = params.backend
+    if backend == "reference":
+        from mogs_node.mapper.raster_reference import render_reference
+
+        return render_reference(gaussians, ScreenView.of(T, K, (width, height), params), bg, params)
     if backend == "gsplat" or (backend == "auto" and dev.type == "cuda"):
         from mogs_node.mapper.raster_gsplat import gsplat_available, render_gsplat
 
@@ -94,20 +99,13 @@ def render(
         gaussians.quats_wxyz,
         gaussians.log_scales,
         gaussians.opacity_logit,
-        T,
-        K,
-        width,
-        height,
-        near_m=params.near_m,
-        eps2d_px2=params.eps2d_px2,
-        alpha_min=params.alpha_min,
-        log_scale_range=(params.log_scale_min, params.log_scale_max),
+        ScreenView.of(T, K, (width, height), params),
     )
     bins = bin_tiles(proj, width, height, params.tile_px)
     ones = torch.ones_like(proj.depths_m)[:, None]
     feats = torch.cat([gaussians.colors, proj.depths_m[:, None], ones], 1)
     bg5 = torch.cat([bg, torch.zeros(2, dtype=dt, device=dev)])
-    out, _, counts, weights = composite(
+    job = CompositeJob(
         proj.means2d_px,
         proj.conics,
         proj.opacity,
@@ -117,6 +115,6 @@ def render(
         width,
         height,
         (params.alpha_min, params.alpha_max, params.t_min),
-        backend="torch" if backend == "torch" else "auto",
     )
+    out, _, counts, weights = composite(job, backend="torch" if backend == "torch" else "auto")
     return RenderOutput(out[..., :3], out[..., 3], out[..., 4], counts, weights)

@@ -262,7 +262,7 @@ def test_property_cheap_cull_is_a_superset_of_the_projection_cull(
     seed: int, log_scale_shift: float, depth_m: float, opacity_shift: float
 ) -> None:
     """Rows the cheap test drops are never drawn: tiny/huge scales, near/far, all opacities."""
-    from mogs_node.mapper.projection import cull_gaussians, project_gaussians
+    from mogs_node.mapper.projection import ScreenView, cull_gaussians, project_gaussians
 
     g = torch.Generator().manual_seed(seed)
     n = 300
@@ -280,8 +280,9 @@ def test_property_cheap_cull_is_a_superset_of_the_projection_cull(
         "log_scale_range": (-12.0, 8.0),
     }
     Kt = (40.0, 40.0, 31.5, 15.5)
-    valid = project_gaussians(means, quats, log_scales, opacity_logit, T, Kt, W, H, **kw).valid
-    cheap = cull_gaussians(means, log_scales, opacity_logit, T, Kt, W, H, **kw)
+    view = ScreenView(T, Kt, W, H, **kw)
+    valid = project_gaussians(means, quats, log_scales, opacity_logit, view).valid
+    cheap = cull_gaussians(means, log_scales, opacity_logit, view)
     assert bool((valid <= cheap).all())
 
 

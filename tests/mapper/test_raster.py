@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -12,8 +14,13 @@ from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import se3_exp
 from mogs_node.mapper.composite import cpp_extension_available
 from mogs_node.mapper.projection import se3_exp_torch
-from mogs_node.mapper.raster_reference import render_reference
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, render
+
+
+def render_reference(scene, T, K, width, height, *, params=RasterParams(), **kw):  # noqa: B008
+    """The slow per-pixel reference: :func:`render`'s ``"reference"`` backend."""
+    return render(scene, T, K, width, height, params=replace(params, backend="reference"), **kw)
+
 
 BACKENDS = [
     "torch",

@@ -60,6 +60,40 @@ void pack_tile(const int64_t* ids, int64_t n, const scalar_t* means2d, const sca
   }
 }
 
+// What both passes read: the depth-sorted tile lists, the screen-space Gaussians (means2d [N, 2],
+// conics [N, 3], opacity [N], support half-widths ext [N, 2]), their features [N, C], the
+// background [C] and the alpha clamp.
+template <typename scalar_t>
+struct TileInputs {
+  int64_t C, n_tiles;
+  const int64_t* offs;
+  const int64_t* ids;
+  const scalar_t *m2, *co, *op, *fe, *bgp, *ex;
+  scalar_t amax, amin;
+
+  TileInputs(const torch::Tensor& tile_offsets, const torch::Tensor& gauss_ids,
+             const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opac,
+             const torch::Tensor& feats, const torch::Tensor& bg, const torch::Tensor& ext,
+             double alpha_min, double alpha_max)
+      : C(feats.size(1)),
+        n_tiles(tile_offsets.size(0) - 1),
+        offs(tile_offsets.data_ptr<int64_t>()),
+        ids(gauss_ids.data_ptr<int64_t>()),
+        m2(means2d.data_ptr<scalar_t>()),
+        co(conics.data_ptr<scalar_t>()),
+        op(opac.data_ptr<scalar_t>()),
+        fe(feats.data_ptr<scalar_t>()),
+        bgp(bg.data_ptr<scalar_t>()),
+        ex(ext.data_ptr<scalar_t>()),
+        amax(static_cast<scalar_t>(alpha_max)),
+        amin(static_cast<scalar_t>(alpha_min)) {}
+
+  // The first n entries of tile t's list, packed (pack_tile).
+  void pack(int64_t t, int64_t n, double alpha_min, std::vector<Packed<scalar_t>>& buf) const {
+    pack_tile<scalar_t>(ids + offs[t], n, m2, co, op, ex, alpha_min, buf);
+  }
+};
+
 // Pixel rows [y0, y1] of the tile that the Gaussian's support box reaches (empty if y0 > y1).
 template <typename scalar_t>
 inline void row_range(const Packed<scalar_t>& p, int64_t py0, int64_t py1, int64_t& y0,
@@ -105,23 +139,17 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
                     double alpha_min, double alpha_max, double t_min, int nthreads,
                     torch::Tensor& out, torch::Tensor& final_T, torch::Tensor& n_contrib,
                     torch::Tensor& counts, torch::Tensor& entry_w) {
-  const int64_t C = feats.size(1);
-  const int64_t n_tiles = tile_offsets.size(0) - 1;
-  const int64_t* offs = tile_offsets.data_ptr<int64_t>();
-  const int64_t* ids = gauss_ids.data_ptr<int64_t>();
-  const scalar_t* m2 = means2d.data_ptr<scalar_t>();
-  const scalar_t* co = conics.data_ptr<scalar_t>();
-  const scalar_t* op = opac.data_ptr<scalar_t>();
-  const scalar_t* fe = feats.data_ptr<scalar_t>();
-  const scalar_t* bgp = bg.data_ptr<scalar_t>();
-  const scalar_t* ex = ext.data_ptr<scalar_t>();
+  const TileInputs<scalar_t> in(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext,
+                                alpha_min, alpha_max);
+  const int64_t C = in.C;
+  const int64_t* offs = in.offs;
+  const scalar_t* fe = in.fe;
   scalar_t* outp = out.data_ptr<scalar_t>();
   scalar_t* Tp = final_T.data_ptr<scalar_t>();
   int32_t* ncp = n_contrib.data_ptr<int32_t>();
   int32_t* cnt = counts.data_ptr<int32_t>();
   scalar_t* ewp = entry_w.data_ptr<scalar_t>();
-  const scalar_t amax = static_cast<scalar_t>(alpha_max);
-  const scalar_t amin = static_cast<scalar_t>(alpha_min);
+  const scalar_t amax = in.amax, amin = in.amin;
   const scalar_t tmin = static_cast<scalar_t>(t_min);
   const int64_t P = tile * tile;
 
@@ -132,9 +160,9 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
     std::vector<int32_t> last(P);
     std::vector<char> done(P);
 #pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < n_tiles; ++t) {
+    for (int64_t t = 0; t < in.n_tiles; ++t) {
       const int64_t n = offs[t + 1] - offs[t];
-      pack_tile<scalar_t>(ids + offs[t], n, m2, co, op, ex, alpha_min, buf);
+      in.pack(t, n, alpha_min, buf);
       const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
       const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
       const int64_t n_pix = (px1 - px0) * (py1 - py0);
@@ -184,7 +212,7 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
         for (int64_t x = px0; x < px1; ++x) {
           const int64_t i = (y - py0) * tile + (x - px0);
           const int64_t pix = y * W + x;
-          for (int64_t ch = 0; ch < C; ++ch) outp[pix * C + ch] = acc[i * C + ch] + T[i] * bgp[ch];
+          for (int64_t ch = 0; ch < C; ++ch) outp[pix * C + ch] = acc[i * C + ch] + T[i] * in.bgp[ch];
           Tp[pix] = T[i];
           ncp[pix] = last[i];
         }
@@ -202,24 +230,18 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
                      int64_t H, int64_t tile, int64_t tiles_x, double alpha_min, double alpha_max,
                      int nthreads, torch::Tensor& gbuf) {
   // gbuf: [nthreads, N, 6 + C]: d means2d (2), d conic (3), d opacity (1), d feats (C)
-  const int64_t C = feats.size(1);
+  const TileInputs<scalar_t> in(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext,
+                                alpha_min, alpha_max);
+  const int64_t C = in.C;
   const int64_t N = means2d.size(0);
   const int64_t S = 6 + C;
-  const int64_t n_tiles = tile_offsets.size(0) - 1;
-  const int64_t* offs = tile_offsets.data_ptr<int64_t>();
-  const int64_t* ids = gauss_ids.data_ptr<int64_t>();
-  const scalar_t* m2 = means2d.data_ptr<scalar_t>();
-  const scalar_t* co = conics.data_ptr<scalar_t>();
-  const scalar_t* op = opac.data_ptr<scalar_t>();
-  const scalar_t* fe = feats.data_ptr<scalar_t>();
-  const scalar_t* bgp = bg.data_ptr<scalar_t>();
-  const scalar_t* ex = ext.data_ptr<scalar_t>();
+  const scalar_t* fe = in.fe;
+  const scalar_t* bgp = in.bgp;
   const scalar_t* Tp = final_T.data_ptr<scalar_t>();
   const int32_t* ncp = n_contrib.data_ptr<int32_t>();
   const scalar_t* go = grad_out.data_ptr<scalar_t>();
   scalar_t* gb = gbuf.data_ptr<scalar_t>();
-  const scalar_t amax = static_cast<scalar_t>(alpha_max);
-  const scalar_t amin = static_cast<scalar_t>(alpha_min);
+  const scalar_t amax = in.amax, amin = in.amin;
   const int64_t P = tile * tile;
 
 #pragma omp parallel num_threads(nthreads)
@@ -230,7 +252,7 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
     std::vector<int32_t> nc(P);
     scalar_t* g_thread = gb + static_cast<int64_t>(thread_id()) * N * S;
 #pragma omp for schedule(static, 1)
-    for (int64_t t = 0; t < n_tiles; ++t) {
+    for (int64_t t = 0; t < in.n_tiles; ++t) {
       const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
       const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
       int32_t max_nc = 0;
@@ -253,7 +275,7 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
         }
       }
       if (max_nc == 0) continue;
-      pack_tile<scalar_t>(ids + offs[t], max_nc, m2, co, op, ex, alpha_min, buf);
+      in.pack(t, max_nc, alpha_min, buf);
       for (int64_t k = max_nc - 1; k >= 0; --k) {
         const Packed<scalar_t>& p = buf[k];
         const scalar_t* f = fe + p.id * C;
