@@ -360,7 +360,7 @@ def with_new_points(section: str, point_lines: list[str]) -> str | None:
     return head.rstrip() + "\n" + "\n".join(point_lines) + "\n\n" + tail.strip("\n")
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100, help="frames per run (10 Hz)")
     ap.add_argument("--seed", type=int, default=0)
@@ -386,30 +386,43 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PATH",
         help="figures of `mogs eval traj --json` runs to list in the section",
     )
-    args = ap.parse_args(argv)
-    pin_one_core()
-    points, point_lines = points_figures(args.seed, args.frames)
-    print("\n".join(point_lines), flush=True)
-    if args.points_only:
-        figures = {**points, "load_average_1min": float(os.getloadavg()[0])}
-        write_json(args.json, figures)
-        new = with_new_points(current_section(), point_lines)
-        if args.write_points_docs and new is not None:
-            cmd = "python bench/frontend.py " + " ".join(argv if argv is not None else sys.argv[1:])
-            note = (
-                f"Sparse points block: `{cmd.strip()}` ({machine_line()}), 1-min load "
-                f"average {figures['load_average_1min']:.1f} (times inflated; the ratios with / "
-                "without points are from one run); the speed tables above it are from their own "
-                "run."
-            )
-            update_markdown_section(
-                "frontend", new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1)
-            )
-        print(json.dumps(figures, indent=1, default=float))
-        return 0
-    seconds = (args.frames - 1) / 10.0
-    base = FrontendParams()
-    figures: dict[str, float] = {}
+    return ap.parse_args(argv)
+
+
+def bench_command(argv: list[str] | None) -> str:
+    """The command line of this run, as the docs quote it."""
+    cmd = "python bench/frontend.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    return cmd.strip()
+
+
+def points_only(
+    args: argparse.Namespace, argv: list[str] | None, points: dict, point_lines: list[str]
+) -> int:
+    """``--points-only``: write the points' figures, and with ``--write-points-docs`` replace the
+    sparse-points block of the docs' ``frontend`` section (with a note on this run)."""
+    figures = {**points, "load_average_1min": float(os.getloadavg()[0])}
+    write_json(args.json, figures)
+    new = with_new_points(current_section(), point_lines)
+    if args.write_points_docs and new is not None:
+        note = (
+            f"Sparse points block: `{bench_command(argv)}` ({machine_line()}), 1-min load "
+            f"average {figures['load_average_1min']:.1f} (times inflated; the ratios with / "
+            "without points are from one run); the speed tables above it are from their own "
+            "run."
+        )
+        update_markdown_section(
+            "frontend", new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1)
+        )
+    print(json.dumps(figures, indent=1, default=float))
+    return 0
+
+
+def speed_runs(
+    frames: int, seed: int, base: FrontendParams, figures: dict
+) -> list[tuple[str, dict]]:
+    """Per-frame timings at 1242x375 and 621x188, camera + IMU and with the road; adds them to
+    ``figures`` and returns ``(resolution tag, timings)`` rows for the docs."""
+    seconds = (frames - 1) / 10.0
     rows = []
     for size, road in (
         ((1242, 375), False),
@@ -417,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
         ((1242, 375), True),
         ((621, 188), True),
     ):
-        d = prerender(seconds, size, args.seed)
+        d = prerender(seconds, size, seed)
         params = base
         if road:  # the road measurement at the sim's calibrated camera height
             params = with_knob(base, "ground", "camera_height_m", d["camera_height_m"])
@@ -433,73 +446,103 @@ def main(argv: list[str] | None = None) -> int:
             f"-> {t['frames_per_s']:.1f} frames/s",
             flush=True,
         )
-    sweep = []
-    if not args.no_sweep:
-        from mogs_node.sim import SimConfig, make_sequence
+    return rows
 
-        seq = make_sequence(SimConfig(seed=args.seed, n_frames=args.frames, width=621, height=188))
-        images = [seq.render(i).rgb for i in range(args.frames)]
-        knobs = [("tracker", "max_features", v) for v in (60, 100, 150, 250)]
-        knobs += [("estimator", "window_size", v) for v in (3, 5, 8, 12)]
-        knobs += [("estimator", "lm_iterations", v) for v in (1, 2, 3, 6)]
-        for group, name, value in knobs:
-            run = seeded_run(seq, images, with_knob(base, group, name, value))
-            t = timing_figures(run)
-            try:
-                m = score_run(run)
-                ate = m["ate_se3_rmse_m"]
-                pct = m["ate_se3_percent_of_path"]
-            except Exception as err:  # a knob setting may fail to initialise: record it
-                print(f"{name}={value}: not scored ({err})", flush=True)
-                ate = pct = float("nan")
-            sweep.append((name, value, t["total_ms_per_frame_p50"], t["frames_per_s"], ate, pct))
-            figures[f"{name}_{value}_ms_per_frame"] = t["total_ms_per_frame_p50"]
-            figures[f"{name}_{value}_ate_se3_m"] = ate
-            print(
-                f"{name}={value}: {t['total_ms_per_frame_p50']:.1f} ms/frame, "
-                f"{t['frames_per_s']:.1f} frames/s, ATE {ate:.3f} m ({pct:.2f} %)",
-                flush=True,
-            )
+
+def knob_sweep(frames: int, seed: int, base: FrontendParams, figures: dict) -> list[tuple]:
+    """Run time against keyframe ATE, one knob at a time from ``base`` (621x188, from the true
+    state); adds them to ``figures`` and returns ``(knob, value, ms, frames/s, ATE m, ATE %)``."""
+    from mogs_node.sim import SimConfig, make_sequence
+
+    seq = make_sequence(SimConfig(seed=seed, n_frames=frames, width=621, height=188))
+    images = [seq.render(i).rgb for i in range(frames)]
+    knobs = [("tracker", "max_features", v) for v in (60, 100, 150, 250)]
+    knobs += [("estimator", "window_size", v) for v in (3, 5, 8, 12)]
+    knobs += [("estimator", "lm_iterations", v) for v in (1, 2, 3, 6)]
+    sweep = []
+    for group, name, value in knobs:
+        run = seeded_run(seq, images, with_knob(base, group, name, value))
+        t = timing_figures(run)
+        try:
+            m = score_run(run)
+            ate = m["ate_se3_rmse_m"]
+            pct = m["ate_se3_percent_of_path"]
+        except Exception as err:  # a knob setting may fail to initialise: record it
+            print(f"{name}={value}: not scored ({err})", flush=True)
+            ate = pct = float("nan")
+        sweep.append((name, value, t["total_ms_per_frame_p50"], t["frames_per_s"], ate, pct))
+        figures[f"{name}_{value}_ms_per_frame"] = t["total_ms_per_frame_p50"]
+        figures[f"{name}_{value}_ate_se3_m"] = ate
+        print(
+            f"{name}={value}: {t['total_ms_per_frame_p50']:.1f} ms/frame, "
+            f"{t['frames_per_s']:.1f} frames/s, ATE {ate:.3f} m ({pct:.2f} %)",
+            flush=True,
+        )
+    return sweep
+
+
+def speed_lines(cmd: str, frames: int, load: float, rows: list[tuple[str, dict]]) -> list[str]:
+    """The head of the docs' ``frontend`` section: the command and the speed table."""
+    lines = [
+        "## Frontend (`bench/frontend.py`)",
+        "",
+        f"Command: `{cmd}`",
+        "",
+        f"Sim drive, {frames} frames at 10 Hz, one core; {machine_line()}; "
+        f"1-min load average {load:.1f} during the run "
+        "(the machine is shared: absolute times are inflated by the load).",
+        "",
+        "| resolution | tracking ms/frame | estimation ms/frame | road ms/frame "
+        "| p50 total ms | p95 total ms | frames/s |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for tag, t in rows:
+        lines.append(
+            f"| {tag} | {t['tracking_ms_per_frame']:.1f} | "
+            f"{t['estimation_ms_per_frame']:.1f} | {t['ground_ms_per_frame']:.1f} | "
+            f"{t['total_ms_per_frame_p50']:.1f} | "
+            f"{t['total_ms_per_frame_p95']:.1f} | {t['frames_per_s']:.1f} |"
+        )
+    return lines
+
+
+def sweep_lines(sweep: list[tuple]) -> list[str]:
+    """The knob sweep's table for the docs (none without a sweep)."""
+    if not sweep:
+        return []
+    return [
+        "",
+        "Run time against ATE (621x188, keyframes, SE(3)-aligned), one knob at a "
+        "time from the defaults; the sweep starts from the true state at frame 0 "
+        "(benchmark harness only) so that the initialisation's scale choice does not "
+        "drown the knob's effect:",
+        "",
+        "| knob | value | ms/frame (p50) | frames/s | ATE m | ATE % of path |",
+        "| --- | --- | --- | --- | --- | --- |",
+        *(
+            f"| {n} | {v} | {ms:.1f} | {fps:.1f} | {a:.3f} | {p:.2f} |"
+            for n, v, ms, fps, a, p in sweep
+        ),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    pin_one_core()
+    points, point_lines = points_figures(args.seed, args.frames)
+    print("\n".join(point_lines), flush=True)
+    if args.points_only:
+        return points_only(args, argv, points, point_lines)
+    base = FrontendParams()
+    figures: dict[str, float] = {}
+    rows = speed_runs(args.frames, args.seed, base, figures)
+    sweep = [] if args.no_sweep else knob_sweep(args.frames, args.seed, base, figures)
     figures.update(points)
     figures["load_average_1min"] = float(os.getloadavg()[0])
     write_json(args.json, figures)
     if not args.no_markdown:
-        cmd = "python bench/frontend.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        lines = [
-            "## Frontend (`bench/frontend.py`)",
-            "",
-            f"Command: `{cmd.strip()}`",
-            "",
-            f"Sim drive, {args.frames} frames at 10 Hz, one core; {machine_line()}; "
-            f"1-min load average {figures['load_average_1min']:.1f} during the run "
-            "(the machine is shared: absolute times are inflated by the load).",
-            "",
-            "| resolution | tracking ms/frame | estimation ms/frame | road ms/frame "
-            "| p50 total ms | p95 total ms | frames/s |",
-            "| --- | --- | --- | --- | --- | --- | --- |",
-        ]
-        for tag, t in rows:
-            lines.append(
-                f"| {tag} | {t['tracking_ms_per_frame']:.1f} | "
-                f"{t['estimation_ms_per_frame']:.1f} | {t['ground_ms_per_frame']:.1f} | "
-                f"{t['total_ms_per_frame_p50']:.1f} | "
-                f"{t['total_ms_per_frame_p95']:.1f} | {t['frames_per_s']:.1f} |"
-            )
-        if sweep:
-            lines += [
-                "",
-                "Run time against ATE (621x188, keyframes, SE(3)-aligned), one knob at a "
-                "time from the defaults; the sweep starts from the true state at frame 0 "
-                "(benchmark harness only) so that the initialisation's scale choice does not "
-                "drown the knob's effect:",
-                "",
-                "| knob | value | ms/frame (p50) | frames/s | ATE m | ATE % of path |",
-                "| --- | --- | --- | --- | --- | --- |",
-            ]
-            lines += [
-                f"| {n} | {v} | {ms:.1f} | {fps:.1f} | {a:.3f} | {p:.2f} |"
-                for n, v, ms, fps, a, p in sweep
-            ]
+        lines = speed_lines(bench_command(argv), args.frames, figures["load_average_1min"], rows)
+        lines += sweep_lines(sweep)
         lines += point_lines
         if not sweep or not args.traj_json:  # keep what this run does not redo
             lines += kept_tables(current_section(), sweep=not sweep, accuracy=not args.traj_json)

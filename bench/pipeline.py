@@ -21,6 +21,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
 import tempfile
@@ -35,7 +36,7 @@ from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.launch import parse_overrides
 from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
-from mogs_node.launch import Launcher, load_launch_file
+from mogs_node.launch import Launcher, LaunchFile, load_launch_file
 
 
 def drive_cpu_percent(samples: list[tuple[float, float]], t0: float, t1: float) -> float:
@@ -67,7 +68,62 @@ def mapper_cpu_per_keyframe(
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclasses.dataclass
+class Recording:
+    """What the bench sees on the bus and in the node processes during one run: arrival times
+    (``time.monotonic``) by stamp or keyframe id, and CPU / memory samples by node name."""
+
+    image_t: dict[int, float] = dataclasses.field(default_factory=dict)  # stamp -> arrival
+    kf_stamp: dict[int, int] = dataclasses.field(default_factory=dict)  # keyframe id -> stamp
+    kf_t: dict[int, float] = dataclasses.field(default_factory=dict)  # id -> frontend keyframe
+    depth_t: dict[int, float] = dataclasses.field(default_factory=dict)
+    stats_t: dict[int, float] = dataclasses.field(default_factory=dict)
+    map_cpu_s: dict[int, float] = dataclasses.field(default_factory=dict)  # id -> mapper CPU s
+    final_t: float | None = None  # the mapper's final (refined) map, when it refines
+    cpu: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+    cpu_t: dict[str, list[tuple[float, float]]] = dataclasses.field(default_factory=dict)
+    rss: dict[str, float] = dataclasses.field(default_factory=dict)  # name -> peak MiB
+    procs: dict[int, tuple[str, psutil.Process]] = dataclasses.field(default_factory=dict)
+
+    def on_message(self, topic: str, m, now: float) -> None:
+        """Record the arrival of message ``m`` on ``topic`` at ``now``."""
+        if topic == "/camera/image":
+            self.image_t.setdefault(m.stamp_ns, now)
+        elif isinstance(m, msgs.Keyframe):
+            self.kf_stamp[m.keyframe_id] = m.stamp_ns
+            self.kf_t.setdefault(m.keyframe_id, now)
+        elif topic == "/metrizer/depth":
+            self.depth_t.setdefault(m.keyframe_id, now)
+        elif topic == "/mapper/stats":
+            if m.extra.get("final"):  # the map refined after the drive: part of the run
+                self.final_t = now
+            else:
+                self.stats_t.setdefault(m.keyframe_id, now)
+                if "map_cpu_ms" in m.extra:
+                    self.map_cpu_s[m.keyframe_id] = float(m.extra["map_cpu_ms"]) / 1000
+
+    def sample(self, launcher: Launcher, now: float) -> None:
+        """Sample CPU and resident memory of every node process started so far."""
+        for child in launcher.children:
+            if child.proc is not None and child.proc.pid not in self.procs:
+                try:
+                    p = psutil.Process(child.proc.pid)
+                    p.cpu_percent(None)
+                    self.procs[child.proc.pid] = (child.name, p)
+                except psutil.NoSuchProcess:
+                    pass
+        for _pid, (name, p) in list(self.procs.items()):
+            try:
+                with p.oneshot():
+                    self.cpu.setdefault(name, []).append(p.cpu_percent(None))
+                    ct = p.cpu_times()
+                    self.cpu_t.setdefault(name, []).append((now, ct.user + ct.system))
+                    self.rss[name] = max(self.rss.get(name, 0.0), p.memory_info().rss / 2**20)
+            except psutil.NoSuchProcess:
+                pass
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -83,9 +139,12 @@ def main(argv: list[str] | None = None) -> int:
         help="e.g. mapper.device=cuda",
     )
     ap.add_argument("--no-docs", action="store_true")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
-    out = Path(tempfile.mkdtemp(prefix="mogs-bench-pipeline-"))
+
+def bench_launch(args: argparse.Namespace, out: Path) -> tuple[LaunchFile, float]:
+    """The launch file of the run (``--launch`` with ``--frames``, the report and the map
+    written under ``out``, then the ``--set`` overrides) and the drive's frame rate [Hz]."""
     base = load_launch_file(args.launch)
     sim = dict(next(n for n in base.nodes if n.name == "player").params.get("sim", {}))
     sim["n_frames"] = args.frames
@@ -97,80 +156,50 @@ def main(argv: list[str] | None = None) -> int:
     for node, params in parse_overrides(args.set).items():
         overrides.setdefault(node, {}).update(params)
     launch = load_launch_file(args.launch, overrides=overrides)
-    frame_rate_hz = float(sim.get("frame_rate_hz", 10.0))
+    return launch, float(sim.get("frame_rate_hz", 10.0))
 
+
+def record_run(launch: LaunchFile, out: Path, timeout_s: float) -> tuple[Recording, float]:
+    """Run ``launch`` to its end in a thread, recording the bus and sampling the node processes
+    every 0.5 s; returns the recording and the wall time [s] (start-up and drain included)."""
     ctx = zmq.Context()
     sub = Subscriber(launch.bus, context=ctx)
     for t in ("/camera/image", "/frontend/keyframe", "/metrizer/depth", "/mapper/stats"):
         sub.subscribe(t)
     launcher = Launcher(launch, out=open(out / "launch.log", "w"))  # noqa: SIM115 - closed at exit
     runner = threading.Thread(
-        target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": args.timeout}
+        target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": timeout_s}
     )
     t_start = time.monotonic()
     runner.start()
-
-    image_t: dict[int, float] = {}  # stamp -> arrival
-    kf_stamp: dict[int, int] = {}  # keyframe id -> stamp
-    kf_t: dict[int, float] = {}  # keyframe id -> arrival of the frontend's keyframe
-    depth_t: dict[int, float] = {}
-    stats_t: dict[int, float] = {}
-    map_cpu_s: dict[int, float] = {}  # keyframe id -> the mapper's CPU for it (its stats)
-    final_t: float | None = None  # the mapper's final (refined) map, when it refines
-    cpu: dict[str, list[float]] = {}
-    cpu_t: dict[str, list[tuple[float, float]]] = {}  # name -> (time, user + system CPU s)
-    rss: dict[str, float] = {}
-    procs: dict[int, tuple[str, psutil.Process]] = {}
+    rec = Recording()
     last_sample = 0.0
     while runner.is_alive():
         env = sub.receive(timeout_ms=100)
         now = time.monotonic()
         if env is not None:
-            m = env.msg
-            if env.topic == "/camera/image":
-                image_t.setdefault(m.stamp_ns, now)
-            elif isinstance(m, msgs.Keyframe):
-                kf_stamp[m.keyframe_id] = m.stamp_ns
-                kf_t.setdefault(m.keyframe_id, now)
-            elif env.topic == "/metrizer/depth":
-                depth_t.setdefault(m.keyframe_id, now)
-            elif env.topic == "/mapper/stats":
-                if m.extra.get("final"):  # the map refined after the drive: part of the run
-                    final_t = now
-                else:
-                    stats_t.setdefault(m.keyframe_id, now)
-                    if "map_cpu_ms" in m.extra:
-                        map_cpu_s[m.keyframe_id] = float(m.extra["map_cpu_ms"]) / 1000
+            rec.on_message(env.topic, env.msg, now)
         if now - last_sample >= 0.5:
             last_sample = now
-            for child in launcher.children:
-                if child.proc is not None and child.proc.pid not in procs:
-                    try:
-                        p = psutil.Process(child.proc.pid)
-                        p.cpu_percent(None)
-                        procs[child.proc.pid] = (child.name, p)
-                    except psutil.NoSuchProcess:
-                        pass
-            for _pid, (name, p) in list(procs.items()):
-                try:
-                    with p.oneshot():
-                        cpu.setdefault(name, []).append(p.cpu_percent(None))
-                        ct = p.cpu_times()
-                        cpu_t.setdefault(name, []).append((now, ct.user + ct.system))
-                        rss[name] = max(rss.get(name, 0.0), p.memory_info().rss / 2**20)
-                except psutil.NoSuchProcess:
-                    pass
+            rec.sample(launcher, now)
     runner.join()
     sub.close()
     ctx.term()
-    wall = time.monotonic() - t_start
+    return rec, time.monotonic() - t_start
 
-    lat_depth = [
-        depth_t[k] - image_t[s] for k, s in kf_stamp.items() if k in depth_t and s in image_t
-    ]
-    lat_map = [
-        stats_t[k] - image_t[s] for k, s in kf_stamp.items() if k in stats_t and s in image_t
-    ]
+
+def _ms(values: list[float], stat) -> float:
+    """``stat`` of ``values`` [s] in ms, rounded to 0.1; NaN if there are none."""
+    return round(1000 * stat(values), 1) if values else float("nan")
+
+
+def run_figures(rec: Recording, wall: float, frame_rate_hz: float) -> dict:
+    """The bench's figures of one recorded run (latencies, throughput, real-time factors, the
+    keyframes' timeline, CPU and memory per node)."""
+    image_t, depth_t, stats_t, final_t = rec.image_t, rec.depth_t, rec.stats_t, rec.final_t
+    pairs = rec.kf_stamp.items()
+    lat_depth = [depth_t[k] - image_t[s] for k, s in pairs if k in depth_t and s in image_t]
+    lat_map = [stats_t[k] - image_t[s] for k, s in pairs if k in stats_t and s in image_t]
     first = min(image_t.values(), default=0.0)
     # the online part ends when the last keyframe is mapped (or metrized, if the mapper lags
     # behind the metrizer); the final refinement comes after it and is reported apart
@@ -178,21 +207,15 @@ def main(argv: list[str] | None = None) -> int:
     span = max(last - first, 1e-9)
     span_final = max(max(last, final_t or 0.0) - first, 1e-9)
     seq_s = len(image_t) / frame_rate_hz
-    figures: dict[str, float] = {
+    figures: dict = {
         "frames": len(image_t),
-        "keyframes": len(kf_stamp),
+        "keyframes": len(rec.kf_stamp),
         "keyframes_metrized": len(depth_t),
         "keyframes_mapped": len(stats_t),
         "wall_s": round(wall, 1),
-        "latency_image_to_depth_ms_median": round(1000 * statistics.median(lat_depth), 1)
-        if lat_depth
-        else float("nan"),
-        "latency_image_to_depth_ms_max": round(1000 * max(lat_depth), 1)
-        if lat_depth
-        else float("nan"),
-        "latency_image_to_map_ms_median": round(1000 * statistics.median(lat_map), 1)
-        if lat_map
-        else float("nan"),
+        "latency_image_to_depth_ms_median": _ms(lat_depth, statistics.median),
+        "latency_image_to_depth_ms_max": _ms(lat_depth, max),
+        "latency_image_to_map_ms_median": _ms(lat_map, statistics.median),
         "frames_per_s": round(len(image_t) / span, 2),
         "keyframes_per_s": round(len(depth_t) / span, 3),
         "real_time_factor": round(seq_s / span, 3),
@@ -209,31 +232,34 @@ def main(argv: list[str] | None = None) -> int:
     figures["timeline_s"] = {
         str(k): [
             round(t - first, 3) if t is not None else None
-            for t in (image_t.get(s), kf_t.get(k), depth_t.get(k), stats_t.get(k))
+            for t in (image_t.get(s), rec.kf_t.get(k), depth_t.get(k), stats_t.get(k))
         ]
-        for k, s in sorted(kf_stamp.items())
+        for k, s in sorted(rec.kf_stamp.items())
     }
-    figures.update(mapper_cpu_per_keyframe(map_cpu_s, cpu_t.get("mapper", []), first, last))
-    for name in cpu:
-        figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(cpu[name]), 1)
-        figures[f"{name}_cpu_percent_drive"] = drive_cpu_percent(cpu_t[name], first, last)
-        figures[f"{name}_rss_mib_peak"] = round(rss[name], 1)
-    for k, v in figures.items():
-        print(f"{k:40s} {v}")
-    write_json(args.json, figures)
-    if not args.no_docs:
-        cmd = "python bench/pipeline.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        rows = "\n".join(
-            f"| {n} | {figures[f'{n}_cpu_percent_mean']} | {figures[f'{n}_cpu_percent_drive']} "
-            f"| {figures[f'{n}_rss_mib_peak']} |"
-            for n in cpu
-        )
-        body = f"""## Pipeline end to end (issue 8)
+    figures.update(mapper_cpu_per_keyframe(rec.map_cpu_s, rec.cpu_t.get("mapper", []), first, last))
+    for name in rec.cpu:
+        figures[f"{name}_cpu_percent_mean"] = round(statistics.mean(rec.cpu[name]), 1)
+        figures[f"{name}_cpu_percent_drive"] = drive_cpu_percent(rec.cpu_t[name], first, last)
+        figures[f"{name}_rss_mib_peak"] = round(rec.rss[name], 1)
+    return figures
+
+
+def docs_section(
+    cmd: str, figures: dict, nodes: list[str], frames: int, frame_rate_hz: float
+) -> str:
+    """The ``pipeline`` section of docs/benchmarks.md for one run's ``figures`` (``nodes``: the
+    node processes sampled, in order)."""
+    rows = "\n".join(
+        f"| {n} | {figures[f'{n}_cpu_percent_mean']} | {figures[f'{n}_cpu_percent_drive']} "
+        f"| {figures[f'{n}_rss_mib_peak']} |"
+        for n in nodes
+    )
+    return f"""## Pipeline end to end (issue 8)
 
 Command: `{cmd.strip()}`
 
 Machine: {machine_line()}; 2 cores shared by all processes. Demo sequence: synthetic drive at 621x188,
-{args.frames} frames at {frame_rate_hz:g} Hz (2 s standing still), player in `fast` mode (paced by the
+{frames} frames at {frame_rate_hz:g} Hz (2 s standing still), player in `fast` mode (paced by the
 slowest node, no frame or keyframe dropped). The real-time factor is the online part's: sequence
 time over first image -> last keyframe mapped. The mapper's refinement of the whole map after the
 drive (`final_refine_iters`, docs/mapper.md) is reported apart, as a SLAM system reports its final
@@ -253,6 +279,20 @@ global bundle adjustment apart, and with it in the second real-time factor.
 | --- | ---: | ---: | ---: |
 {rows}
 """
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out = Path(tempfile.mkdtemp(prefix="mogs-bench-pipeline-"))
+    launch, frame_rate_hz = bench_launch(args, out)
+    rec, wall = record_run(launch, out, args.timeout)
+    figures = run_figures(rec, wall, frame_rate_hz)
+    for k, v in figures.items():
+        print(f"{k:40s} {v}")
+    write_json(args.json, figures)
+    if not args.no_docs:
+        cmd = "python bench/pipeline.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        body = docs_section(cmd, figures, list(rec.cpu), args.frames, frame_rate_hz)
         update_markdown_section("pipeline", body)
     return 0
 
