@@ -1,0 +1,114 @@
+"""A/B of two versions of the C++ compositing kernel: bitwise equality and CPU time per call.
+
+Builds ``--old`` and ``--new`` (default: this tree's ``composite_cpu.cpp``) as two extensions,
+captures the forward and backward inputs of one render of :func:`bench.rasterizer.make_scene`
+(``--gaussians`` at the demo's 621x188 and half of it), checks that both versions give bitwise the
+same image, transmittance, contributor counts, weights and gradients (a random upstream gradient),
+then times them interleaved call by call (process CPU time, one thread: fair on a loaded machine).
+
+    git show main:mogs_node/mapper/csrc/composite_cpu.cpp > /tmp/old.cpp
+    .venv/bin/python bench/composite_ab.py --old /tmp/old.cpp
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+import mogs_node.mapper.composite as comp
+from bench.rasterizer import make_scene
+from mogs_node.mapper.rasterizer import RasterParams, render
+
+SIZES = [(621, 188), (310, 94)]
+
+
+def build(name: str, src: Path, root: Path, flags: list[str]):
+    """Compile ``src`` as extension ``name`` with the flags the mapper uses plus ``flags``."""
+    from torch.utils.cpp_extension import load
+
+    build_dir = root / name
+    build_dir.mkdir(parents=True, exist_ok=True)
+    return load(
+        name=name,
+        sources=[str(src)],
+        extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *flags],
+        extra_ldflags=["-fopenmp"],
+        build_directory=str(build_dir),
+        verbose=False,
+    )
+
+
+def capture_args(n: int, width: int, height: int) -> tuple[tuple, list]:
+    """The (forward, backward) argument tuples of the C++ passes for one render + gradient."""
+    real = comp.load_cpp_extension()
+    cap: dict[str, tuple] = {}
+
+    class Recorder:
+        def forward(self, *a):
+            cap["f"] = a
+            return real.forward(*a)
+
+        def backward(self, *a):
+            cap["b"] = a
+            return real.backward(*a)
+
+    saved = comp.load_cpp_extension
+    comp.load_cpp_extension = Recorder
+    try:
+        scene, K = make_scene(n, width, height)
+        leaves = [t.requires_grad_() for t in scene.tensors()]
+        out = render(scene, torch.eye(4), K, width, height, params=RasterParams(backend="cpp"))
+        torch.autograd.grad(out.color.sum() + 0.1 * out.depth.sum(), leaves)
+    finally:
+        comp.load_cpp_extension = saved
+    back = list(cap["b"])
+    back[10] = torch.randn(back[10].shape, generator=torch.Generator().manual_seed(1))
+    return cap["f"], back
+
+
+def median(v: list[float]) -> float:
+    return sorted(v)[len(v) // 2]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--old", type=Path, required=True, help="composite_cpu.cpp to compare against")
+    ap.add_argument("--new", type=Path, default=Path(comp._SOURCE))
+    ap.add_argument("--new-flags", default="", help="extra compiler flags for --new")
+    ap.add_argument("--gaussians", type=int, default=40_000)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    root = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or tempfile.gettempdir()) / "composite_ab"
+    old = build("composite_ab_old", args.old, root, [])
+    new = build("composite_ab_new", args.new, root, args.new_flags.split())
+    for width, height in SIZES:
+        fa, ba = capture_args(args.gaussians, width, height)
+        same_f = all(torch.equal(x, y) for x, y in zip(old.forward(*fa), new.forward(*fa)))
+        same_b = torch.equal(old.backward(*ba), new.backward(*ba))
+        times: dict[str, list[float]] = {k: [] for k in ("of", "nf", "ob", "nb")}
+        for _ in range(args.repeats):
+            for tag, ext in (("o", old), ("n", new)):
+                c = time.process_time()
+                ext.forward(*fa)
+                times[tag + "f"].append(time.process_time() - c)
+                c = time.process_time()
+                ext.backward(*ba)
+                times[tag + "b"].append(time.process_time() - c)
+        m = {k: median(v) * 1e3 for k, v in times.items()}
+        print(
+            f"{width}x{height} entries={len(fa[1])} bit-identical forward={same_f} "
+            f"backward={same_b} | forward old {m['of']:.1f} ms new {m['nf']:.1f} ms "
+            f"(old/new {m['of'] / m['nf']:.2f}) | backward old {m['ob']:.1f} ms new "
+            f"{m['nb']:.1f} ms (old/new {m['ob'] / m['nb']:.2f})"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
