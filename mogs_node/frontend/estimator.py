@@ -37,6 +37,7 @@ from mogs_node.frontend.estimator_types import (
     V,
     WindowFrame,
     X,
+    depth_in_range,
     lookup,
     outlier_gate_px,
     sorted_map,
@@ -95,8 +96,7 @@ class VioEstimator:
         self._lid_of_track: dict[int, int] = {}
         self._min_seq_of_track: dict[int, int] = {}
         self._next_lid = 0
-        self._obs_cache: dict[int, tuple] = {}
-        self._lut: tuple | None = None
+        self._touch()
         self._factor_cache: dict[int, tuple] = {}
         self._seq = 0
         self.initialized = False
@@ -284,15 +284,18 @@ class VioEstimator:
         if not self._lid_of_track:
             out = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         else:
-            if self._lut is None:
-                self._lut = (sorted_map(self._lid_of_track), sorted_map(self._min_seq_of_track))
-            (kl, vl), (km, vm) = self._lut
+            (kl, vl), (km, vm) = self._lookup_tables()
             lid = lookup(kl, vl, f.ids, -1)
             mins = lookup(km, vm, f.ids, 0)
             ok = (lid >= 0) & (f.seq >= mins)
             out = (f.ids[ok], lid[ok], f.uv_px[ok])
         self._obs_cache[f.seq] = out
         return out
+
+    def _lookup_tables(self) -> tuple:
+        if self._lut is None:
+            self._lut = (sorted_map(self._lid_of_track), sorted_map(self._min_seq_of_track))
+        return self._lut
 
     def _touch(self) -> None:
         self._obs_cache: dict[int, tuple] = {}
@@ -305,7 +308,8 @@ class VioEstimator:
         """Triangulate tracks of the newest frame that have no landmark yet (two-ray midpoint
         between their earliest valid observation in the window and the newest one)."""
         p = self.params
-        cand = np.array([t for t in newest.ids.tolist() if t not in self._lid_of_track], np.int64)
+        (kl, vl), (km, vm) = self._lookup_tables()
+        cand = newest.ids[lookup(kl, vl, newest.ids, -1) < 0]
         if len(cand) == 0 or len(self.frames) < 2:
             return
         Tc = self._cam_poses()
@@ -313,7 +317,7 @@ class VioEstimator:
         first_f = np.full(len(cand), -1, np.int64)
         for fi, f in enumerate(self.frames[:-1]):
             _, ia, ib = np.intersect1d(cand, f.ids, assume_unique=True, return_indices=True)
-            mins = np.array([self._min_seq_of_track.get(int(t), 0) for t in cand[ia]], np.int64)
+            mins = lookup(km, vm, cand[ia], 0)
             new = (first_f[ia] < 0) & (f.seq >= mins)
             first_uv[ia[new]] = f.uv_px[ib[new]]
             first_f[ia[new]] = fi
@@ -332,14 +336,9 @@ class VioEstimator:
         pts, ang = triangulate_midpoint(Ta[:, :3, 3], da, np.broadcast_to(Tb[:3, 3], da.shape), db)
         ok = np.all(np.isfinite(pts), axis=1) & (np.degrees(ang) >= p.min_parallax_deg)
         for T in (Tb[None], Ta):
-            Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-            z = np.einsum(
-                "nij,nj->ni",
-                np.broadcast_to(Rt, (len(pts), 3, 3)),
-                np.nan_to_num(pts) - np.broadcast_to(T[..., :3, 3], pts.shape),
-            )[:, 2]
-            ok &= (z > p.min_depth_m) & (z < p.max_depth_m)
-        self._touch()
+            ok &= depth_in_range(T, pts, p.min_depth_m, p.max_depth_m)
+        if np.any(ok):  # else the bookkeeping is unchanged: the cached observations stay valid
+            self._touch()
         for t, x in zip(cand[ok].tolist(), pts[ok], strict=True):
             lid = self._next_lid
             self._next_lid += 1
@@ -384,6 +383,7 @@ class VioEstimator:
         lm = gtsam.LevenbergMarquardtParams()
         lm.setMaxIterations(self.params.lm_iterations)
         lm.setRelativeErrorTol(1e-4)
+        lm.setlambdaInitial(self.params.lm_lambda_initial)
         try:
             graph = self._graph()
             opt = gtsam.LevenbergMarquardtOptimizer(graph, self.values, lm)
@@ -538,8 +538,7 @@ class VioEstimator:
         k, v = sorted_map(self._min_seq_of_track)
         keep = np.isin(k, np.concatenate([f.ids for f in self.frames]))
         self._min_seq_of_track = dict(zip(k[keep].tolist(), v[keep].tolist(), strict=True))
-        self._touch()
-        # Tracks whose landmark was never triangulated keep all their observations.
+        self._touch()  # tracks whose landmark was never triangulated keep their observations
 
     # ------------------------------------------------------------------------------------ output
 

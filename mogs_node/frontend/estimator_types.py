@@ -20,6 +20,7 @@ __all__ = [
     "V",
     "WindowFrame",
     "X",
+    "depth_in_range",
     "lookup",
     "outlier_gate_px",
     "sorted_map",
@@ -57,6 +58,18 @@ def lookup(keys: NDArray, vals: NDArray, q: NDArray, default: int) -> NDArray[np
     return np.where(keys[i] == q, vals[i], default)
 
 
+def depth_in_range(T_world_cam: NDArray, pts: NDArray, lo_m: float, hi_m: float) -> NDArray:
+    """Whether each point ``pts`` [N, 3] (NaN read as 0) has a depth in (``lo_m``, ``hi_m``) in
+    the camera ``T_world_cam`` ([1, 4, 4] for all points, or [N, 4, 4], one per point)."""
+    Rt = np.swapaxes(T_world_cam[..., :3, :3], -1, -2)
+    z = np.einsum(
+        "nij,nj->ni",
+        np.broadcast_to(Rt, (len(pts), 3, 3)),
+        np.nan_to_num(pts) - np.broadcast_to(T_world_cam[..., :3, 3], pts.shape),
+    )[:, 2]
+    return (z > lo_m) & (z < hi_m)
+
+
 class EstimatorDivergedError(MogsError, RuntimeError):
     """The window solve failed or left physical bounds (bias, speed); the caller must re-initialise.
     ``reason`` names the cause in one word (``solve_failed``, ``speed``, ``gyro_bias``, ...)."""
@@ -73,6 +86,10 @@ class EstimatorParams:
     window_size: int = 8  # keyframes kept in the window (the newest frame comes on top)
     lm_iterations: int = 2  # Levenberg-Marquardt iterations per update (warm-started; 3 costs
     # ~20 % more estimation time for the same accuracy, docs/frontend.md)
+    lm_lambda_initial: float = 1e-5  # LM's first damping (GTSAM's default). Below ~0.1 the
+    # window's damped normal equations are near-indeterminate (low-parallax landmarks) in ~96 % of
+    # tracking solves: 0.1 skips those failed eliminations (estimator CPU -25 %) but changes the
+    # estimate (10 s test drive: scale error 2.4 %); docs/frontend.md, "Window solve speed"
     pixel_sigma_px: float = 4.0  # reprojection noise (undistorted px); KLT on rendered or real
     # images has heavy-tailed errors: 1 px lets vision override the IMU (jittery attitude)
     huber_k: float = 1.345  # Huber threshold in sigmas
@@ -111,13 +128,14 @@ class EstimatorParams:
         if (
             self.window_size < 2
             or self.lm_iterations < 1
+            or not self.lm_lambda_initial > 0
             or min(self.pixel_sigma_px, self.visual_prior_sigma) <= 0
             or (self.outlier_reproj_rel or 0.0) < 0
             or not 0 < self.outlier_reproj_min_px <= self.outlier_reproj_px
         ):
             raise ConfigError(
-                "estimator: window_size >= 2, lm_iterations >= 1, pixel_sigma_px and "
-                "visual_prior_sigma > 0, outlier_reproj_rel >= 0, "
+                "estimator: window_size >= 2, lm_iterations >= 1, lm_lambda_initial > 0, "
+                "pixel_sigma_px and visual_prior_sigma > 0, outlier_reproj_rel >= 0, "
                 "0 < outlier_reproj_min_px <= outlier_reproj_px"
             )
 
