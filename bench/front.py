@@ -67,8 +67,8 @@ KNOBS: tuple[tuple[str, tuple[Any, ...]], ...] = (
     ("metrizer.metrizer.sample_stride", (12, 3)),  # CDR data terms: every n-th pixel [6]
     ("prior.flow.dis_preset", ("fast",)),  # the prior's flow [medium]
     ("segmentation.graph.scale", (0.5,)),  # segmentation resolution [1.0]
-    ("mapper.iters_per_keyframe", (4, 20)),  # [8]
-    ("mapper.final_refine_iters", (0, 300)),  # after the drive, full resolution [600]
+    ("mapper.iters_per_keyframe", (4, 20)),  # [6]
+    ("mapper.final_refine_iters", (0, 300)),  # after the drive, full resolution [800]
     ("mapper.train_downsample", (4, 1)),  # mapping image scale [2]
     ("mapper.window_size", (4, 10)),  # [6]
 )

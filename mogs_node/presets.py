@@ -68,12 +68,12 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "quality": {
         # full-resolution optimisation, more iterations per keyframe (with the refinement after
         # the drive at 300 iterations, session 9: held-out PSNR 23.6 -> 24.6 dB with 600 here;
-        # balanced now refines 600 times too, with a learning-rate schedule: docs/mapper.md);
+        # balanced refines 800 times, with a learning-rate schedule: docs/mapper.md);
         # CDR with one IRLS iteration on every
         # 3rd pixel instead of three on every 6th: AbsRel 0.131 -> 0.129 (screened with
         # final_refine_iters 0, which leaves the depth as is; more sparse tracks, 1500, made it
         # worse: 0.137; the fill at full resolution changed nothing), knob table
-        "mapper": {"iters_per_keyframe": 20, "train_downsample": 1, "final_refine_iters": 600},
+        "mapper": {"iters_per_keyframe": 20, "train_downsample": 1, "final_refine_iters": 800},
         "metrizer": {"cdr": {"irls_iters": 1}, "metrizer": {"sample_stride": 3}},
     },
 }

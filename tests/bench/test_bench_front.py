@@ -159,7 +159,7 @@ def test_grid_and_one_knobs_overrides_merge_nested_groups() -> None:
 def test_every_knob_point_moves_its_knob_away_from_balanced() -> None:
     """The knobs are relative to balanced (the demo's own values): each point moves one."""
     lf = load_launch_file(REPO / "launch" / "demo.yaml")
-    assert balanced_value(lf, "mapper.iters_per_keyframe") == 8  # the file's
+    assert balanced_value(lf, "mapper.iters_per_keyframe") == 6  # the file's
     assert balanced_value(lf, "metrizer.cdr.irls_iters") == 3  # a default
     for path, values in KNOBS:
         base = balanced_value(lf, path)
