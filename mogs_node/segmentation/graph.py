@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import check_array
 
-__all__ = ["GraphSegParams", "segment_graph"]
+__all__ = ["GraphSegParams", "require_ximgproc", "segment_graph"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,20 @@ class GraphSegParams:
             raise ConfigError(
                 "GraphSegParams: slic_region_px >= 2, slic_iterations >= 1, min_segment_px >= 0"
             )
+
+
+def require_ximgproc(user: str) -> None:
+    """Fail at start-up, naming the missing package, where OpenCV lacks its contrib modules.
+
+    ``opencv-python(-headless)`` (what many images ship) has no ``cv2.ximgproc``; without this
+    check the node would fail on every keyframe with an ``AttributeError`` (seen on a GPU machine).
+    """
+    if not hasattr(cv2, "ximgproc"):
+        raise ConfigError(
+            f"{user}: OpenCV {cv2.__version__} has no ximgproc module: install "
+            "opencv-contrib-python-headless (a project dependency) instead of opencv-python"
+            "(-headless), or choose another backend"
+        )
 
 
 def _compact_labels(labels: NDArray[np.integer], min_segment_px: int) -> NDArray[np.int32]:
@@ -88,6 +102,7 @@ def segment_graph(
     H, W = img.shape[:2]
     if H < 2 or W < 2:
         raise ConfigError(f"rgb: image too small ({W}x{H})")
+    require_ximgproc(f"segment_graph (method {params.method!r})")
     img = np.ascontiguousarray(img)
     h, w = max(2, round(H * params.scale)), max(2, round(W * params.scale))
     small = img if (h, w) == (H, W) else cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)

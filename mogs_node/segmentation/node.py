@@ -14,7 +14,7 @@ from mogs_node import msgs
 from mogs_node.keyframe_chain import failed_masks
 from mogs_node.node import Node
 from mogs_node.params import parse_group
-from mogs_node.segmentation.graph import GraphSegParams, segment_graph
+from mogs_node.segmentation.graph import GraphSegParams, require_ximgproc, segment_graph
 from mogs_node.segmentation.params import SegmentationParams
 from mogs_node.segmentation.sam_onnx import SamOnnx, SamParams
 
@@ -32,6 +32,8 @@ class SegmentationNode(Node):
         self.sam: SamOnnx | None = None
         if p.backend == "sam":
             self.sam = SamOnnx(parse_group(SamParams, p, "sam", self.name))
+        else:
+            require_ximgproc(f"node {self.name!r}, backend 'graph'")
         self.subscribe(
             p.in_topic, self.on_keyframe, reliable=True, msg_type=msgs.Keyframe, idempotent=True
         )

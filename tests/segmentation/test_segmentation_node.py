@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mogs_node import msgs
-from mogs_node.errors import ModelError
+from mogs_node.errors import ConfigError, ModelError
 from mogs_node.segmentation.graph import GraphSegParams, segment_graph
 from mogs_node.segmentation.node import SegmentationNode
 
@@ -99,3 +99,16 @@ def test_sam_node_publishes_painted_masks(inproc_bus, wired_node, tmp_path) -> N
     assert node.sam is not None
     np.testing.assert_array_equal(got.labels, node.sam.generate(rgb).labels)
     assert (got.labels >= 0).mean() > 0.5
+
+
+def test_graph_backend_without_opencv_contrib_fails_at_start(inproc_bus, monkeypatch) -> None:
+    """An OpenCV without ximgproc (opencv-python instead of the contrib build) stops the node at
+    start-up with the package to install, not with an AttributeError on every keyframe."""
+    import cv2
+
+    monkeypatch.delattr(cv2, "ximgproc")
+    bus, ctx = inproc_bus
+    with pytest.raises(ConfigError, match="opencv-contrib-python-headless"):
+        SegmentationNode("seg", {}, bus, context=ctx, diagnostics_period_s=0)
+    with pytest.raises(ConfigError, match="no ximgproc"):
+        segment_graph(np.zeros((8, 8, 3), np.uint8))
