@@ -362,6 +362,8 @@ def _road_passes(fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.flo
         contact_check_rel=p.ground_contact_check_rel,
     )
     h = p.road_camera_height_m
+    if not (p.road_objects or p.ground_contact) or depth.min(initial=1.0) > 0:
+        return 0, 0  # nothing to fill (a fully covered frame costs nothing)
     z_road = road_plane_depth(fr.K, (H, W), fr.up_cam, h).ravel()
     n_road = n_contact = 0
     if p.road_objects:

@@ -57,15 +57,17 @@ def road_plane_depth(K: NDArray, hw: tuple[int, int], up_cam: NDArray, height_m:
     """Z-depth ``[H, W]`` of the road plane ``up . X = -height_m`` along each pixel's ray (``inf``
     at and above the horizon). ``up_cam`` the unit up direction in the camera frame."""
     H, W = hw
-    Kinv = np.linalg.inv(np.asarray(K, np.float64))
-    u = np.arange(W, dtype=np.float64)
-    v = np.arange(H, dtype=np.float64)[:, None]
-    x = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
-    y = Kinv[1, 1] * v + Kinv[1, 2] + 0.0 * u
-    down = -(up_cam[0] * x + up_cam[1] * y + up_cam[2])
+    K = np.asarray(K, np.float64)
+    up = np.asarray(up_cam, np.float64)
+    v = np.arange(H, dtype=np.float64)
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (np.arange(W, dtype=np.float64)[None, :] - K[0, 2] - K[0, 1] * y[:, None]) / K[0, 0]
+    # -up . (x, y, 1): separable without skew (the usual case), an outer sum
+    down = (-(up[1] * y + up[2]))[:, None] - up[0] * x
     with np.errstate(divide="ignore"):
-        z = np.where(down > 1e-9, height_m / np.maximum(down, 1e-9), np.inf)
-    return z.astype(np.float32)
+        z = np.float32(height_m) / down.astype(np.float32)
+    z[~(down > 1e-9)] = np.inf
+    return z
 
 
 def _bincount(idx: NDArray[np.intp], G: int, w: NDArray | None = None) -> NDArray:
@@ -89,24 +91,30 @@ def fill_road_objects(
     ``max_depth_m``) get the mean confidence of the agreeing pixels times the agreeing share.
     Returns the number of pixels filled.
     """
-    below = z_road <= 1.5 * p.max_depth_m
-    hasd = (depth > 0) & below
-    agree = hasd & (np.abs(depth - z_road) <= p.agree_rel * z_road)
-    ia = obj[agree]
-    na = _bincount(ia, G)
+    hole = depth <= 0
+    if not hole.any():  # a fully covered frame costs nothing
+        return 0
+    has_hole = _bincount(obj[hole], G) > 0
+    idx = np.flatnonzero(has_hole[obj])  # only objects with empty pixels
+    o, d, zr = obj[idx], depth[idx], z_road[idx]
+    below = zr <= 1.5 * p.max_depth_m
+    hasd = (d > 0) & below
+    agree = hasd & (np.abs(d - zr) <= p.agree_rel * zr)
+    na = _bincount(o[agree], G)
     if not (na >= p.min_pixels).any():
         return 0
-    nd = _bincount(obj[hasd], G)
-    ns = _bincount(obj, G)
-    nb = _bincount(obj[below], G)
+    nd = _bincount(o[hasd], G)
+    ns = _bincount(o, G)
+    nb = _bincount(o[below], G)
     good = (na >= p.min_pixels) & (na >= p.min_agree_share * nd)
     good &= (na >= p.min_depth_share * ns) & (nb >= p.below_share * ns)
-    fill = np.flatnonzero(good[obj] & (depth <= 0) & (z_road <= p.max_depth_m))
+    sel = good[o] & (d <= 0) & (zr <= p.max_depth_m)
+    fill = idx[sel]
     if len(fill) == 0:
         return 0
-    c_g = _bincount(ia, G, conf[agree].astype(np.float64)) / np.maximum(nd, 1)
-    depth[fill] = z_road[fill]
-    conf[fill] = c_g[obj[fill]].astype(np.float32)
+    c_g = _bincount(o[agree], G, conf[idx[agree]].astype(np.float64)) / np.maximum(nd, 1)
+    depth[fill] = zr[sel]
+    conf[fill] = c_g[o[sel]].astype(np.float32)
     return len(fill)
 
 
