@@ -19,7 +19,8 @@ Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
    where the object's own result does not explain its features better (never worse than the
    baseline, docs/metrizer.md); sky -> ``d_max``; pixels without prior get, only near
    neighbour-confirmed features of their own object, the model depth (accepted shape) or the
-   nearest such feature's depth (fill.py); output confidence.
+   nearest such feature's depth (fill.py); with the camera's height above the road and the
+   keyframe's pose, road objects' empty pixels get the road plane (ground.py); output confidence.
 
 Modes: ``full``; ``no_msc`` (no merging, no shapes: the geometric term of eq. 7 uses each mask's
 sparse features); ``no_msc_cdr`` (the globally aligned prior). See docs/metrizer.md.
