@@ -28,6 +28,12 @@ from mogs_node.metrizer.frame import (
     model_depth,
     to_depth_inplace,
 )
+from mogs_node.metrizer.ground import (
+    GroundParams,
+    fill_ground_contact,
+    fill_road_objects,
+    road_plane_depth,
+)
 from mogs_node.metrizer.params import MetrizedDepth, MetrizerParams
 
 __all__ = ["compose", "fallback_to_global", "fill_holes", "model_output", "nearest_seed"]
@@ -344,6 +350,33 @@ def _plane_pass(
     )
 
 
+def _road_passes(fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.float32]) -> tuple:
+    """The road plane's passes (ground.py, departure: docs/metrizer.md "The road plane"): road
+    objects, then objects standing on the road (``depth`` / ``out_conf`` flat, in place).
+    Returns the pixels each gave a depth."""
+    p: MetrizerParams = fr.p
+    H, W = fr.H, fr.W
+    gp = GroundParams(
+        agree_rel=p.road_agree_rel,
+        max_depth_m=min(p.road_max_depth_m, p.d_max_m),
+        contact_check_rel=p.ground_contact_check_rel,
+    )
+    h = p.road_camera_height_m
+    if not (p.road_objects or p.ground_contact) or depth.min(initial=1.0) > 0:
+        return 0, 0  # nothing to fill (a fully covered frame costs nothing)
+    z_road = road_plane_depth(fr.K, (H, W), fr.up_cam, h).ravel()
+    n_road = n_contact = 0
+    if p.road_objects:
+        n_road = fill_road_objects(depth, out_conf, fr.gobj, fr.G, z_road, gp)
+    if p.ground_contact:
+        u, v = np.meshgrid(np.arange(W), np.arange(H))
+        x, y = pixel_to_normalized(fr.K, u.ravel(), v.ravel())
+        n_contact = fill_ground_contact(
+            depth, out_conf, fr.conf, fr.gobj, fr.G, (x, y), z_road, fr.up_cam, h, gp, (H, W)
+        )
+    return n_road, n_contact
+
+
 def compose(
     fr: Frame, tm: StageTimer, models: ShapeModels, theta: F64, global_only: bool
 ) -> MetrizedDepth:
@@ -410,11 +443,13 @@ def compose(
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
             n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
-    n_conf_plane = n_plane_fill = 0
+    n_conf_plane = n_plane_fill = n_road = n_contact = 0
     if not global_only:  # departures: docs/metrizer.md, "Whole objects from the confident
         # pixels" (weak pixels and holes), then "Whole masks" (holes)
         if p.confident_planes:
             n_conf_plane = _plane_pass(fr, depth, out_conf, confident=True)
+        if fr.up_cam is not None:
+            n_road, n_contact = _road_passes(fr, depth, out_conf)
         if p.mask_plane_fill and special is not None:
             n_plane_fill = _plane_pass(fr, depth, out_conf, confident=False)
     stats.update(
@@ -423,6 +458,8 @@ def compose(
         n_hole_px_fill=n_edge_fill,
         n_hole_px_plane=n_plane_fill,
         n_px_confident_plane=n_conf_plane,
+        n_px_road=n_road,
+        n_px_ground_contact=n_contact,
     )
     tm.lap("sky_holes")
     # final guarantees: finite, 0 or within (0, d_max], confidence in [0, 1] and 0 without depth

@@ -108,6 +108,7 @@ class Frame:
     run_len: NDArray[np.intp] | None = None  # [R] its length in pixels
     edges: NDArray[np.uint8] | None = None  # quarter-resolution depth-edge band of the prior
     t_abs_m: float = 0.0  # absolute part of T_s(z) used (see the consensus stage)
+    up_cam: F64 | None = None  # [3] unit "up" in the camera frame (road plane), or None
 
     def in_edge_band(self, flat_idx: NDArray[np.intp]) -> NDArray[np.bool_]:
         """Whether flat pixels lie in the prior's depth-edge band (computed once, on demand)."""

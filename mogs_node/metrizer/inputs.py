@@ -32,7 +32,8 @@ class MetrizerInputs:
     ``feature_uv_px`` ``[N, 2]`` feature pixels, ``feature_depth_m`` ``[N]`` their metric z-depth
     (camera frame), ``feature_weight`` ``[N]`` omega; ``prior`` ``[H, W]`` dense prior of kind
     ``prior_kind``, ``prior_confidence`` ``[H, W]`` in ``[0, 1]`` (0 = no prior); ``image_rgb``
-    ``[H, W, 3]`` uint8 for eq. (10) and the fill, or None.
+    ``[H, W, 3]`` uint8 for eq. (10) and the fill, or None; ``T_world_cam`` ``[4, 4]`` the
+    keyframe's pose (the road plane's "up", ``MetrizerParams.road_*``), or None.
     """
 
     K: NDArray[np.floating]
@@ -44,6 +45,7 @@ class MetrizerInputs:
     prior_confidence: NDArray[np.floating]
     prior_kind: str = "relative_inverse_depth"
     image_rgb: NDArray[np.uint8] | None = None
+    T_world_cam: NDArray[np.floating] | None = None
 
     # mapping protocol: ``metrize_depth(**inputs)`` and ``inputs["labels"]``
     def keys(self) -> Iterator[str]:
@@ -77,7 +79,10 @@ class MetrizerInputs:
         image = self.image_rgb
         if image is not None:
             image = check_array("image_rgb", image, shape=(H, W, 3), dtype=np.uint8)
-        return MetrizerInputs(K, labels, uv, z, w, prior, conf, self.prior_kind, image)
+        T = self.T_world_cam
+        if T is not None:
+            T = check_array("T_world_cam", T, shape=(4, 4), finite=True).astype(np.float64)
+        return MetrizerInputs(K, labels, uv, z, w, prior, conf, self.prior_kind, image, T)
 
     def sanitised(
         self, d_min_m: float, d_max_m: float

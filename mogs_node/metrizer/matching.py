@@ -117,4 +117,5 @@ def metrizer_inputs(entry: MatchedKeyframe) -> MetrizerInputs:
         prior_confidence=conf,
         prior_kind=kind,
         image_rgb=np.ascontiguousarray(rgb),
+        T_world_cam=np.asarray(kf.T_world_cam, dtype=np.float64),
     )

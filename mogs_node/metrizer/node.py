@@ -25,7 +25,10 @@ neighbour for labels, bilinear for the prior and its confidence).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
+
+import numpy as np
 
 from mogs_node import msgs
 from mogs_node.heartbeat import DIAGNOSTICS_TOPIC
@@ -67,6 +70,10 @@ class MetrizerNode(Node):
             (p.prior_topic, self.on_prior, msgs.DepthMap),
         ):
             self.subscribe(topic, handler, reliable=True, msg_type=typ, idempotent=True)
+        if p.camera_info_topic:
+            self.subscribe(
+                p.camera_info_topic, self.on_camera_info, reliable=True, msg_type=msgs.CameraInfo
+            )
         # a worker's heartbeats say it lives (and computes): its keyframes wait on
         self.subscribe(DIAGNOSTICS_TOPIC, self.on_heartbeat, reliable=False, queue_size=64)
         self.every(p.poll_period_s, self.on_timer)
@@ -87,6 +94,16 @@ class MetrizerNode(Node):
 
     def on_prior(self, msg: msgs.DepthMap) -> None:
         self._add("prior", msg)
+
+    def on_camera_info(self, msg: msgs.CameraInfo) -> None:
+        """The camera height of the source's calibration (finite: known) turns the road plane
+        on (``MetrizerParams.road_camera_height_m``), unless the launch file sets the height."""
+        h = float(msg.camera_height_m)
+        if "road_camera_height_m" in self.params.metrizer or not (np.isfinite(h) and h > 0):
+            return
+        if h != self.metrizer_params.road_camera_height_m:
+            self.log.info("road plane: camera %.3f m above the road (from %s)", h, msg.source)
+            self.metrizer_params = replace(self.metrizer_params, road_camera_height_m=h)
 
     def on_heartbeat(self, msg: msgs.Message) -> None:
         """The worker of a slot is the node whose heartbeat says it published on its topic."""

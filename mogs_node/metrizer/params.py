@@ -59,6 +59,18 @@ class MetrizerParams:
     confident_plane_inlier_rel: float = 0.03  # ... half of them within this of the plane
     confident_plane_max_gap: float = 0.0  # > 0: only pixels within this fraction of the image
     # width of an inlier of their object get its plane
+    road_camera_height_m: float = float("nan")  # departure (issue 16): > 0 the camera's height
+    # above a planar road; with the keyframe's pose (MetrizerInputs.T_world_cam) the road plane
+    # then gives depth to road objects and objects standing on the road (ground.py)
+    road_up_world: tuple[float, float, float] | None = (0.0, 0.0, 1.0)  # world "up" (a
+    # gravity-aligned world); None: road_up_cam, fixed in the camera frame
+    road_up_cam: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    road_objects: bool = True  # road objects' empty pixels get the plane (ground.py)
+    road_agree_rel: float = 0.05  # a pixel agrees with the plane within this relative depth
+    road_max_depth_m: float = 40.0  # road farther than this gets no depth
+    ground_contact: bool = False  # objects standing on road pixels: a vertical plane through
+    # the contact line for their empty pixels, when their confident pixels agree with it
+    ground_contact_check_rel: float = 0.1
     t_abs_ref_depth_m: float = 10.0  # median feature depth for which consensus.t_abs_m is meant
     fill_method: str = "nearest"  # pixels without prior and shape: "nearest" consistent feature
     # of the same object, or "edge_aware" (FGS normalised convolution of the features)
@@ -112,6 +124,9 @@ class MetrizerParams:
             0 <= self.confident_plane_fit_conf <= 1 and 0 <= self.confident_plane_replace_below <= 1
         ):
             raise ConfigError("MetrizerParams: confident_plane_* confidences must be in [0, 1]")
+        h = self.road_camera_height_m
+        if h == h and not (0 < h < float("inf")):
+            raise ConfigError(f"MetrizerParams: road_camera_height_m > 0 or NaN, got {h}")
         if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
             raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")
 
@@ -146,6 +161,8 @@ class MetrizerNodeParams:
     masks_topic: str = "/seg/masks"  # input instance masks
     prior_topic: str = "/prior/depth"  # input dense prior
     out_topic: str = "/metrizer/depth"  # output metric depth
+    camera_info_topic: str = "/camera/info"  # the source's camera height above the road, used
+    # for metrizer.road_camera_height_m unless the launch file sets it ("" = off)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

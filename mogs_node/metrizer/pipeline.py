@@ -19,7 +19,8 @@ Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
    where the object's own result does not explain its features better (never worse than the
    baseline, docs/metrizer.md); sky -> ``d_max``; pixels without prior get, only near
    neighbour-confirmed features of their own object, the model depth (accepted shape) or the
-   nearest such feature's depth (fill.py); output confidence.
+   nearest such feature's depth (fill.py); with the camera's height above the road and the
+   keyframe's pose, road objects' empty pixels get the road plane (ground.py); output confidence.
 
 Modes: ``full``; ``no_msc`` (no merging, no shapes: the geometric term of eq. 7 uses each mask's
 sparse features); ``no_msc_cdr`` (the globally aligned prior). See docs/metrizer.md.
@@ -152,6 +153,7 @@ def metrize(
         feat_g=ms.feat_g,
         n_feat_g=ms.n_feat_g,
         sky=ms.sky,
+        up_cam=_road_up(p, c.T_world_cam),
     )
     if mode == "no_msc_cdr":
         return compose(
@@ -187,6 +189,17 @@ def metrize(
     stats.update(n_rows)
     tm.lap("refine")
     return compose(fr, tm, models, theta, global_only=False)
+
+
+def _road_up(p: MetrizerParams, T_world_cam: F64 | None) -> F64 | None:
+    """Unit "up" in the camera frame for the road plane (``road_*`` parameters), or None when
+    the road plane is off (no camera height) or its "up" needs a pose the inputs lack."""
+    from mogs_node.depth_prior.road import up_in_camera
+
+    if not p.road_camera_height_m > 0 or (p.road_up_world is not None and T_world_cam is None):
+        return None
+    T = np.eye(4) if T_world_cam is None else T_world_cam
+    return up_in_camera(T, p.road_up_world, p.road_up_cam)
 
 
 @dataclass

@@ -118,6 +118,7 @@ def test_inputs_from_messages_with_resizing_and_missing_parts():
     assert kw["image_rgb"].shape == (24, 32, 3)
     assert kw["prior_kind"] == "relative_inverse_depth"
     assert np.allclose(kw["feature_depth_m"], kf.feature_xyz_cam_m[:, 2])
+    assert np.array_equal(kw["T_world_cam"], kf.T_world_cam)  # the road plane's "up"
     out = metrize_depth(**kw)
     assert out.depth_m.shape == (24, 32) and np.all(out.depth_m > 0)
     # nothing but the keyframe: no masks, no prior -> still a valid (fill-based) depth map
