@@ -28,7 +28,8 @@ from _two_view_scene import CAM, render  # noqa: E402
 ROAD = RoadPriorParams(up_world=(0.0, -1.0, 0.0))  # the test scene's world: y down
 FLOW = FlowPriorParams(far_baseline_m=0.0)
 K = CAM.K
-EDGE = FusionParams(edge_window_px=5, edge_gain=0.5)
+EDGE = FusionParams(edge_window_px=5, edge_gain=0.5, edge_far_only=False)
+OFF = FusionParams(edge_window_px=0)
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +54,18 @@ def test_depth_edge_range_exact_cases() -> None:
     lone[2, 2] = 3.0
     assert not depth_edge_range(lone, 5).any()  # a pixel alone in its window: no jump
     assert not depth_edge_range(d, 1).any()  # a 1-pixel window sees no neighbour
+
+
+def test_depth_edge_range_far_side_only() -> None:
+    """``far_only``: how far a pixel lies behind its window's nearest depth; the near side of
+    a jump and a flat surface get 0."""
+    d = np.full((7, 12), 2.0, np.float32)
+    d[:, 6:] = 8.0
+    r = depth_edge_range(d, 5, far_only=True)
+    np.testing.assert_allclose(r[:, 6:8], np.log(4.0), rtol=1e-5)
+    assert not r[:, :6].any() and not r[:, 8:].any()
+    both = depth_edge_range(d, 5)
+    assert np.all(r <= both + 1e-7)
 
 
 @settings(max_examples=50, deadline=None)
@@ -81,7 +94,7 @@ def test_edge_term_lowers_confidence_only_near_depth_jumps(views) -> None:
     elsewhere; the pixels it marks down are the ones with the larger error."""
     (g0, _, T0), (g1, d1, T1) = views
     past = PriorHistory([(g0, T0)])
-    plain = compute_dense_prior(g1, K, T1, past, flow_params=FLOW, road_params=ROAD)
+    plain = compute_dense_prior(g1, K, T1, past, flow_params=FLOW, road_params=ROAD, params=OFF)
     edged = compute_dense_prior(g1, K, T1, past, flow_params=FLOW, road_params=ROAD, params=EDGE)
     np.testing.assert_array_equal(edged.depth_m, plain.depth_m)
     assert np.all(edged.confidence <= plain.confidence + 1e-7)
@@ -102,7 +115,7 @@ def test_edge_term_not_carried_leaves_the_carried_confidence(views) -> None:
     (g0, _, T0), (g1, _, T1) = views
     params = FusionParams(edge_window_px=5, edge_carried=False)
     past = PriorHistory([(g0, T0)])
-    plain = compute_dense_prior(g1, K, T1, past, flow_params=FLOW, road_params=ROAD)
+    plain = compute_dense_prior(g1, K, T1, past, flow_params=FLOW, road_params=ROAD, params=OFF)
     edged = compute_dense_prior(g1, K, T1, past, flow_params=FLOW, road_params=ROAD, params=params)
     np.testing.assert_allclose(edged.carry_confidence, plain.confidence, rtol=1e-5, atol=1e-7)
     assert (edged.confidence < edged.carry_confidence).any()
