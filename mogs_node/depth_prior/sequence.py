@@ -209,6 +209,7 @@ class PriorSequence:
         if np.isfinite(fit):
             self.ground_heights_m.append(fit)
         self.remember(keyframe_id, grey, K, T_world_cam)
-        self.history[-1].prior = (prior.depth_m, prior.confidence)
+        carry = prior.confidence if prior.carry_confidence is None else prior.carry_confidence
+        self.history[-1].prior = (prior.depth_m, carry)
         self.history[-1].stamp_ns = -1 if stamp_ns is None else int(stamp_ns)
         return prior, ref_ids
