@@ -185,7 +185,7 @@ class HeldOutViews:
                             c[-1]["iterations"] = self.iterations
             else:
                 self.inserted += int(m.extra.get("inserted", 0))
-            self.pruned += int(m.extra.get("pruned", 0))
+            self.pruned = int(m.extra.get("pruned", self.pruned))  # the mapper's running total
         elif topic == "/mapper/gaussians":
             self.replica.apply_update(m)
             self._evaluate(now)
@@ -326,8 +326,7 @@ def run_init(
     for t in (*TOPICS, "/mapper/gaussians", depth_topic):
         sub.subscribe(t, reliable=True)
     views = HeldOutViews(gt_images)
-    log = open(out / "launch.log", "w")  # noqa: SIM115
-    # the journal stays: bench/table2_convergence.py replays it
+    log = open(out / "launch.log", "w")  # noqa: SIM115 (the journal stays: it is replayed)
     launcher = Launcher(launch, out=log, grace_s=30.0, keep_journal=True)
     runner = threading.Thread(
         target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": args.timeout}
@@ -394,30 +393,6 @@ def ratios(inits: dict[str, Any]) -> dict[str, float | None]:
         "psnr_at_budget_mogs_minus_prior_global_db": None
         if mo.get("psnr_at_budget_db") is None or pg.get("psnr_at_budget_db") is None
         else round(mo["psnr_at_budget_db"] - pg["psnr_at_budget_db"], 3),
-    }
-
-
-def candidate_ratios(views: dict[str, HeldOutViews], target_db: float) -> dict[str, float | None]:
-    """Median MOGS / random ratios over every candidate view both reach (robustness of the
-    single fixed view's ratios)."""
-    if "mogs" not in views or "random" not in views:
-        return {}
-    both = sorted(
-        reached(views["mogs"].curves, target_db) & reached(views["random"].curves, target_db)
-    )
-    it, ga = [], []
-    for i in both:
-        mo = views["mogs"].view_figures(i, target_db)
-        ra = views["random"].view_figures(i, target_db)
-        if ra["iters_to_target"] and ra["gaussians_at_target"]:
-            it.append(mo["iters_to_target"] / ra["iters_to_target"])
-            ga.append(mo["gaussians_at_target"] / ra["gaussians_at_target"])
-    return {
-        "iters_to_target_mogs_over_random_median": round(float(np.median(it)), 3) if it else None,
-        "gaussians_at_target_mogs_over_random_median": round(float(np.median(ga)), 3)
-        if ga
-        else None,
-        "candidates_both_reach": len(both),
     }
 
 
@@ -575,7 +550,7 @@ def assemble(
                 for i in sorted(v.curves)
             },
         }
-    res["ratios"] = {**ratios(res["inits"]), **candidate_ratios(views, args.target_db)}
+    res["ratios"] = ratios(res["inits"])
     for init, r in res["inits"].items():
         print(
             f"[table2] {init} at frame {view}: iterations to target {r['iters_to_target']}, "

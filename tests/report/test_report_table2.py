@@ -236,3 +236,13 @@ def test_runs_saved_one_init_each_merge_into_the_same_table(tmp_path: Path) -> N
     # a run without candidate scores has no say in the choice of the view
     merged_runs["prior_global"] = ({"psnr_at_budget_db": 20.5}, HeldOutViews({}))
     assert choose_view({k: v for k, (_, v) in merged_runs.items()}, 20.0) == 40
+
+
+def test_pruned_is_the_mappers_running_total_not_a_sum_of_it() -> None:
+    # /mapper/stats' extra "pruned" is GaussianMapper.n_pruned (cumulative); session 11's table
+    # summed it over the updates (72302 "pruned" of 65682 inserted in a 6-per-keyframe run)
+    hv = HeldOutViews({})
+    for inserted, pruned in ((100, 0), (50, 10), (40, 25)):
+        stats = SimpleNamespace(iterations=6, extra={"inserted": inserted, "pruned": pruned})
+        hv.on("/mapper/stats", stats, 0.0)
+    assert hv.inserted == 190 and hv.pruned == 25
