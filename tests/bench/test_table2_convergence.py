@@ -145,3 +145,50 @@ def test_apply_keeps_the_first_definition_and_writes_the_table() -> None:
     text = markdown("python bench/pipeline_table2.py", res, "a machine", "Why: the policy.")
     assert "| mogs | 0.5 | 2/2 |" in text and "| 60 |" in text
     assert "iterations to 20 dB 0.167" in text and "Why: the policy." in text
+
+
+def test_the_bench_replays_each_runs_journal_after_the_live_runs(tmp_path, monkeypatch) -> None:
+    import json
+
+    import bench.pipeline_table2 as t2
+    from bench.pipeline_table2 import HeldOutViews
+
+    def run_init(init, args, root, gt):
+        hv = HeldOutViews({})
+        hv.curves = {
+            46: [
+                {
+                    "iterations": 6,
+                    "wall_s": 1.0,
+                    "n_gaussians": 10,
+                    "fixed_view_psnr_db": 16.0,
+                    "fixed_view_ssim": 0.5,
+                }
+            ]
+        }
+        hv.iterations, hv.inserted, hv.pruned = 72, 100, 10
+        fig = {
+            "psnr_at_budget_db": {"mogs": 19.0, "prior_global": 18.5}.get(init, 15.0),
+            "ssim_at_budget": 0.6,
+            "run_dir": str(tmp_path / init),
+            "wall_s": 1.0,
+        }
+        return fig, hv
+
+    measured = []
+
+    def measure(journal, launch, init):
+        measured.append((journal, launch, init))
+        return conv([[20.0], [19.0, 20.0]] if init == "mogs" else [[15.0, 19.0, 20.0]] * 2)
+
+    monkeypatch.setattr(t2, "run_init", run_init)
+    monkeypatch.setattr(t2, "sim_images", lambda frames, idx: {})
+    monkeypatch.setattr(t2.convergence, "measure", measure)
+    out = tmp_path / "t2.json"
+    assert t2.main(["--target-db", "auto", "--no-docs", "--json", str(out)]) == 0
+    assert [m[2] for m in measured] == ["mogs", "prior_global", "random"]
+    assert measured[0][0] == tmp_path / "mogs" / "journal" / "journal.log"
+    res = json.loads(out.read_text())
+    assert res["target_psnr_db"] == 20.0 and res["inits"]["random"]["iters_to_target"] == 2.0
+    assert res["inits"]["mogs"]["fixed_view"]["iters_to_target"] == 6
+    assert res["ratios"]["iters_to_target_mogs_over_random"] == 0.25
