@@ -119,7 +119,8 @@ def insertion_mask(
     rd = check_array("rendered_depth_m", rendered_depth_m, shape=d.shape, dtype=np.floating)
     unexplained = a < params.alpha_explained
     err = None  # mean |rendered - image| colour error per pixel
-    if rendered_rgb is not None and image_rgb is not None:
+    wanted = params.color_tol > 0 or params.disagree_color_tol > 0
+    if wanted and rendered_rgb is not None and image_rgb is not None:
         rc = check_array("rendered_rgb", rendered_rgb, shape=(*d.shape, 3), dtype=np.floating)
         ic = check_array("image_rgb", image_rgb, shape=(*d.shape, 3), dtype=np.floating)
         err = np.abs(rc - ic).mean(-1)
