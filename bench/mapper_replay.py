@@ -35,6 +35,7 @@ import shutil
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -91,12 +92,15 @@ def replay(
     max_keyframes: int = 0,
     core: dict[str, Any] | None = None,
     behind: bool = False,
+    after_insert: Callable[[GaussianMapper], None] | None = None,
 ) -> tuple[GaussianMapper, list[dict[str, float]]]:
     """Map every keyframe in order (the first ``max_keyframes``, 0: all); returns the mapper and
     per-keyframe CPU times (printed as they come). ``behind``: as a node that was behind its input
     the whole drive with ``iters_when_behind: 0`` (launch/kitti.yaml on a busy machine): every
     keyframe only inserted, then the owed ``iters_per_keyframe`` per keyframe run as its idle
-    timer runs them, ``idle_iters_per_tick`` at a time (:meth:`GaussianMapper.catch_up`)."""
+    timer runs them, ``idle_iters_per_tick`` at a time (:meth:`GaussianMapper.catch_up`).
+    ``after_insert(mapper)`` runs after each keyframe's insertion, before its iterations (it must
+    leave the mapper as it found it: bench/table2_convergence.py works on a copy)."""
     depth = {d.keyframe_id: d for d in data["/metrizer/depth"]}
     mapper: GaussianMapper | None = None
     per_kf = []
@@ -111,6 +115,9 @@ def replay(
         c0 = time.process_time()
         n_new = mapper.add_keyframe(kf.keyframe_id, rgb, kf.T_world_cam, d, c)
         c1 = time.process_time()
+        if after_insert is not None:
+            after_insert(mapper)
+            c1 = time.process_time()
         st = mapper.optimize(0 if behind else p.iters_per_keyframe)
         c2 = time.process_time()
         k = {

@@ -11,21 +11,24 @@ metrizer -> mapper -> report) runs three times, with the same mapper policy and 
   by :class:`RandomDepthNode` in place of the metrizer's output (which still runs, so that every
   run costs the same upstream).
 
-This script listens on the run's bus: it rebuilds the map from ``/mapper/gaussians``
-(:class:`~mogs_node.report.views.MapReplica`) and, after every map update, renders it at the
-candidate held-out frames (every ``--candidate-step``-th frame from ``--candidates-from`` on that
-is not a keyframe; pose: the frontend's odometry, as the run report's held-out views; ground
-truth: the sim's own rendering of that frame, so a dropped best-effort image cannot change which
-view is scored) and scores them. The fixed held-out view is then, unless ``--view-frame`` names
-one, the earliest candidate that every initialisation's map reaches ``--target-db`` at: the same
-rule for all three, decided after all runs so that the view is one where the target is
-reachable and the ratios are defined. At that view ``iters_to_target`` is the mapper's cumulative
-iteration count (``/mapper/stats``) at the first update reaching the target, ``wall_s_to_target``
-the seconds since the first frame's odometry, ``gaussians_at_target`` the map's size then (``null``
-when never reached); the medians of the MOGS / random ratios over every candidate both reach are
-given too. At the budget (the end of the drive), ``psnr_at_budget_db`` / ``ssim_at_budget`` are
-the run report's means over its held-out frames (``map.heldout_psnr_db`` /
-``map.heldout_ssim``, docs/report.md).
+**Table II's figures** (``inits.<init>.iters_to_target``, ``gaussians_at_target``): how fast a
+map initialised from each depth converges, per keyframe, iteration by iteration: each run keeps
+its journal, and :mod:`bench.table2_convergence` replays it through the mapper core (the live
+map, byte for byte) and, after each keyframe's insertion, optimises a copy of the map with the
+mapper's own loop, scoring the held-out view next to the keyframe after every iteration; the
+median over the keyframes of the iterations to the target (20 dB when every init's median gets
+there; ``--target-db auto``: else the highest common one), the Gaussians in the map then.
+``psnr_at_budget_db`` / ``ssim_at_budget``: the run report's means over its held-out frames at the
+end of the drive (``map.heldout_psnr_db`` / ``map.heldout_ssim``, docs/report.md).
+
+The first definition (session 11) stays under ``inits.<init>.fixed_view``: this script listens on
+the run's bus, rebuilds the map from ``/mapper/gaussians`` (:class:`MapReplica`) and after every
+map update scores candidate held-out frames (every ``--candidate-step``-th frame from
+``--candidates-from`` on that is not a keyframe; ground truth from the sim, pose from the
+frontend); the fixed view is the earliest candidate every init reaches the target at, and
+``iters_to_target`` there the cumulative iteration count at the first update reaching it. It
+measured mostly *when* a view ahead of the car entered the map, in steps of
+``iters_per_keyframe`` (docs/benchmarks.md ``pipeline-table2``).
 
 Usage::
 
@@ -51,6 +54,7 @@ import numpy as np
 import yaml
 import zmq
 
+from bench import table2_convergence as convergence
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.launch import parse_overrides
@@ -87,20 +91,22 @@ class RandomDepthNode(Node):
         self.subscribe(self.params.in_topic, self.on_depth, msg_type=msgs.DepthMap)
 
     def on_depth(self, m: msgs.DepthMap) -> None:
-        p: RandomDepthParams = self.params
-        d = random_depth(m.depth.shape, p.d_min_m, p.d_max_m, p.seed * 1000 + m.keyframe_id)
-        self.publish(
-            p.out_topic,
-            msgs.DepthMap(
-                stamp_ns=m.stamp_ns,
-                frame_id=m.frame_id,
-                keyframe_id=m.keyframe_id,
-                kind="metric",
-                depth=d,
-                confidence=np.zeros_like(d),
-                source="random",
-            ),
-        )
+        self.publish(self.params.out_topic, random_depth_msg(m, self.params))
+
+
+def random_depth_msg(m: msgs.DepthMap, p: RandomDepthParams | None = None) -> msgs.DepthMap:
+    """Keyframe ``m``'s random depth (what :class:`RandomDepthNode` publishes for it)."""
+    p = p or RandomDepthParams()
+    d = random_depth(m.depth.shape, p.d_min_m, p.d_max_m, p.seed * 1000 + m.keyframe_id)
+    return msgs.DepthMap(
+        stamp_ns=m.stamp_ns,
+        frame_id=m.frame_id,
+        keyframe_id=m.keyframe_id,
+        kind="metric",
+        depth=d,
+        confidence=np.zeros_like(d),
+        source="random",
+    )
 
 
 def launch_dict(
@@ -179,7 +185,7 @@ class HeldOutViews:
                             c[-1]["iterations"] = self.iterations
             else:
                 self.inserted += int(m.extra.get("inserted", 0))
-            self.pruned += int(m.extra.get("pruned", 0))
+            self.pruned = int(m.extra.get("pruned", self.pruned))  # the mapper's running total
         elif topic == "/mapper/gaussians":
             self.replica.apply_update(m)
             self._evaluate(now)
@@ -320,7 +326,8 @@ def run_init(
     for t in (*TOPICS, "/mapper/gaussians", depth_topic):
         sub.subscribe(t, reliable=True)
     views = HeldOutViews(gt_images)
-    launcher = Launcher(launch, out=open(out / "launch.log", "w"), grace_s=30.0)  # noqa: SIM115
+    log = open(out / "launch.log", "w")  # noqa: SIM115 (the journal stays: it is replayed)
+    launcher = Launcher(launch, out=log, grace_s=30.0, keep_journal=True)
     runner = threading.Thread(
         target=launcher.run, kwargs={"install_signal_handlers": False, "timeout_s": args.timeout}
     )
@@ -389,118 +396,6 @@ def ratios(inits: dict[str, Any]) -> dict[str, float | None]:
     }
 
 
-def plot(inits: dict[str, Any], target_db: float, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
-    for init, r in inits.items():
-        # every candidate view (thin), the fixed one (thick) where there is one
-        cands = list(r.get("candidate_curves", {}).values())
-        longest = max(cands, key=lambda c: len(c["iterations"]), default=r["curve"])
-        if not longest:
-            continue
-        (line,) = a1.plot(longest["iterations"], longest["n_gaussians"], ".-", label=init)
-        for c in cands:
-            a2.plot(c["iterations"], c["fixed_view_psnr_db"], "-", lw=0.8, color=line.get_color())
-        if r["curve"]:
-            c = r["curve"]
-            a2.plot(c["iterations"], c["fixed_view_psnr_db"], ".-", lw=2, color=line.get_color())
-    a1.set_xlabel("mapper iterations")
-    a1.set_ylabel("Gaussians")
-    a2.axhline(target_db, color="k", ls=":", lw=1)
-    a2.set_xlabel("mapper iterations")
-    a2.set_ylabel("held-out view PSNR [dB] (thin: each candidate)")
-    a1.legend()
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _fmt(v: Any, spec: str = ".2f") -> str:
-    return "-" if v is None else format(v, spec)
-
-
-def markdown(cmd: str, args: argparse.Namespace, res: dict[str, Any], notes: str = "") -> str:
-    """The ``pipeline-table2`` section of docs/benchmarks.md; ``notes``: text after the ratios."""
-    notes = f"\n{notes.strip()}\n" if notes.strip() else ""
-    rows = "\n".join(
-        f"| {k} | {_fmt(r['iters_to_target'], 'd')} | {_fmt(r['wall_s_to_target'], '.1f')} | "
-        f"{_fmt(r['gaussians_at_target'], 'd')} | {_fmt(r['fixed_view_psnr_at_budget_db'])} | "
-        f"{_fmt(r['psnr_at_budget_db'])} | {_fmt(r['ssim_at_budget'], '.3f')} | "
-        f"{r['iterations_budget']} | {r['gaussians_at_budget']} | {r['gaussians_inserted']} | "
-        f"{r['gaussians_pruned']} | {len(r['candidates_reached'])}/{res['candidates_scored']} |"
-        for k, r in res["inits"].items()
-    )
-    rt = res["ratios"]
-    how = (
-        "given on the command line"
-        if args.view_frame is not None
-        else f"the earliest candidate that every initialisation's map reaches {args.target_db:g} dB "
-        "at (same rule for all)"
-    )
-    rule = (
-        " (`--target-db auto`: the highest of 20, 19.5, ... dB that some candidate reaches under"
-        " every initialisation within the budget)"
-        if res.get("target_rule") == "auto"
-        else ""
-    )
-    return f"""## Table II in the live pipeline (issue 17)
-
-Command: `{cmd}`
-
-Machine: {machine_line()}; 2 cores shared by all processes (wall times are not comparable across
-machines or loads). Demo drive ({args.frames} frames, 621x188), the same mapper policy and budget
-(`launch/demo.yaml`: {res["iters_per_keyframe"]} iterations per keyframe) for every
-initialisation. Candidate held-out views: every {args.candidate_step}th frame from frame
-{args.candidates_from} on that is not a keyframe ({res["candidates_scored"]} frames), ground truth
-from the sim, pose from the frontend, scored after every map update. Fixed held-out view: frame
-{res["view_frame"]}, {how}; target {args.target_db:g} dB{rule}. At the budget: the run report's
-held-out frames (docs/report.md). Overrides for every init alike: {res.get("overrides") or "none"}.
-
-| init | iterations to {args.target_db:g} dB | wall s to target | Gaussians at target | fixed view PSNR at budget [dB] | held-out PSNR at budget [dB] | held-out SSIM | iterations (budget) | Gaussians at budget | inserted | pruned | candidates reaching {args.target_db:g} dB |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
-{rows}
-
-Ratios: MOGS / random iterations to target {_fmt(rt["iters_to_target_mogs_over_random"], ".3f")}
-(goal <= 0.7), Gaussians at target {_fmt(rt["gaussians_at_target_mogs_over_random"], ".3f")}
-(goal <= 0.8); MOGS - prior_global held-out PSNR at budget
-{_fmt(rt["psnr_at_budget_mogs_minus_prior_global_db"])} dB (goal >= 0). "-": the target was not
-reached within the budget. Over every candidate both MOGS and random reach: median ratio of
-iterations {_fmt(rt.get("iters_to_target_mogs_over_random_median"), ".3f")}, of Gaussians
-{_fmt(rt.get("gaussians_at_target_mogs_over_random_median"), ".3f")}.
-{notes}
-![Table II in the live pipeline](pipeline_table2.png)
-"""
-
-
-def candidate_ratios(views: dict[str, HeldOutViews], target_db: float) -> dict[str, float | None]:
-    """Median MOGS / random ratios over every candidate view both reach (robustness of the
-    single fixed view's ratios)."""
-    if "mogs" not in views or "random" not in views:
-        return {}
-    both = sorted(
-        reached(views["mogs"].curves, target_db) & reached(views["random"].curves, target_db)
-    )
-    it, ga = [], []
-    for i in both:
-        mo = views["mogs"].view_figures(i, target_db)
-        ra = views["random"].view_figures(i, target_db)
-        if ra["iters_to_target"] and ra["gaussians_at_target"]:
-            it.append(mo["iters_to_target"] / ra["iters_to_target"])
-            ga.append(mo["gaussians_at_target"] / ra["gaussians_at_target"])
-    return {
-        "iters_to_target_mogs_over_random_median": round(float(np.median(it)), 3) if it else None,
-        "gaussians_at_target_mogs_over_random_median": round(float(np.median(ga)), 3)
-        if ga
-        else None,
-        "candidates_both_reach": len(both),
-    }
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -555,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     args.overrides = parse_overrides(args.set)
     if args.docs_from:
         res = json.loads(Path(args.docs_from).read_text())
-        write_docs(argparse.Namespace(**{**vars(args), **res["args"]}), res, res["command"])
+        write_docs(args, res, res["command"])
         return 0
     if args.merge:
         runs, ipk = runs_from_json(args.merge)
@@ -563,6 +458,15 @@ def main(argv: list[str] | None = None) -> int:
             argv if argv is not None else sys.argv[1:]
         )
         res = assemble(runs, args, cmd.strip(), ipk)
+        convs = {}
+        for path in args.merge:
+            convs.update(
+                {
+                    k: r["convergence"]
+                    for k, r in json.loads(Path(path).read_text())["inits"].items()
+                }
+            )
+        convergence.apply(res, convs, args.auto_target)
         write_json(args.json, res)
         if not args.no_docs:
             write_docs(args, res, res["command"])
@@ -592,6 +496,13 @@ def main(argv: list[str] | None = None) -> int:
         )
     cmd = "python bench/pipeline_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
     res = assemble(runs, args, cmd.strip(), mapper["params"].get("iters_per_keyframe"))
+    convs = {}
+    for init, (r, _) in runs.items():  # the per-keyframe convergence: the run's journal replayed
+        run = Path(r["run_dir"])
+        convs[init] = convergence.measure(
+            run / "journal" / "journal.log", run / "launch.yaml", init
+        )
+    convergence.apply(res, convs, args.auto_target)
     write_json(args.json, res)
     if not args.no_docs:
         write_docs(args, res, res["command"])
@@ -639,7 +550,7 @@ def assemble(
                 for i in sorted(v.curves)
             },
         }
-    res["ratios"] = {**ratios(res["inits"]), **candidate_ratios(views, args.target_db)}
+    res["ratios"] = ratios(res["inits"])
     for init, r in res["inits"].items():
         print(
             f"[table2] {init} at frame {view}: iterations to target {r['iters_to_target']}, "
@@ -679,9 +590,10 @@ def runs_from_json(paths: list[str]) -> tuple[dict[str, tuple[dict[str, Any], He
 
 def write_docs(args: argparse.Namespace, res: dict[str, Any], cmd: str) -> None:
     """The plot and the ``pipeline-table2`` section of docs/benchmarks.md."""
-    plot(res["inits"], args.target_db, REPO_ROOT / "docs" / "pipeline_table2.png")
+    convergence.plot(res, REPO_ROOT / "docs" / "pipeline_table2.png")
     notes = Path(args.notes).read_text() if args.notes else ""
-    update_markdown_section("pipeline-table2", markdown(cmd.strip(), args, res, notes))
+    section = convergence.markdown(cmd.strip(), res, machine_line(), notes)
+    update_markdown_section("pipeline-table2", section)
 
 
 if __name__ == "__main__":

@@ -56,6 +56,8 @@ class InsertionParams:
     alpha_explained: float = 0.9  # pixels with rendered alpha above this may be explained ...
     depth_rel_tol: float = 0.2  # ... unless (rendered - new) / new depth > depth_rel_tol / conf
     check_depth: bool = True  # use the depth disagreement test at all (ablation switch)
+    disagree_color_tol: float = 0.0  # a depth disagreement counts only where the rendered colour
+    # is also off, mean |rendered - image| > this (0: always): the map draws the view right there
     color_tol: float = 0.0  # also unexplained where mean |rendered - image| colour > this (0: off)
     max_footprint_rad: float = 0.15  # and never exceeds this angle (stride / f): footprints stay
     # below the mapper's size pruning (sigma > 0.2 x distance) even for short focal lengths
@@ -116,10 +118,14 @@ def insertion_mask(
     a = check_array("rendered_alpha", rendered_alpha, shape=d.shape, dtype=np.floating)
     rd = check_array("rendered_depth_m", rendered_depth_m, shape=d.shape, dtype=np.floating)
     unexplained = a < params.alpha_explained
-    if params.color_tol > 0 and rendered_rgb is not None and image_rgb is not None:
+    err = None  # mean |rendered - image| colour error per pixel
+    wanted = params.color_tol > 0 or params.disagree_color_tol > 0
+    if wanted and rendered_rgb is not None and image_rgb is not None:
         rc = check_array("rendered_rgb", rendered_rgb, shape=(*d.shape, 3), dtype=np.floating)
         ic = check_array("image_rgb", image_rgb, shape=(*d.shape, 3), dtype=np.floating)
-        unexplained = unexplained | (np.abs(rc - ic).mean(-1) > params.color_tol)
+        err = np.abs(rc - ic).mean(-1)
+    if params.color_tol > 0 and err is not None:
+        unexplained = unexplained | (err > params.color_tol)
     if not params.check_depth:
         return usable & unexplained
     # only a surface *in front of* what the map renders is missing: Gaussians inserted behind the
@@ -128,6 +134,10 @@ def insertion_mask(
     disagree = (c > 0) & (
         (rd - d) * np.maximum(c, 1e-6) > params.depth_rel_tol * np.maximum(d, 1e-6)
     )
+    if params.disagree_color_tol > 0 and err is not None:
+        # the map draws the right colour there: its surface is pulled to the depth by the depth
+        # loss; new Gaussians would double it (pruned as redundant later)
+        disagree &= err > params.disagree_color_tol
     return usable & (unexplained | disagree)
 
 

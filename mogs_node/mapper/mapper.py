@@ -43,11 +43,7 @@ from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, se3_inverse
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap, MapChanges
 from mogs_node.mapper.image_metrics import ssim_torch
-from mogs_node.mapper.insertion import (
-    background_mask,
-    insertion_mask,
-    sample_gaussians,
-)
+from mogs_node.mapper.insertion import background_mask, insertion_mask, sample_gaussians
 from mogs_node.mapper.keyframe import KeyframeState
 from mogs_node.mapper.mapper_params import MapperParams, resolve_device
 from mogs_node.mapper.ply import export_ply
@@ -253,7 +249,10 @@ class GaussianMapper:
 
     # ------------------------------------------------------------------------------ optimisation
     def optimize(
-        self, n_iters: int, should_stop: Callable[[], bool] | None = None
+        self,
+        n_iters: int,
+        should_stop: Callable[[], bool] | None = None,
+        after_iteration: Callable[[int], bool] | None = None,
     ) -> dict[str, float]:
         """Run up to ``n_iters`` window iterations, then prune (and densify); returns statistics.
 
@@ -263,6 +262,7 @@ class GaussianMapper:
         ``should_stop`` is polled before each iteration: a node asked to shut down (SIGINT) ends
         the window early instead of holding the launcher past its stop timeout; the map stays
         consistent (every finished iteration is kept, pruning still runs).
+        ``after_iteration(it)``: called after iteration ``it``; True ends the round (benches).
         """
         if not self.keyframes or n_iters <= 0 or len(self.map) == 0:
             return self.stats()  # an empty map (first keyframes without depth) has nothing to fit
@@ -283,6 +283,8 @@ class GaussianMapper:
                 break
             view = self._pick_view(it, past)
             err = self._train_step(view, fixed_pose, lrs)
+            if after_iteration is not None and after_iteration(it):
+                break
             if view != newest:
                 continue
             if (

@@ -1,4 +1,5 @@
-"""bench/pipeline_table2.py: its launch set-up, fixed-view tracking and ratios (no processes)."""
+"""bench/pipeline_table2.py: its launch set-up, fixed-view tracking and ratios (no processes);
+the table itself: tests/bench/test_table2_convergence.py."""
 
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ from bench.pipeline_table2 import (
     common_target,
     depth_statistics,
     launch_dict,
-    markdown,
     ratios,
     reached,
     runs_from_json,
@@ -175,37 +175,6 @@ def test_ratios_with_and_without_a_target() -> None:
     assert ratios(inits)["iters_to_target_mogs_over_random"] is None
 
 
-def test_the_docs_section_names_the_view_and_the_ratios() -> None:
-    row = {
-        "iters_to_target": 60,
-        "wall_s_to_target": 30.0,
-        "gaussians_at_target": 800,
-        "fixed_view_psnr_at_budget_db": 22.0,
-        "psnr_at_budget_db": 21.5,
-        "ssim_at_budget": 0.75,
-        "iterations_budget": 300,
-        "gaussians_at_budget": 900,
-        "gaussians_inserted": 1000,
-        "gaussians_pruned": 100,
-        "candidates_reached": [21, 23],
-    }
-    inits = {"mogs": row, "random": {**row, "iters_to_target": 120, "gaussians_at_target": 1000}}
-    res = {
-        "view_frame": 23,
-        "candidates_scored": 5,
-        "iters_per_keyframe": 20,
-        "inits": inits,
-        "ratios": ratios(inits),
-    }
-    args = SimpleNamespace(
-        frames=60, view_frame=None, candidates_from=21, candidate_step=2, target_db=20.0
-    )
-    text = markdown("python bench/pipeline_table2.py", args, res, notes="Why: the stride.")
-    assert "frame\n23, the earliest candidate" in text or "frame 23" in text.replace("\n", " ")
-    assert "| mogs | 60 | 30.0 | 800 |" in text and "2/5 |" in text
-    assert "iterations to target 0.500" in text and "Why: the stride." in text
-
-
 def test_depth_statistics_follow_the_insertion_stride() -> None:
     # near confident depth: stride 2 doubled once (conf >= 0.7) and planar x2 -> 8; 1/64 per px
     # (a flat plane at 5 m, confidence 1); unconfident: stride 2 -> 1/4; beyond 25 m: doubled
@@ -267,3 +236,13 @@ def test_runs_saved_one_init_each_merge_into_the_same_table(tmp_path: Path) -> N
     # a run without candidate scores has no say in the choice of the view
     merged_runs["prior_global"] = ({"psnr_at_budget_db": 20.5}, HeldOutViews({}))
     assert choose_view({k: v for k, (_, v) in merged_runs.items()}, 20.0) == 40
+
+
+def test_pruned_is_the_mappers_running_total_not_a_sum_of_it() -> None:
+    # /mapper/stats' extra "pruned" is GaussianMapper.n_pruned (cumulative); session 11's table
+    # summed it over the updates (72302 "pruned" of 65682 inserted in a 6-per-keyframe run)
+    hv = HeldOutViews({})
+    for inserted, pruned in ((100, 0), (50, 10), (40, 25)):
+        stats = SimpleNamespace(iterations=6, extra={"inserted": inserted, "pruned": pruned})
+        hv.on("/mapper/stats", stats, 0.0)
+    assert hv.inserted == 190 and hv.pruned == 25
