@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -21,7 +22,10 @@ from pathlib import Path
 import torch
 
 import mogs_node.mapper.composite as comp
-from bench.rasterizer import make_scene
+
+if not __package__:  # run as a script (python bench/composite_ab.py): the repo root holds bench/
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.rasterizer import make_scene  # noqa: E402
 from mogs_node.mapper.rasterizer import RasterParams, render
 
 SIZES = [(621, 188), (310, 94)]

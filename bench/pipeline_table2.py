@@ -54,7 +54,9 @@ import numpy as np
 import yaml
 import zmq
 
-from bench import table2_convergence as convergence
+if not __package__:  # run as a script (python bench/pipeline_table2.py): the repo root holds bench/
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench import table2_convergence as convergence  # noqa: E402
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.launch import parse_overrides

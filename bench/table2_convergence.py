@@ -39,7 +39,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench.mapper_replay import _camera_rgb, mapper_params, read_journal, replay, score
+if (
+    not __package__
+):  # run as a script (python bench/table2_convergence.py): the repo root holds bench/
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.mapper_replay import _camera_rgb, mapper_params, read_journal, replay, score  # noqa: E402
 from mogs_node.eval.bench_docs import write_json
 from mogs_node.mapper.image_metrics import psnr_db
 from mogs_node.mapper.mapper import GaussianMapper
