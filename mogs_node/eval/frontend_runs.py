@@ -224,7 +224,12 @@ def score_run(run: RunResult, *, keyframes_only: bool = True) -> dict:
             # road measurements used / without a result / left out by the tracking gate
             **{
                 f"{k}_frames": int(run.counters.get(k, 0))
-                for k in ("ground_measurements", "ground_rejected", "ground_gated")
+                for k in (
+                    "ground_measurements",
+                    "ground_rejected",
+                    "ground_gated",
+                    "ground_implausible",
+                )
             },
         }
     )

@@ -118,6 +118,7 @@ class Frontend:
             "ground_measurements": 0,
             "ground_rejected": 0,
             "ground_gated": 0,
+            "ground_implausible": 0,
         }
         if params.ground.enabled and camera.model != "none":
             raise ConfigError(

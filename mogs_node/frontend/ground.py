@@ -52,6 +52,10 @@ class GroundParams:
     search_span: float = 2.0  # coarse grid search over tau in [init / span, init * span]
     gate_rel: float = 0.15  # while tracking, reject a measurement whose ratio to the window's
     gate_window: int = 15  # distance is this far from the median ratio of the last gate_window
+    max_ratio: float = 2.0  # while tracking, a measurement more than this factor from the
+    # window's own (metric: IMU or road-initialised) distance is not road: a near object covering
+    # the lane (the demo drive's start: 4-8x) moves like a much faster road; it is neither used nor
+    # kept for the gate, whose median the first measurements would otherwise set (issue h16r)
     max_spread: float = 0.1  # initialisation: the SfM window's per-step scales must agree (MAD)
     relative_sigma: float = 0.03  # noise of one measurement relative to the distance (the robust
     # std measured on the sim: 1.4826 x 1.6 % MAD = 2.4 %; docs/frontend.md round 5)
@@ -73,6 +77,8 @@ class GroundParams:
             raise ConfigError("ground.lane_half_width_m: must be > 0")
         if self.gate_rel <= 0 or self.gate_window < 1 or self.max_spread <= 0:
             raise ConfigError("ground: gate_rel > 0, gate_window >= 1, max_spread > 0")
+        if not self.max_ratio > 1:
+            raise ConfigError(f"ground.max_ratio: must be > 1, got {self.max_ratio}")
         if self.search_span < 1 or self.relative_sigma <= 0 or self.max_pixels < 100:
             raise ConfigError("ground: search_span >= 1, relative_sigma > 0, max_pixels >= 100")
         if self.sfm_search_span < 1 or not 0 < self.sfm_min_share <= 1:

@@ -42,7 +42,7 @@ class RoadDistance:
     def measure(self, estimator: VioEstimator, image: NDArray) -> str | None:
         """Measure between the previous and the newest window frame and add it to ``estimator``;
         the counter to count it under (``ground_measurements``, ``ground_rejected``,
-        ``ground_gated``), None when there was nothing to measure."""
+        ``ground_gated``, ``ground_implausible``), None when there was nothing to measure."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         frames = estimator.frames
         prev, self.prev_gray = self.prev_gray, (frames[-1].seq, gray)
@@ -67,8 +67,10 @@ class RoadDistance:
         # the recent ratios to the window's own distance is not used (the ratio is kept, so a
         # lasting change of the window's scale is followed).
         ratio = m.distance_m / dist
+        if not 1 / gp.max_ratio <= ratio <= gp.max_ratio:
+            return "ground_implausible"  # not road (a near object in the lane): not kept either
         recent = self.ratios
-        off = len(recent) >= 5 and abs(ratio / float(np.median(recent)) - 1) > gp.gate_rel
+        off = len(recent) < 5 or abs(ratio / float(np.median(recent)) - 1) > gp.gate_rel
         recent.append(ratio)
         if off:
             return "ground_gated"
