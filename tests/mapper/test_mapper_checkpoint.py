@@ -237,6 +237,24 @@ def _feed(node: MapperNode, pub: Publisher, kids: list[int], expect: int | None 
     assert node.counters["keyframes_mapped"] == want
 
 
+def _wait_until_receiving(node: MapperNode, pub: Publisher) -> None:
+    """The publisher's view of the subscriptions keeps the closed node's (it only adds), so
+    ``wait_for_subscriber`` can pass before the new node's subscription reached the broker: send
+    an already integrated keyframe's depth (ignored by the mapper) until the node receives it."""
+    from test_mapper_node import messages
+
+    def received() -> int:
+        return sum(s.received for s in node._sub.stats.values()) if node._sub else 0
+
+    _, d = messages(0, 0.0)
+    before = received()
+    deadline = time.monotonic() + 30
+    while received() == before and time.monotonic() < deadline:
+        pub.publish("/metrizer/depth", d)
+        node.spin_once(50)
+    assert received() > before
+
+
 def test_node_saves_on_shutdown_and_resumes(inproc_bus, tmp_path) -> None:
     bus, ctx = inproc_bus
     ckdir = tmp_path / "ck"
@@ -270,7 +288,7 @@ def test_node_saves_on_shutdown_and_resumes(inproc_bus, tmp_path) -> None:
     for k in PARAM_NAMES:
         assert torch.equal(m1.map.params[k], m0.map.params[k])
     # an already integrated keyframe is not mapped twice; a new one continues the map
-    assert pub.wait_for_subscriber("/metrizer/depth", 5)
+    _wait_until_receiving(node2, pub)
     _feed(node2, pub, [2, 3], expect=1)
     assert node2.integrated_keyframe_ids == {0, 1, 2, 3} and len(m1.keyframes) == 4
     assert m1.iterations == 8
