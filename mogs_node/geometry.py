@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mogs_node.errors import GeometryError, ShapeError
+from mogs_node.errors import ConfigError, GeometryError, ShapeError
 
 __all__ = [
     "PinholeCamera",
@@ -40,6 +40,7 @@ __all__ = [
     "so3_exp",
     "so3_log",
     "transform_points",
+    "up_in_camera",
     "view_tan_limits",
 ]
 
@@ -479,6 +480,26 @@ def intersect_rays_plane(
         t = num / denom
     ok = np.isfinite(t) & (t > 0) & (np.abs(denom) > 1e-12)
     return np.where(ok, t, np.inf)
+
+
+def up_in_camera(
+    T_world_cam: NDArray[np.float64],
+    up_world: tuple[float, float, float] | None,
+    up_cam_fixed: tuple[float, float, float],
+) -> NDArray[np.float64]:
+    """Unit "up" in the camera frame: ``R_world_cam^T up_world``, or ``up_cam_fixed`` if None.
+
+    The road plane's orientation, shared by the prior's road source and the metrizer's road pass.
+    """
+    if up_world is None:
+        u = np.asarray(up_cam_fixed, np.float64)
+    else:
+        T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
+        u = T[:3, :3].T @ np.asarray(up_world, np.float64)
+    n = np.linalg.norm(u)
+    if not np.isfinite(n) or n < 1e-9:
+        raise ConfigError("up direction: must be finite and non-zero")
+    return u / n
 
 
 def intersect_rays_quadric(

@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError
-from mogs_node.geometry import check_array
+from mogs_node.geometry import check_array, up_in_camera
 
 __all__ = [
     "RoadPlane",
@@ -109,23 +109,6 @@ class RoadPlane:
     verified: NDArray[np.bool_]  # plane confirmed by flow / photometry
     rejected: NDArray[np.bool_]  # below the horizon but inconsistent with the plane
     up_cam: NDArray[np.float64]  # [3] unit up direction used, camera frame
-
-
-def up_in_camera(
-    T_world_cam: NDArray[np.float64],
-    up_world: tuple[float, float, float] | None,
-    up_cam_fixed: tuple[float, float, float],
-) -> NDArray[np.float64]:
-    """Unit "up" in the camera frame: ``R_world_cam^T up_world``, or ``up_cam_fixed`` if None."""
-    if up_world is None:
-        u = np.asarray(up_cam_fixed, np.float64)
-    else:
-        T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
-        u = T[:3, :3].T @ np.asarray(up_world, np.float64)
-    n = np.linalg.norm(u)
-    if not np.isfinite(n) or n < 1e-9:
-        raise ConfigError("up direction: must be finite and non-zero")
-    return u / n
 
 
 def plane_depth(

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.depth_kind import DepthKind
-from mogs_node.geometry import pixel_to_normalized
+from mogs_node.geometry import pixel_to_normalized, up_in_camera
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.absorption import absorb_groups
 from mogs_node.metrizer.alignment import depth_from_space, fit_global_affine, space_from_depth
@@ -194,8 +194,6 @@ def metrize(
 def _road_up(p: MetrizerParams, T_world_cam: F64 | None) -> F64 | None:
     """Unit "up" in the camera frame for the road plane (``road_*`` parameters), or None when
     the road plane is off (no camera height) or its "up" needs a pose the inputs lack."""
-    from mogs_node.depth_prior.road import up_in_camera
-
     if not p.road_camera_height_m > 0 or (p.road_up_world is not None and T_world_cam is None):
         return None
     T = np.eye(4) if T_world_cam is None else T_world_cam
