@@ -14,6 +14,10 @@ docs/benchmarks.md.
 launch file and with ``launch/demo_lfm.yaml`` (the simulated LFM as prior, evaluation only) and
 reads their ``summary.json``: the figures a user sees (JSON keys ``live_absrel``,
 ``live_coverage``, ``live_min_keyframe_coverage``, ``live_lfm_absrel``, ``live_lfm_coverage``).
+
+The simulated-LFM rows are also run with the flow prior (frontend poses) beside the LFM as dense
+metric anchors (``MetrizerInputs.anchor_*``, docs/metrizer.md "Dense metric anchors"; JSON
+``anchored``, keyed as ``combos``), the wiring of ``launch/demo_lfm.yaml``.
 """
 
 from __future__ import annotations
@@ -31,6 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mogs_node.eval.bench_docs import add_output_options, machine_line, write_results  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
+    MASKS,
+    SPARSE,
+    _pool,
     demo_params,
     evaluate_stages,
     prepare_keyframes,
@@ -76,6 +83,14 @@ def markdown(fig: dict, info: dict, command: str) -> str:
             f"| {SPARSE_NAME[sp]} | {PRIOR_NAME[pr]} | {MASK_NAME[mk]} | {v['absrel']:.3f} | "
             f"{v['delta1']:.3f} | {v['coverage']:.3f} | {v['absrel'] - base['absrel']:+.3f} |"
         )
+    anchored = fig.get("anchored", {})
+    for key, v in anchored.items():
+        sp, _, mk = key.split("|")
+        lines.append(
+            f"| {SPARSE_NAME[sp]} | simulated LFM + flow prior as dense metric anchors | "
+            f"{MASK_NAME[mk]} | {v['absrel']:.3f} | {v['delta1']:.3f} | {v['coverage']:.3f} | "
+            f"{v['absrel'] - base['absrel']:+.3f} |"
+        )
     lines += [
         "",
         "The priors on their own (pixels where their confidence > 0):",
@@ -107,6 +122,37 @@ def markdown(fig: dict, info: dict, command: str) -> str:
     return "\n".join(lines)
 
 
+def anchored_stages(kfs: list, inputs: dict, params: dict) -> dict:
+    """The simulated-LFM combinations with the flow prior (frontend poses) as dense metric anchors
+    (what ``launch/demo_lfm.yaml`` wires), scored as :func:`evaluate_stages` scores."""
+    from mogs_node.eval.depth_prior_eval import metrizer_params
+    from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
+    from mogs_node.metrizer.pipeline import metrize
+    from mogs_node.report.collect import score_depth
+
+    p, mode = metrizer_params(params)
+    out = {}
+    for sp in SPARSE:
+        for mk in MASKS:
+            scores = []
+            for i, s in enumerate(kfs):
+                entry = MatchedKeyframe(
+                    s.keyframe.keyframe_id,
+                    keyframe=inputs["sparse"][sp][i],
+                    masks=inputs["masks"][mk][i],
+                    prior=inputs["prior"]["lfm"][i],
+                    anchor=inputs["prior"]["flow"][i],
+                )
+                d = metrize(metrizer_inputs(entry), p, mode).depth_m
+                scores.append(score_depth(s.keyframe.keyframe_id, 0, d, s.gt_depth_m))
+            out[f"{sp}|lfm_anchored|{mk}"] = {
+                **_pool(scores),
+                "per_keyframe": [(x.absrel, x.coverage) for x in scores],
+            }
+            logging.info("%s|lfm_anchored|%s: %s", sp, mk, _pool(scores))
+    return out
+
+
 def live(launch: str) -> dict:
     """``mogs demo --launch LAUNCH`` in a temporary folder; its ``summary.json`` depth figures."""
     with tempfile.TemporaryDirectory(prefix="mogs-live-") as tmp:
@@ -130,7 +176,11 @@ def live_markdown(fig: dict) -> list[str]:
     ]
     for key, launch, prior in (
         ("live", "launch/demo.yaml", "weight-free dense prior (default)"),
-        ("live_lfm", "launch/demo_lfm.yaml", "simulated LFM (evaluation only)"),
+        (
+            "live_lfm",
+            "launch/demo_lfm.yaml",
+            "simulated LFM + flow prior as dense metric anchors (evaluation only)",
+        ),
     ):
         d = fig.get(f"{key}_depth")
         if d:
@@ -162,6 +212,7 @@ def main() -> None:
     kfs, info = prepare_keyframes(params, seed=args.seed)
     inputs = stage_inputs(kfs, params)
     fig = evaluate_stages(kfs, inputs, params)
+    fig["anchored"] = anchored_stages(kfs, inputs, params)
     info.pop("K_sim", None)
     info.pop("tracked_frames", None)  # images, not figures (the stage priors do not use them)
     fig["info"] = info
