@@ -17,12 +17,14 @@ reads their ``summary.json``: the figures a user sees (JSON keys ``live_absrel``
 
 The simulated-LFM rows are also run with the flow prior (frontend poses) beside the LFM as dense
 metric anchors (``MetrizerInputs.anchor_*``, docs/metrizer.md "Dense metric anchors"; JSON
-``anchored``, keyed as ``combos``), the wiring of ``launch/demo_lfm.yaml``.
+``anchored``, keyed as ``combos``), with the demo's metrizer parameters and with
+``launch/demo_lfm.yaml``'s (+ ``edge_snap``): the wiring of ``launch/demo_lfm.yaml``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import subprocess
@@ -55,6 +57,10 @@ PRIOR_NAME = {
     "lfm": "simulated LFM",
 }
 MASK_NAME = {"graph": "graph masks", "oracle": "oracle masks"}
+ANCHORED_NAME = {
+    "lfm_anchored": "simulated LFM + flow prior as dense metric anchors",
+    "lfm_anchored_snap": "the same + edge snap (`launch/demo_lfm.yaml`)",
+}
 REPO = Path(__file__).resolve().parents[1]
 LFM_LAUNCH = "launch/demo_lfm.yaml"
 LIVE_ANCHOR = 'What each stage costs and what is inherent: docs/bridges.md, "Pipeline end to end".'
@@ -85,11 +91,10 @@ def markdown(fig: dict, info: dict, command: str) -> str:
         )
     anchored = fig.get("anchored", {})
     for key, v in anchored.items():
-        sp, _, mk = key.split("|")
+        sp, pr, mk = key.split("|")
         lines.append(
-            f"| {SPARSE_NAME[sp]} | simulated LFM + flow prior as dense metric anchors | "
-            f"{MASK_NAME[mk]} | {v['absrel']:.3f} | {v['delta1']:.3f} | {v['coverage']:.3f} | "
-            f"{v['absrel'] - base['absrel']:+.3f} |"
+            f"| {SPARSE_NAME[sp]} | {ANCHORED_NAME[pr]} | {MASK_NAME[mk]} | {v['absrel']:.3f} | "
+            f"{v['delta1']:.3f} | {v['coverage']:.3f} | {v['absrel'] - base['absrel']:+.3f} |"
         )
     lines += [
         "",
@@ -123,33 +128,36 @@ def markdown(fig: dict, info: dict, command: str) -> str:
 
 
 def anchored_stages(kfs: list, inputs: dict, params: dict) -> dict:
-    """The simulated-LFM combinations with the flow prior (frontend poses) as dense metric anchors
-    (what ``launch/demo_lfm.yaml`` wires), scored as :func:`evaluate_stages` scores."""
+    """The simulated-LFM combinations with the flow prior (frontend poses) as dense metric anchors,
+    with the demo's metrizer parameters (``lfm_anchored``) and with ``launch/demo_lfm.yaml``'s
+    (``lfm_anchored_snap``: + the edge snap), scored as :func:`evaluate_stages` scores."""
     from mogs_node.eval.depth_prior_eval import metrizer_params
     from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
     from mogs_node.metrizer.pipeline import metrize
     from mogs_node.report.collect import score_depth
 
-    p, mode = metrizer_params(params)
+    variants = {
+        "lfm_anchored": metrizer_params(params),
+        "lfm_anchored_snap": metrizer_params(demo_params(REPO / LFM_LAUNCH)),
+    }
     out = {}
-    for sp in SPARSE:
-        for mk in MASKS:
-            scores = []
-            for i, s in enumerate(kfs):
-                entry = MatchedKeyframe(
-                    s.keyframe.keyframe_id,
-                    keyframe=inputs["sparse"][sp][i],
-                    masks=inputs["masks"][mk][i],
-                    prior=inputs["prior"]["lfm"][i],
-                    anchor=inputs["prior"]["flow"][i],
-                )
-                d = metrize(metrizer_inputs(entry), p, mode).depth_m
-                scores.append(score_depth(s.keyframe.keyframe_id, 0, d, s.gt_depth_m))
-            out[f"{sp}|lfm_anchored|{mk}"] = {
-                **_pool(scores),
-                "per_keyframe": [(x.absrel, x.coverage) for x in scores],
-            }
-            logging.info("%s|lfm_anchored|%s: %s", sp, mk, _pool(scores))
+    for (name, (p, mode)), sp, mk in itertools.product(variants.items(), SPARSE, MASKS):
+        scores = []
+        for i, s in enumerate(kfs):
+            entry = MatchedKeyframe(
+                s.keyframe.keyframe_id,
+                keyframe=inputs["sparse"][sp][i],
+                masks=inputs["masks"][mk][i],
+                prior=inputs["prior"]["lfm"][i],
+                anchor=inputs["prior"]["flow"][i],
+            )
+            d = metrize(metrizer_inputs(entry), p, mode).depth_m
+            scores.append(score_depth(s.keyframe.keyframe_id, 0, d, s.gt_depth_m))
+        out[f"{sp}|{name}|{mk}"] = {
+            **_pool(scores),
+            "per_keyframe": [(x.absrel, x.coverage) for x in scores],
+        }
+        logging.info("%s|%s|%s: %s", sp, name, mk, _pool(scores))
     return out
 
 
@@ -179,7 +187,7 @@ def live_markdown(fig: dict) -> list[str]:
         (
             "live_lfm",
             "launch/demo_lfm.yaml",
-            "simulated LFM + flow prior as dense metric anchors (evaluation only)",
+            "simulated LFM + flow prior as dense metric anchors + edge snap (evaluation only)",
         ),
     ):
         d = fig.get(f"{key}_depth")

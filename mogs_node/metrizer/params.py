@@ -117,6 +117,14 @@ class MetrizerParams:
     dense_anchor_min_conf: float = 0.3
     dense_anchor_gap: float = 0.025
     dense_anchor_weight: float = 0.3
+    # departure (issue 16, edge_snap.py): pixels within edge_snap_radius px of a prior depth edge
+    # (relative gradient > edge_snap_rel per pixel) and within edge_snap_boundary_px of another
+    # object take the output of the nearest pixel of their object outside that band (a learned
+    # prior blurs depth edges; docs/metrizer.md "Depth edges snapped to their object")
+    edge_snap: bool = False
+    edge_snap_rel: float = 0.1
+    edge_snap_radius: int = 1
+    edge_snap_boundary_px: int = 4
     seed: int = 0  # RANSAC random seed (results are deterministic per input)
     consensus: ConsensusParams = ConsensusParams()  # Algorithm 1 parameters
     cdr: CdrParams = CdrParams()  # eqs. (6)-(11) parameters
@@ -144,6 +152,15 @@ class MetrizerParams:
             raise ConfigError(
                 "MetrizerParams: dense_anchor_stride >= 1, dense_anchor_min_conf in [0, 1], "
                 "dense_anchor_gap >= 0 and a finite dense_anchor_weight >= 0 required"
+            )
+        if not (
+            self.edge_snap_rel > 0
+            and self.edge_snap_radius >= 0
+            and self.edge_snap_boundary_px >= 0
+        ):
+            raise ConfigError(
+                "MetrizerParams: edge_snap_rel > 0, edge_snap_radius >= 0 and "
+                "edge_snap_boundary_px >= 0 required"
             )
         if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
             raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")

@@ -104,20 +104,22 @@ def test_no_anchor_input_is_the_unchanged_metrizer():
     nan_share=st.sampled_from([0.0, 0.2, 1.0]),
     log_scale=st.floats(-2.0, 3.0),
     weight=st.sampled_from([0.0, 0.3, 5.0]),
+    snap=st.booleans(),
     seed=st.integers(0, 2**16),
 )
 def test_anchors_at_the_edges_keep_the_output_valid_and_never_worse(
-    frame, n_points, anchor_coverage, nan_share, log_scale, weight, seed
+    frame, n_points, anchor_coverage, nan_share, log_scale, weight, snap, seed
 ):
-    """Any anchor coverage (none to all), NaN anchors, any scale: finite valid output, and with
-    accurate anchors never more than 10 % worse than the global affine on the same inputs."""
+    """Any anchor coverage (none to all), NaN anchors, any scale, with or without the edge snap
+    (``launch/demo_lfm.yaml`` sets both): finite valid output, and with accurate anchors never
+    more than 10 % worse than the global affine on the same inputs."""
     scale = 10.0**log_scale
     kw, params, gt = _case(frame, n_points, 1.0, 0.0, scale, "graph", seed)
     rng = np.random.default_rng(seed)
     kw = _with_anchors(kw, gt, anchor_coverage, 0.01, rng, nan_share)
     kw["anchor_depth_m"] = np.where(gt > 0, kw["anchor_depth_m"], 0.0)
     params = MetrizerParams(
-        d_min_m=params.d_min_m, d_max_m=params.d_max_m, dense_anchor_weight=weight
+        d_min_m=params.d_min_m, d_max_m=params.d_max_m, dense_anchor_weight=weight, edge_snap=snap
     )
     out = metrize_depth(**kw, params=params)
     base = metrize_depth(**kw, params=params, mode="no_msc_cdr")
