@@ -9,7 +9,7 @@ background's: on the demo drive with the simulated LFM, the 22 % of pixels near 
 each such pixel takes the output of the nearest pixel of its own object outside the band: the
 object's interior depth, extended to its border. Only near a boundary between objects: inside an
 object a steep prior gradient is a slanted surface (the road near the horizon), not an edge
-(sim frames: without that restriction up to 10 % worse on some, with it 5-32 % better on all).
+(sim frames: without that restriction up to 10 % worse on some, with it 5-27 % better on all).
 
 Pure: arrays in, arrays out.
 """
