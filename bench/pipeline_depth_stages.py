@@ -14,11 +14,17 @@ docs/benchmarks.md.
 launch file and with ``launch/demo_lfm.yaml`` (the simulated LFM as prior, evaluation only) and
 reads their ``summary.json``: the figures a user sees (JSON keys ``live_absrel``,
 ``live_coverage``, ``live_min_keyframe_coverage``, ``live_lfm_absrel``, ``live_lfm_coverage``).
+
+The simulated-LFM rows are also run with the flow prior (frontend poses) beside the LFM as dense
+metric anchors (``MetrizerInputs.anchor_*``, docs/metrizer.md "Dense metric anchors"; JSON
+``anchored``, keyed as ``combos``), with the demo's metrizer parameters and with
+``launch/demo_lfm.yaml``'s (+ ``edge_snap``): the wiring of ``launch/demo_lfm.yaml``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import subprocess
@@ -31,6 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mogs_node.eval.bench_docs import add_output_options, machine_line, write_results  # noqa: E402
 from mogs_node.eval.pipeline_stages import (  # noqa: E402
+    MASKS,
+    SPARSE,
+    _pool,
     demo_params,
     evaluate_stages,
     prepare_keyframes,
@@ -48,6 +57,10 @@ PRIOR_NAME = {
     "lfm": "simulated LFM",
 }
 MASK_NAME = {"graph": "graph masks", "oracle": "oracle masks"}
+ANCHORED_NAME = {
+    "lfm_anchored": "simulated LFM + flow prior as dense metric anchors",
+    "lfm_anchored_snap": "the same + edge snap (`launch/demo_lfm.yaml`)",
+}
 REPO = Path(__file__).resolve().parents[1]
 LFM_LAUNCH = "launch/demo_lfm.yaml"
 LIVE_ANCHOR = 'What each stage costs and what is inherent: docs/bridges.md, "Pipeline end to end".'
@@ -74,6 +87,13 @@ def markdown(fig: dict, info: dict, command: str) -> str:
         sp, pr, mk = key.split("|")
         lines.append(
             f"| {SPARSE_NAME[sp]} | {PRIOR_NAME[pr]} | {MASK_NAME[mk]} | {v['absrel']:.3f} | "
+            f"{v['delta1']:.3f} | {v['coverage']:.3f} | {v['absrel'] - base['absrel']:+.3f} |"
+        )
+    anchored = fig.get("anchored", {})
+    for key, v in anchored.items():
+        sp, pr, mk = key.split("|")
+        lines.append(
+            f"| {SPARSE_NAME[sp]} | {ANCHORED_NAME[pr]} | {MASK_NAME[mk]} | {v['absrel']:.3f} | "
             f"{v['delta1']:.3f} | {v['coverage']:.3f} | {v['absrel'] - base['absrel']:+.3f} |"
         )
     lines += [
@@ -107,6 +127,40 @@ def markdown(fig: dict, info: dict, command: str) -> str:
     return "\n".join(lines)
 
 
+def anchored_stages(kfs: list, inputs: dict, params: dict) -> dict:
+    """The simulated-LFM combinations with the flow prior (frontend poses) as dense metric anchors,
+    with the demo's metrizer parameters (``lfm_anchored``) and with ``launch/demo_lfm.yaml``'s
+    (``lfm_anchored_snap``: + the edge snap), scored as :func:`evaluate_stages` scores."""
+    from mogs_node.eval.depth_prior_eval import metrizer_params
+    from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
+    from mogs_node.metrizer.pipeline import metrize
+    from mogs_node.report.collect import score_depth
+
+    variants = {
+        "lfm_anchored": metrizer_params(params),
+        "lfm_anchored_snap": metrizer_params(demo_params(REPO / LFM_LAUNCH)),
+    }
+    out = {}
+    for (name, (p, mode)), sp, mk in itertools.product(variants.items(), SPARSE, MASKS):
+        scores = []
+        for i, s in enumerate(kfs):
+            entry = MatchedKeyframe(
+                s.keyframe.keyframe_id,
+                keyframe=inputs["sparse"][sp][i],
+                masks=inputs["masks"][mk][i],
+                prior=inputs["prior"]["lfm"][i],
+                anchor=inputs["prior"]["flow"][i],
+            )
+            d = metrize(metrizer_inputs(entry), p, mode).depth_m
+            scores.append(score_depth(s.keyframe.keyframe_id, 0, d, s.gt_depth_m))
+        out[f"{sp}|{name}|{mk}"] = {
+            **_pool(scores),
+            "per_keyframe": [(x.absrel, x.coverage) for x in scores],
+        }
+        logging.info("%s|%s|%s: %s", sp, name, mk, _pool(scores))
+    return out
+
+
 def live(launch: str) -> dict:
     """``mogs demo --launch LAUNCH`` in a temporary folder; its ``summary.json`` depth figures."""
     with tempfile.TemporaryDirectory(prefix="mogs-live-") as tmp:
@@ -130,7 +184,11 @@ def live_markdown(fig: dict) -> list[str]:
     ]
     for key, launch, prior in (
         ("live", "launch/demo.yaml", "weight-free dense prior (default)"),
-        ("live_lfm", "launch/demo_lfm.yaml", "simulated LFM (evaluation only)"),
+        (
+            "live_lfm",
+            "launch/demo_lfm.yaml",
+            "simulated LFM + flow prior as dense metric anchors + edge snap (evaluation only)",
+        ),
     ):
         d = fig.get(f"{key}_depth")
         if d:
@@ -162,6 +220,7 @@ def main() -> None:
     kfs, info = prepare_keyframes(params, seed=args.seed)
     inputs = stage_inputs(kfs, params)
     fig = evaluate_stages(kfs, inputs, params)
+    fig["anchored"] = anchored_stages(kfs, inputs, params)
     info.pop("K_sim", None)
     info.pop("tracked_frames", None)  # images, not figures (the stage priors do not use them)
     fig["info"] = info

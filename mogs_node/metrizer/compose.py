@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from mogs_node.geometry import pixel_to_normalized
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.alignment import depth_from_space
+from mogs_node.metrizer.edge_snap import near_object_boundary, prior_edge_band, snap_edges
 from mogs_node.metrizer.fill import (
     PlaneSelect,
     complete_planar_masks,
@@ -452,7 +453,16 @@ def compose(
             n_road, n_contact = _road_passes(fr, depth, out_conf)
         if p.mask_plane_fill and special is not None:
             n_plane_fill = _plane_pass(fr, depth, out_conf, confident=False)
+    n_snap = 0
+    if p.edge_snap and not global_only:  # departure: docs/metrizer.md "Depth edges snapped"
+        objects = gobj.reshape(H, W)
+        band = prior_edge_band(
+            prior.reshape(H, W), conf.reshape(H, W), p.edge_snap_rel, p.edge_snap_radius
+        )
+        band &= near_object_boundary(objects, p.edge_snap_boundary_px)
+        n_snap = snap_edges(depth.reshape(H, W), out_conf.reshape(H, W), objects, band)
     stats.update(
+        n_px_edge_snap=n_snap,
         n_model_output_px=n_model_px,
         n_hole_px_model=n_model_fill,
         n_hole_px_fill=n_edge_fill,

@@ -33,7 +33,10 @@ class MetrizerInputs:
     (camera frame), ``feature_weight`` ``[N]`` omega; ``prior`` ``[H, W]`` dense prior of kind
     ``prior_kind``, ``prior_confidence`` ``[H, W]`` in ``[0, 1]`` (0 = no prior); ``image_rgb``
     ``[H, W, 3]`` uint8 for eq. (10) and the fill, or None; ``T_world_cam`` ``[4, 4]`` the
-    keyframe's pose (the road plane's "up", ``MetrizerParams.road_*``), or None.
+    keyframe's pose (the road plane's "up", ``MetrizerParams.road_*``), or None;
+    ``anchor_depth_m`` ``[H, W]`` a second, metric depth map (the weight-free flow prior beside a
+    relative one) and ``anchor_confidence`` ``[H, W]``: dense metric anchors
+    (:mod:`~mogs_node.metrizer.dense_anchors`, ``MetrizerParams.dense_anchor_*``), or None.
     """
 
     K: NDArray[np.floating]
@@ -46,6 +49,8 @@ class MetrizerInputs:
     prior_kind: str = "relative_inverse_depth"
     image_rgb: NDArray[np.uint8] | None = None
     T_world_cam: NDArray[np.floating] | None = None
+    anchor_depth_m: NDArray[np.floating] | None = None
+    anchor_confidence: NDArray[np.floating] | None = None
 
     # mapping protocol: ``metrize_depth(**inputs)`` and ``inputs["labels"]``
     def keys(self) -> Iterator[str]:
@@ -82,7 +87,13 @@ class MetrizerInputs:
         T = self.T_world_cam
         if T is not None:
             T = check_array("T_world_cam", T, shape=(4, 4), finite=True).astype(np.float64)
-        return MetrizerInputs(K, labels, uv, z, w, prior, conf, self.prior_kind, image, T)
+        ad, ac = self.anchor_depth_m, self.anchor_confidence
+        if (ad is None) != (ac is None):
+            raise ConfigError("anchor_depth_m and anchor_confidence: give both or neither")
+        if ad is not None:
+            ad = check_array("anchor_depth_m", ad, shape=(H, W), dtype=np.number)
+            ac = check_array("anchor_confidence", ac, shape=(H, W), dtype=np.number)
+        return MetrizerInputs(K, labels, uv, z, w, prior, conf, self.prior_kind, image, T, ad, ac)
 
     def sanitised(
         self, d_min_m: float, d_max_m: float

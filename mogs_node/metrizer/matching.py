@@ -22,6 +22,7 @@ __all__ = ["INPUT_SLOTS", "KeyframeMatcher", "MatchedKeyframe", "WorkerPace", "m
 
 
 INPUT_SLOTS = ("masks", "prior")  # the worker outputs a keyframe waits for
+ANCHOR_SLOT = "anchor"  # optional: a metric depth map as dense anchors (node ``anchor_topic``)
 
 
 class MatchedKeyframe(JoinedKeyframe):
@@ -36,10 +37,10 @@ class MatchedKeyframe(JoinedKeyframe):
         prior: Any = None,
         first_seen_s: float = 0.0,
         missing: dict[str, str] | None = None,
+        anchor: Any = None,
     ) -> None:
-        super().__init__(
-            keyframe_id, keyframe, {"masks": masks, "prior": prior}, first_seen_s, missing
-        )
+        inputs = {"masks": masks, "prior": prior, ANCHOR_SLOT: anchor}
+        super().__init__(keyframe_id, keyframe, inputs, first_seen_s, missing)
 
     @property
     def masks(self) -> Any:
@@ -48,6 +49,10 @@ class MatchedKeyframe(JoinedKeyframe):
     @property
     def prior(self) -> Any:
         return self.inputs.get("prior")
+
+    @property
+    def anchor(self) -> Any:
+        return self.inputs.get(ANCHOR_SLOT)
 
     @property
     def complete(self) -> bool:
@@ -71,9 +76,10 @@ class KeyframeMatcher(KeyframeJoin):
         *,
         stall_factor: float = 2.0,
         first_wait_s: float = 0.0,
+        anchors: bool = False,
     ) -> None:
         super().__init__(
-            INPUT_SLOTS,
+            (*INPUT_SLOTS, ANCHOR_SLOT) if anchors else INPUT_SLOTS,
             max_wait_s=max_wait_s,
             max_pending=max_pending,
             stall_factor=stall_factor,
@@ -96,16 +102,14 @@ def metrizer_inputs(entry: MatchedKeyframe) -> MetrizerInputs:
     else:
         labels = np.full((H, W), -1, np.int32)
     if entry.prior is not None:
-        prior = np.asarray(entry.prior.depth, dtype=np.float32)
-        conf = np.asarray(entry.prior.confidence, dtype=np.float32)
+        prior, conf = _depth_map(entry.prior, W, H)
         kind = entry.prior.kind
-        if prior.shape != (H, W):
-            prior, conf = resample_prior(prior, conf, W, H)
-        if kind in (DepthKind.METRIC, DepthKind.RELATIVE_DEPTH):
-            conf = np.where(prior > 0, conf, 0.0).astype(np.float32)  # 0 = no value
     else:
         prior, conf = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
         kind = DepthKind.METRIC.value
+    anchor, anchor_conf = None, None
+    if entry.anchor is not None and entry.anchor.kind == DepthKind.METRIC:
+        anchor, anchor_conf = _depth_map(entry.anchor, W, H)
     xyz = np.asarray(kf.feature_xyz_cam_m, dtype=np.float64)
     return MetrizerInputs(
         K=np.asarray(kf.K, dtype=np.float64),
@@ -118,4 +122,18 @@ def metrizer_inputs(entry: MatchedKeyframe) -> MetrizerInputs:
         prior_kind=kind,
         image_rgb=np.ascontiguousarray(rgb),
         T_world_cam=np.asarray(kf.T_world_cam, dtype=np.float64),
+        anchor_depth_m=anchor,
+        anchor_confidence=anchor_conf,
     )
+
+
+def _depth_map(msg: Any, W: int, H: int) -> tuple[np.ndarray, np.ndarray]:
+    """A depth-map message's values and confidence at ``W x H`` (bilinear), confidence 0 where a
+    depth-space map has no value."""
+    depth = np.asarray(msg.depth, dtype=np.float32)
+    conf = np.asarray(msg.confidence, dtype=np.float32)
+    if depth.shape != (H, W):
+        depth, conf = resample_prior(depth, conf, W, H)
+    if msg.kind in (DepthKind.METRIC, DepthKind.RELATIVE_DEPTH):
+        conf = np.where(depth > 0, conf, 0.0).astype(np.float32)  # 0 = no value
+    return depth, conf

@@ -1,7 +1,8 @@
 """Metrizer node: keyframe + masks + prior -> ``/metrizer/depth`` (DESIGN.md sections 1, 2).
 
-Subscribes (reliable) to ``/frontend/keyframe``, ``/seg/masks`` and ``/prior/depth``, matches the
-three by ``keyframe_id`` in :class:`KeyframeMatcher` (pure, no bus) and runs
+Subscribes (reliable) to ``/frontend/keyframe``, ``/seg/masks`` and ``/prior/depth`` (and, with
+``anchor_topic``, a metric depth map as dense anchors), matches them by ``keyframe_id`` in
+:class:`KeyframeMatcher` (pure, no bus) and runs
 :func:`~mogs_node.metrizer.pipeline.metrize_depth` on each complete set. A keyframe is metrized
 without its masks or prior only when that input has none, never for being late (issue 28):
 
@@ -35,6 +36,7 @@ from mogs_node.heartbeat import DIAGNOSTICS_TOPIC
 from mogs_node.keyframe_chain import failure_reason
 from mogs_node.metrizer.consensus import ConsensusParams
 from mogs_node.metrizer.matching import (
+    ANCHOR_SLOT,
     KeyframeMatcher,
     MatchedKeyframe,
     metrizer_inputs,
@@ -61,14 +63,24 @@ class MetrizerNode(Node):
         top["cdr"] = parse_params(CdrParams, p.cdr, where=f"{self.name}.cdr")
         self.metrizer_params = parse_params(MetrizerParams, top, where=f"{self.name}.metrizer")
         self.matcher = KeyframeMatcher(
-            p.max_wait_s, p.max_pending, stall_factor=p.stall_factor, first_wait_s=p.first_wait_s
+            p.max_wait_s,
+            p.max_pending,
+            stall_factor=p.stall_factor,
+            first_wait_s=p.first_wait_s,
+            anchors=bool(p.anchor_topic),
         )
         self.clock = time.monotonic
-        for topic, handler, typ in (
+        self.slot_topics = {"masks": p.masks_topic, "prior": p.prior_topic}
+        if p.anchor_topic:  # optional dense metric anchors (a second prior node, metric)
+            self.slot_topics[ANCHOR_SLOT] = p.anchor_topic
+        inputs = [
             (p.keyframe_topic, self.on_keyframe, msgs.Keyframe),
             (p.masks_topic, self.on_masks, msgs.Masks),
             (p.prior_topic, self.on_prior, msgs.DepthMap),
-        ):
+        ]
+        if p.anchor_topic:
+            inputs.append((p.anchor_topic, self.on_anchor, msgs.DepthMap))
+        for topic, handler, typ in inputs:
             self.subscribe(topic, handler, reliable=True, msg_type=typ, idempotent=True)
         if p.camera_info_topic:
             self.subscribe(
@@ -78,7 +90,7 @@ class MetrizerNode(Node):
         self.subscribe(DIAGNOSTICS_TOPIC, self.on_heartbeat, reliable=False, queue_size=64)
         self.every(p.poll_period_s, self.on_timer)
         # after a restart: the inputs of every keyframe without a metrized depth in the journal
-        self.catch_up((p.keyframe_topic, p.masks_topic, p.prior_topic), (p.out_topic,))
+        self.catch_up(tuple(t for t, _, _ in inputs), (p.out_topic,))
 
     def _add(self, slot: str, msg: Any) -> None:
         if self.already_published(self.params.out_topic, msg.keyframe_id):
@@ -95,6 +107,9 @@ class MetrizerNode(Node):
     def on_prior(self, msg: msgs.DepthMap) -> None:
         self._add("prior", msg)
 
+    def on_anchor(self, msg: msgs.DepthMap) -> None:
+        self._add(ANCHOR_SLOT, msg)
+
     def on_camera_info(self, msg: msgs.CameraInfo) -> None:
         """The camera height of the source's calibration (finite: known) turns the road plane
         on (``MetrizerParams.road_camera_height_m``), unless the launch file sets the height."""
@@ -110,8 +125,7 @@ class MetrizerNode(Node):
         topics = getattr(msg, "topics", None)
         if not isinstance(topics, dict) or getattr(msg, "status", "") == "stopped":
             return
-        p: MetrizerNodeParams = self.params
-        for slot, topic in (("masks", p.masks_topic), ("prior", p.prior_topic)):
+        for slot, topic in self.slot_topics.items():
             stats = topics.get(topic)
             published = stats.get("published", 0) if isinstance(stats, dict) else 0
             if isinstance(published, int | float) and published > 0:

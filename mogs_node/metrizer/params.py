@@ -109,6 +109,22 @@ class MetrizerParams:
     fill_scale: float = 0.5  # resolution factor of the edge-aware fill
     fill_lambda: float = 50.0  # edge-aware fill: smoothing strength (FGS lambda)
     fill_sigma_color: float = 8.0  # edge-aware fill: colour edge scale (FGS sigma)
+    # dense metric anchors (MetrizerInputs.anchor_*; dense_anchors.py, issue 16): a metric depth
+    # map beside a relative prior gives extra sparse points, one per stride x stride cell of
+    # confidence >= min_conf, none within gap (fraction of the image width) of a frontend point,
+    # weighted weight * confidence (docs/metrizer.md "Dense metric anchors")
+    dense_anchor_stride: int = 8
+    dense_anchor_min_conf: float = 0.3
+    dense_anchor_gap: float = 0.025
+    dense_anchor_weight: float = 0.3
+    # departure (issue 16, edge_snap.py): pixels within edge_snap_radius px of a prior depth edge
+    # (relative gradient > edge_snap_rel per pixel) and within edge_snap_boundary_px of another
+    # object take the output of the nearest pixel of their object outside that band (a learned
+    # prior blurs depth edges; docs/metrizer.md "Depth edges snapped to their object")
+    edge_snap: bool = False
+    edge_snap_rel: float = 0.1
+    edge_snap_radius: int = 1
+    edge_snap_boundary_px: int = 4
     seed: int = 0  # RANSAC random seed (results are deterministic per input)
     consensus: ConsensusParams = ConsensusParams()  # Algorithm 1 parameters
     cdr: CdrParams = CdrParams()  # eqs. (6)-(11) parameters
@@ -127,6 +143,25 @@ class MetrizerParams:
         h = self.road_camera_height_m
         if h == h and not (0 < h < float("inf")):
             raise ConfigError(f"MetrizerParams: road_camera_height_m > 0 or NaN, got {h}")
+        if not (
+            self.dense_anchor_stride >= 1
+            and 0 <= self.dense_anchor_min_conf <= 1
+            and self.dense_anchor_gap >= 0
+            and 0 <= self.dense_anchor_weight < float("inf")
+        ):
+            raise ConfigError(
+                "MetrizerParams: dense_anchor_stride >= 1, dense_anchor_min_conf in [0, 1], "
+                "dense_anchor_gap >= 0 and a finite dense_anchor_weight >= 0 required"
+            )
+        if not (
+            self.edge_snap_rel > 0
+            and self.edge_snap_radius >= 0
+            and self.edge_snap_boundary_px >= 0
+        ):
+            raise ConfigError(
+                "MetrizerParams: edge_snap_rel > 0, edge_snap_radius >= 0 and "
+                "edge_snap_boundary_px >= 0 required"
+            )
         if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
             raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")
 
@@ -163,6 +198,8 @@ class MetrizerNodeParams:
     out_topic: str = "/metrizer/depth"  # output metric depth
     camera_info_topic: str = "/camera/info"  # the source's camera height above the road, used
     # for metrizer.road_camera_height_m unless the launch file sets it ("" = off)
+    anchor_topic: str = ""  # a metric depth map (a second prior node, flow backend) as dense
+    # metric anchors beside a relative prior; a keyframe then waits for it too ("" = off)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

@@ -3,7 +3,9 @@
 Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
 
 1. ``prepare``: compact labels, unmasked pixels -> connected components (association.py);
-   sanitise inputs (non-finite prior -> no prior, features outside ``[d_min, d_max]`` dropped).
+   sanitise inputs (non-finite prior -> no prior, features outside ``[d_min, d_max]`` dropped);
+   with a metric anchor map (``MetrizerInputs.anchor_*``), its grid samples away from the
+   features join them as lower-weighted points (dense_anchors.py).
 2. ``associate``: features -> masks with a border vote.
 3. ``global``: one robust affine alignment of the prior to all features (the anchor of eq. 8 and
    the ``no_msc_cdr`` result).
@@ -49,6 +51,7 @@ from mogs_node.metrizer.association import (
 from mogs_node.metrizer.cdr_rows import FeatureRows, SampleRows, geo_rows, local_anchor_target
 from mogs_node.metrizer.compose import compose
 from mogs_node.metrizer.consensus import fit_objects
+from mogs_node.metrizer.dense_anchors import anchor_points
 from mogs_node.metrizer.frame import (
     Frame,
     ShapeModels,
@@ -106,6 +109,21 @@ def metrize(
     K, labels, image, prior_kind = c.K, c.labels, c.image_rgb, c.prior_kind
     H, W = labels.shape
     uv, z, w, prior, conf = c.sanitised(p.d_min_m, p.d_max_m)
+    n_frontend = len(z)
+    if c.anchor_depth_m is not None:  # dense metric anchors as extra points (dense_anchors.py)
+        uv_a, z_a, w_a = anchor_points(
+            c.anchor_depth_m,
+            c.anchor_confidence,
+            uv,
+            stride=p.dense_anchor_stride,
+            min_confidence=p.dense_anchor_min_conf,
+            gap_px=p.dense_anchor_gap * W,
+            weight=p.dense_anchor_weight,
+            depth_range_m=(p.d_min_m, p.d_max_m),
+        )
+        keep = w_a > 0
+        uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
+        w = np.concatenate([w, w_a[keep] + 1e-6])
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")
 
@@ -122,6 +140,7 @@ def metrize(
         "n_masks": int(n_obj - unmasked.sum()),
         "n_unmasked_regions": int(unmasked.sum()),
         "n_features": int(len(z)),
+        "n_dense_anchors": int(len(z) - n_frontend),
         "n_features_global": int(ga.n_global),
         "global_affine": [float(ga.theta0[0]), float(ga.theta0[1])],
         "prior_unanchored": ga.unanchored,
