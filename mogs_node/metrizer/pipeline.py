@@ -62,6 +62,7 @@ from mogs_node.metrizer.frame import (
     object_map,
 )
 from mogs_node.metrizer.inputs import MetrizerInputs
+from mogs_node.metrizer.mask_split import split_at_prior_edges
 from mogs_node.metrizer.merging import merge_undersupported
 from mogs_node.metrizer.params import MODES, MetrizedDepth, MetrizerParams
 from mogs_node.metrizer.refinement import CdrProblem, solve_cdr
@@ -124,6 +125,16 @@ def metrize(
         keep = w_a > 0
         uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
         w = np.concatenate([w, w_a[keep] + 1e-6])
+    if p.mask_split and mode != "no_msc_cdr":  # departure: docs/metrizer.md "Masks split"
+        labels = split_at_prior_edges(
+            labels,
+            prior.reshape(H, W),
+            conf.reshape(H, W),
+            prior_kind=prior_kind,
+            rel=p.mask_split_rel,
+            radius=p.mask_split_radius,
+            min_px=round(p.mask_split_min_frac * H * W),
+        )
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")
 
@@ -148,6 +159,12 @@ def metrize(
     tm.lap("global")
 
     ms = _merge_and_sample(p, mode, obj2d, n_obj, feat_obj, z, prior, conf, ga, prior_kind)
+    x_sky = _sky_value(p, ms, prior, prior_kind, ga)
+    if x_sky is not None:  # departure: docs/metrizer.md "The sky pins the shift"
+        ga = _align_global(p, prior, conf, z, w, fpix, prior_kind, zero_at=(x_sky, p.sky_anchor))
+        conf = ga.conf
+        stats.update(global_affine=[float(ga.theta0[0]), float(ga.theta0[1])], sky_prior=x_sky)
+        ms = _merge_and_sample(p, mode, obj2d, n_obj, feat_obj, z, prior, conf, ga, prior_kind)
     stats.update(n_objects=ms.G, merges=ms.n_merges, n_sky_objects=int(ms.sky.sum()))
     tm.lap("merge")
 
@@ -242,6 +259,7 @@ def _align_global(
     w: F64,
     fpix: NDArray[np.intp],
     prior_kind: str,
+    zero_at: tuple[float, float] | None = None,
 ) -> _GlobalFit:
     """One robust affine fit of the prior to every feature: the anchor of eq. (8) and the
     ``no_msc_cdr`` result. A relative prior that (almost) no metric point anchors has no metric
@@ -250,7 +268,13 @@ def _align_global(
     fx, fc = prior[fpix].astype(np.float64), conf[fpix].astype(np.float64)
     ft = space_from_depth(z, prior_kind)
     theta0, n_global = fit_global_affine(
-        fx, ft, w * fc, prior_kind, p.global_huber, shift_prior=p.global_shift_prior
+        fx,
+        ft,
+        w * fc,
+        prior_kind,
+        p.global_huber,
+        shift_prior=p.global_shift_prior,
+        zero_at=zero_at,
     )
     unanchored = prior_kind != DepthKind.METRIC and 0 < n_global < p.min_anchor_features
     if prior_kind != DepthKind.METRIC and n_global < p.min_anchor_features:
@@ -263,6 +287,33 @@ def _align_global(
     return _GlobalFit(
         theta0, int(n_global), fx, fc, ft, fd_glob, f_consistent, conf, bool(unanchored)
     )
+
+
+def _sky_value(
+    p: MetrizerParams, ms: _Merged, prior: NDArray, prior_kind: str, ga: _GlobalFit
+) -> float | None:
+    """The prior's value on the sky when it should pin the global shift (``sky_anchor`` > 0, a
+    relative inverse-depth prior, sky found), else None: the lowest median prior of the sky
+    groups with at least 5 sample pixels (a featureless far object counts as sky too; the sky
+    itself is the farthest, its inverse depth the lowest). An affine-invariant inverse-depth
+    model gives the sky its shift: inverse depth 0."""
+    if not (p.sky_anchor > 0 and prior_kind == DepthKind.RELATIVE_INVERSE_DEPTH and ms.sky.any()):
+        return None
+    if ga.n_global < p.min_anchor_features:
+        return None
+    on_sky = ms.sky[ms.gg_grid]
+    g, x = ms.gg_grid[on_sky], prior[ms.grid[on_sky]].astype(np.float64)
+    n_g = np.bincount(g, minlength=ms.G)
+    keep = n_g[g] >= 5
+    if not keep.any():
+        return None
+    g, x = g[keep], x[keep]
+    order = np.lexsort((x, g))
+    g, x = g[order], x[order]
+    start = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    cnt = np.diff(np.r_[start, len(g)])
+    med = 0.5 * (x[start + (cnt - 1) // 2] + x[start + cnt // 2])
+    return float(med.min())
 
 
 @dataclass
