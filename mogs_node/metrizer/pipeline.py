@@ -62,7 +62,7 @@ from mogs_node.metrizer.frame import (
     object_map,
 )
 from mogs_node.metrizer.inputs import MetrizerInputs
-from mogs_node.metrizer.mask_split import split_at_prior_edges
+from mogs_node.metrizer.mask_split import jump_band, split_masks
 from mogs_node.metrizer.merging import merge_undersupported
 from mogs_node.metrizer.params import MODES, MetrizedDepth, MetrizerParams
 from mogs_node.metrizer.refinement import CdrProblem, solve_cdr
@@ -126,15 +126,15 @@ def metrize(
         uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
         w = np.concatenate([w, w_a[keep] + 1e-6])
     if p.mask_split and mode != "no_msc_cdr":  # departure: docs/metrizer.md "Masks split"
-        labels = split_at_prior_edges(
-            labels,
+        band = jump_band(
             prior.reshape(H, W),
             conf.reshape(H, W),
-            prior_kind=prior_kind,
-            rel=p.mask_split_rel,
-            radius=p.mask_split_radius,
-            min_px=round(p.mask_split_min_frac * H * W),
+            prior_kind,
+            p.mask_split_rel,
+            p.mask_split_radius,
         )
+        reach = 2 * p.mask_split_radius + 4
+        labels = split_masks(labels, band, round(p.mask_split_min_frac * H * W), reach)
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")
 
