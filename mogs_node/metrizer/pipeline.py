@@ -112,29 +112,9 @@ def metrize(
     uv, z, w, prior, conf = c.sanitised(p.d_min_m, p.d_max_m)
     n_frontend = len(z)
     if c.anchor_depth_m is not None:  # dense metric anchors as extra points (dense_anchors.py)
-        uv_a, z_a, w_a = anchor_points(
-            c.anchor_depth_m,
-            c.anchor_confidence,
-            uv,
-            stride=p.dense_anchor_stride,
-            min_confidence=p.dense_anchor_min_conf,
-            gap_px=p.dense_anchor_gap * W,
-            weight=p.dense_anchor_weight,
-            depth_range_m=(p.d_min_m, p.d_max_m),
-        )
-        keep = w_a > 0
-        uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
-        w = np.concatenate([w, w_a[keep] + 1e-6])
+        uv, z, w = _with_anchors(p, c, uv, z, w)
     if p.mask_split and mode != "no_msc_cdr":  # departure: docs/metrizer.md "Masks split"
-        band = jump_band(
-            prior.reshape(H, W),
-            conf.reshape(H, W),
-            prior_kind,
-            p.mask_split_rel,
-            p.mask_split_radius,
-        )
-        reach = 2 * p.mask_split_radius + 4
-        labels = split_masks(labels, band, round(p.mask_split_min_frac * H * W), reach)
+        labels = _split_labels(p, labels, prior, conf, prior_kind)
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")
 
@@ -225,6 +205,38 @@ def metrize(
     stats.update(n_rows)
     tm.lap("refine")
     return compose(fr, tm, models, theta, global_only=False)
+
+
+def _with_anchors(
+    p: MetrizerParams, c: MetrizerInputs, uv: F64, z: F64, w: F64
+) -> tuple[F64, F64, F64]:
+    """The features plus the metric anchor map's grid samples away from them (dense_anchors.py),
+    as lower-weighted points."""
+    uv_a, z_a, w_a = anchor_points(
+        c.anchor_depth_m,
+        c.anchor_confidence,
+        uv,
+        stride=p.dense_anchor_stride,
+        min_confidence=p.dense_anchor_min_conf,
+        gap_px=p.dense_anchor_gap * c.labels.shape[1],
+        weight=p.dense_anchor_weight,
+        depth_range_m=(p.d_min_m, p.d_max_m),
+    )
+    keep = w_a > 0
+    uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
+    return uv, z, np.concatenate([w, w_a[keep] + 1e-6])
+
+
+def _split_labels(
+    p: MetrizerParams, labels: NDArray, prior: NDArray, conf: NDArray, prior_kind: str
+) -> NDArray[np.int32]:
+    """The masks cut along the prior's depth jumps (mask_split.py, ``mask_split_*``)."""
+    H, W = labels.shape
+    band = jump_band(
+        prior.reshape(H, W), conf.reshape(H, W), prior_kind, p.mask_split_rel, p.mask_split_radius
+    )
+    reach = 2 * p.mask_split_radius + 4  # the band's width and then some
+    return split_masks(labels, band, round(p.mask_split_min_frac * H * W), reach)
 
 
 def _road_up(p: MetrizerParams, T_world_cam: F64 | None) -> F64 | None:
