@@ -7,6 +7,7 @@ import itertools
 
 import numpy as np
 import pytest
+import test_metrizer_ground as tg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_metrizer_robustness import _absrel, _case, _check_valid
@@ -187,3 +188,34 @@ def test_new_params_are_checked():
         MetrizerParams(mask_split_rel=0.0)
     with pytest.raises(ConfigError, match="mask_split"):
         MetrizerParams(mask_split_min_frac=1.0)
+
+
+def test_metrize_snaps_a_warped_road_prior_to_the_plane():
+    """A metric prior of the road with a smooth 10 % warp: with ``road_snap_rel`` the road's
+    output is the plane (camera height and pose known), without it the warp stays."""
+    H, W, K_ROAD, HEIGHT = tg.H, tg.W, tg.K, tg.HEIGHT
+    z_road = road_plane_depth(K_ROAD, (H, W), tg.UP, HEIGHT)
+    below = np.isfinite(z_road) & (z_road <= 40.0)
+    u = np.arange(W)[None, :]
+    warp = 1.0 + 0.1 * np.sin(2 * np.pi * u / W)
+    prior = np.where(np.isfinite(z_road), z_road * warp, 0.0).astype(np.float32)
+    T = np.eye(4)
+    T[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
+    kw = dict(
+        K=K_ROAD,
+        labels=np.where(np.isfinite(z_road), 0, 1).astype(np.int32),
+        feature_uv_px=np.zeros((0, 2)),
+        feature_depth_m=np.zeros(0),
+        feature_weight=np.zeros(0),
+        prior=prior,
+        prior_confidence=(prior > 0).astype(np.float32),
+        prior_kind="metric",
+        T_world_cam=T,
+    )
+    base = dict(road_camera_height_m=HEIGHT, d_max_m=1e3, mask_plane_fill=False)
+    on = metrize_depth(**kw, params=MetrizerParams(**base, road_snap_rel=0.25))
+    off = metrize_depth(**kw, params=MetrizerParams(**base))
+    assert np.isfinite(on.depth_m).all() and (on.depth_m >= 0).all()
+    np.testing.assert_allclose(on.depth_m[below], z_road[below], rtol=1e-4)
+    assert on.stats["n_px_road"] >= below.sum() and off.stats["n_px_road"] == 0
+    assert np.abs(off.depth_m[below] / z_road[below] - 1).max() > 0.05
