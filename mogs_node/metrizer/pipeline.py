@@ -5,12 +5,16 @@ Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
 1. ``prepare``: compact labels, unmasked pixels -> connected components (association.py);
    sanitise inputs (non-finite prior -> no prior, features outside ``[d_min, d_max]`` dropped);
    with a metric anchor map (``MetrizerInputs.anchor_*``), its grid samples away from the
-   features join them as lower-weighted points (dense_anchors.py).
+   features join them as lower-weighted points (dense_anchors.py); with ``mask_split`` the masks
+   are cut along the prior's depth jumps (mask_split.py; in every mode, so that the ablations
+   see the same objects).
 2. ``associate``: features -> masks with a border vote.
 3. ``global``: one robust affine alignment of the prior to all features (the anchor of eq. 8 and
    the ``no_msc_cdr`` result).
 4. ``merge``: under-supported masks merge into contiguous neighbours (merging.py), mode ``full``;
-   CDR sample pixels; sky objects = featureless objects whose prior is mostly far.
+   CDR sample pixels; sky objects = featureless objects whose prior is mostly far; with
+   ``sky_anchor`` and a relative inverse-depth prior, the sky's prior value pins the global
+   affine's shift (inverse depth 0) and stages 3-4 are redone once.
 5. ``consensus``: Algorithm 1 for all objects (consensus.py), then groups without a shape join an
    adjacent shape that explains them (absorption), mode ``full``.
 6. ``propagate``: model depth by ray-shape intersection at the CDR sample pixels.
@@ -113,7 +117,7 @@ def metrize(
     n_frontend = len(z)
     if c.anchor_depth_m is not None:  # dense metric anchors as extra points (dense_anchors.py)
         uv, z, w = _with_anchors(p, c, uv, z, w)
-    if p.mask_split and mode != "no_msc_cdr":  # departure: docs/metrizer.md "Masks split"
+    if p.mask_split:  # departure: docs/metrizer.md "Masks split"
         labels = _split_labels(p, labels, prior, conf, prior_kind)
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")

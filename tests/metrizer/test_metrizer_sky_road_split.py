@@ -219,3 +219,33 @@ def test_metrize_snaps_a_warped_road_prior_to_the_plane():
     np.testing.assert_allclose(on.depth_m[below], z_road[below], rtol=1e-4)
     assert on.stats["n_px_road"] >= below.sum() and off.stats["n_px_road"] == 0
     assert np.abs(off.depth_m[below] / z_road[below] - 1).max() > 0.05
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    frame=st.integers(0, 2),
+    n_points=st.sampled_from([0, 2, 5, 40, 600, 2000]),
+    coverage=st.sampled_from([0.0, 0.2, 0.9, 1.0]),
+    outliers=st.floats(0.0, 0.3),
+    log_scale=st.floats(-2.0, 3.0),
+    masks=st.sampled_from(["oracle", "graph"]),
+    seed=st.integers(0, 2**16),
+)
+def test_sky_anchor_and_split_keep_the_bound_of_the_global_affine(
+    frame, n_points, coverage, outliers, log_scale, masks, seed
+):
+    """The stress test of test_metrizer_robustness with ``sky_anchor`` and ``mask_split`` on:
+    finite output, never more than 10 % worse than the global affine of the same parameters."""
+    kw, params, gt = _case(frame, n_points, coverage, outliers, 10.0**log_scale, masks, seed)
+    p = MetrizerParams(
+        d_min_m=params.d_min_m, d_max_m=params.d_max_m, sky_anchor=5.0, mask_split=True
+    )
+    out = metrize_depth(**kw, params=p)
+    base = metrize_depth(**kw, params=p, mode="no_msc_cdr")
+    for o in (out, base):
+        _check_valid(o, p.d_max_m)
+    d, b = out.depth_m, base.depth_m
+    shared = (gt > 0) & (b > 0) & (d > 0)
+    assert np.all(d[(gt > 0) & (b > 0)] > 0)
+    if shared.any():
+        assert _absrel(d, gt, shared) <= 1.1 * _absrel(b, gt, shared) + 1e-4
