@@ -41,6 +41,7 @@ from mogs_node.node import parse_params  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 LIDAR_RADIUS_PX = 1  # a point's LiDAR depth: the median return within this many pixels
+CAMERA_HEIGHT_M = 1.65  # launch/kitti.yaml's player.camera_height_m (the KITTI setup)
 
 
 def frontend_params(points: dict, launch: Path = ROOT / "launch" / "kitti.yaml"):
@@ -65,6 +66,16 @@ def lidar_at(depth_m: np.ndarray, uv_px: np.ndarray, r: int = LIDAR_RADIUS_PX) -
     return out
 
 
+def road_aligned(T_cam0_cams: np.ndarray) -> np.ndarray:
+    """Poses [F, 4, 4] in the first camera's frame (x right, y down, z ahead) as ``T_world_cam``
+    in a road-aligned world (x ahead, y left, z up, the first camera ``CAMERA_HEIGHT_M`` above the
+    origin), the world the camera-only frontend and the prior's road model use."""
+    A = np.eye(4)
+    A[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    A[2, 3] = CAMERA_HEIGHT_M
+    return A[None] @ np.asarray(T_cam0_cams, np.float64)
+
+
 def run(points: dict, folder: Path, given_poses: bool = False) -> dict:
     """Every frame of the excerpt through the camera-only frontend; figures against the LiDAR.
     ``given_poses``: the LiDAR-PnP poses are given to the frontend (as ``player.poses`` would):
@@ -74,10 +85,10 @@ def run(points: dict, folder: Path, given_poses: bool = False) -> dict:
 
     cv2.setNumThreads(1)
     seq = read_kitti_raw(folder)
-    info = camera_info_of(seq, camera_height_m=1.65)  # launch/kitti.yaml's player.camera_height_m
+    info = camera_info_of(seq, camera_height_m=CAMERA_HEIGHT_M)
     fe = frontend_params(points).build_monocular("frontend", info, given_poses=given_poses)
     data = load_kitti78(folder)
-    T_pnp, _, _ = localise_pnp(data)
+    T_pnp = road_aligned(localise_pnp(data)[0])
     period_ns = 100_000_000  # the player's stamps: the excerpt has no timestamps.txt
     cpu, pos, kfs = [], {}, []
     for i, rgb in enumerate(data.rgb):
@@ -145,8 +156,18 @@ def main() -> None:
     ap.add_argument(
         "--given-poses", action="store_true", help="give the frontend the LiDAR-PnP poses"
     )
+    ap.add_argument(
+        "--write-poses",
+        default=None,
+        metavar="PATH",
+        help="write the LiDAR-PnP poses (road-aligned world, KITTI format) for player.poses and exit",
+    )
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
+    if args.write_poses:
+        T = road_aligned(localise_pnp(load_kitti78(Path(args.data)))[0])
+        np.savetxt(args.write_poses, T[:, :3, :].reshape(len(T), 12), fmt="%.9f")
+        return
     points = json.loads(args.points)
     if args.round9:
         from bench.frontend import ROUND9
