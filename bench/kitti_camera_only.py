@@ -150,19 +150,18 @@ def run(points: dict, folder: Path, given_poses: bool = False) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default=str(DEFAULT_DIR), help="the KITTI excerpt's folder")
-    ap.add_argument("--points", default="{}", help="frontend.points overrides (JSON)")
-    ap.add_argument("--round9", action="store_true", help="bench/frontend.py's ROUND9 points")
-    ap.add_argument(
-        "--given-poses", action="store_true", help="give the frontend the LiDAR-PnP poses"
-    )
-    ap.add_argument(
-        "--write-poses",
-        default=None,
-        metavar="PATH",
-        help="write the LiDAR-PnP poses (road-aligned world, KITTI format) for player.poses and exit",
-    )
-    ap.add_argument("--json", default=None, metavar="PATH")
+    options = {
+        "--data": dict(default=str(DEFAULT_DIR), help="the KITTI excerpt's folder"),
+        "--points": dict(default="{}", help="frontend.points overrides (JSON)"),
+        "--round9": dict(action="store_true", help="bench/frontend.py's ROUND9 points"),
+        "--given-poses": dict(action="store_true", help="give the frontend the LiDAR-PnP poses"),
+        "--write-poses": dict(
+            metavar="PATH", help="write the LiDAR-PnP poses (road-aligned, KITTI format) and exit"
+        ),
+        "--json": dict(metavar="PATH", help="write the figures here"),
+    }
+    for flag, kw in options.items():
+        ap.add_argument(flag, **kw)
     args = ap.parse_args()
     if args.write_poses:
         T = road_aligned(localise_pnp(load_kitti78(Path(args.data)))[0])
