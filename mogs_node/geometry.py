@@ -12,6 +12,7 @@ Conventions (see docs/architecture.md):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,9 @@ __all__ = [
     "intersect_rays_quadric",
     "make_T",
     "nearest_rotation",
+    "pixel_grid_xy",
     "pixel_to_normalized",
+    "road_plane_depth",
     "rigid_transform",
     "rotation_defect",
     "quat_wxyz_from_rotmat",
@@ -480,6 +483,47 @@ def intersect_rays_plane(
         t = num / denom
     ok = np.isfinite(t) & (t > 0) & (np.abs(denom) > 1e-12)
     return np.where(ok, t, np.inf)
+
+
+def pixel_grid_xy(K: NDArray[np.float64], H: int, W: int) -> tuple[NDArray, NDArray, NDArray]:
+    """Pixel grid ``u, v`` ``[H, W]`` and the rays with ``z = 1`` as ``x, y`` ``[2, H, W]``
+    (float32, skew included).
+
+    Cached per camera (read-only arrays): the keyframes of one camera share them.
+    """
+    return _pixel_grid_xy_cached(np.asarray(K, np.float64).tobytes(), int(H), int(W))
+
+
+@functools.lru_cache(maxsize=4)
+def _pixel_grid_xy_cached(K_bytes: bytes, H: int, W: int) -> tuple[NDArray, NDArray, NDArray]:
+    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
+    u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
+    v = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
+    Kinv = np.linalg.inv(K)
+    x = (Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]).astype(np.float32)
+    y = (Kinv[1, 1] * v + Kinv[1, 2]).astype(np.float32)
+    rays = np.stack([x, y])
+    for a in (u, v, rays):
+        a.setflags(write=False)
+    return u, v, rays
+
+
+def road_plane_depth(
+    rays_xy: NDArray[np.float32], up_cam: NDArray[np.float64], height_m: float
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Z-depth where each ray ``[x, y, 1]`` (``rays_xy`` ``[2, H, W]``, :func:`pixel_grid_xy`)
+    meets the road plane ``up . X = -height_m``, and the sine of the ray's angle below the
+    horizon; depth is ``inf`` at or above the horizon.
+
+    The one road plane of the prior's road source and the metrizer's road pass.
+    """
+    x, y = rays_xy
+    down = -(up_cam[0] * x + up_cam[1] * y + up_cam[2])  # -up . r with r = [x, y, 1]
+    norm = np.sqrt(x * x + y * y + 1.0)
+    sin_a = (down / norm).astype(np.float32)
+    with np.errstate(divide="ignore"):
+        z = np.where(down > 1e-9, np.float32(height_m) / np.maximum(down, 1e-9), np.inf)
+    return z.astype(np.float32), sin_a
 
 
 def up_in_camera(

@@ -50,7 +50,6 @@ from mogs_node.depth_prior.flow_prior import (
     FlowPrior,
     FlowPriorParams,
     _grey,
-    _pixel_rays,
     compute_flow_prior,
     ground_depth_bound,
 )
@@ -62,7 +61,7 @@ from mogs_node.depth_prior.ground_height import (
 from mogs_node.depth_prior.road import RoadPriorParams, project_depth, road_prior, up_in_camera
 from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError
-from mogs_node.geometry import check_array, se3_inverse
+from mogs_node.geometry import check_array, pixel_grid_xy, se3_inverse
 
 AUTO_HEIGHT_MEASUREMENTS = 10  # road.auto_height: keyframes measured before the height is settled
 
@@ -345,7 +344,7 @@ def _flow_check(
     if not params.flow_check or not has.any():
         return e_c, 0.0
     H, W = d_c.shape
-    _, _, rays = _pixel_rays(K, H, W)
+    _, _, rays = pixel_grid_xy(K, H, W)
     u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     z = np.where(has, d_c, 1.0).astype(np.float32)
     bad = np.zeros((H, W), bool)
@@ -378,7 +377,7 @@ def _road(
     only): road where any reference verifies it (a reference may have seen the road hidden
     behind something that has since been passed)."""
     H, W = grey.shape
-    _, _, rays = _pixel_rays(K, H, W)
+    _, _, rays = pixel_grid_xy(K, H, W)
     refs: list = []
     for i, (img, T_r) in enumerate(list(references) + list(road_references)):
         T_r = check_array(f"references[{i}].T_world_cam", T_r, shape=(4, 4), finite=True)
@@ -416,7 +415,7 @@ def _measured_height(
     refined by the road plane's tests against the nearest reference (ground_height.py). After
     ``AUTO_HEIGHT_MEASUREMENTS`` measurements the height is settled and costs nothing more."""
     H, W = grey.shape
-    rays = _pixel_rays(K, H, W)[2]
+    rays = pixel_grid_xy(K, H, W)[2]
     centre = ground_height_m(earlier_m)
     if len(earlier_m) >= AUTO_HEIGHT_MEASUREMENTS or not references or not flow.pairs:
         return float("nan"), centre

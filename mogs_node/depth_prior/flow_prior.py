@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError, ShapeError
-from mogs_node.geometry import check_array, se3_inverse
+from mogs_node.geometry import check_array, pixel_grid_xy, road_plane_depth, se3_inverse
 
 __all__ = [
     "FlowPrior",
@@ -149,28 +149,6 @@ def _grey(image: NDArray[np.uint8], name: str) -> NDArray[np.uint8]:
     return np.ascontiguousarray(check_array(name, img, shape=(None, None), dtype=np.uint8))
 
 
-def _pixel_rays(K: NDArray[np.float64], H: int, W: int) -> tuple[NDArray, NDArray, NDArray]:
-    """Pixel grid ``u, v`` ``[H, W]`` and rays with ``z = 1`` as ``x, y`` ``[H, W]`` (float32).
-
-    Cached per camera (read-only arrays): keyframes of one camera share them.
-    """
-    return _pixel_rays_cached(np.asarray(K, np.float64).tobytes(), H, W)
-
-
-@functools.lru_cache(maxsize=4)
-def _pixel_rays_cached(K_bytes: bytes, H: int, W: int) -> tuple[NDArray, NDArray, NDArray]:
-    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
-    u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
-    v = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
-    Kinv = np.linalg.inv(K)
-    x = (Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]).astype(np.float32)
-    y = (Kinv[1, 1] * v + Kinv[1, 2]).astype(np.float32)
-    rays = np.stack([x, y])
-    for a in (u, v, rays):
-        a.setflags(write=False)
-    return u, v, rays
-
-
 def ground_depth_bound(
     K: NDArray[np.float64], H: int, W: int, params: FlowPriorParams
 ) -> NDArray[np.float32]:
@@ -183,16 +161,14 @@ def ground_depth_bound(
 @functools.lru_cache(maxsize=4)
 def _ground_bound_cached(K_bytes: bytes, H: int, W: int, params: FlowPriorParams) -> NDArray:
     K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
-    _, _, (x, y) = _pixel_rays(K, H, W)
     bound = np.full((H, W), params.max_depth_m, np.float32)
     if params.camera_height_m <= 0:
         bound.setflags(write=False)
         return bound
     up = np.asarray(params.ground_up_cam, np.float64)
-    up = up / np.linalg.norm(up)
-    down_component = -(up[0] * x + up[1] * y + up[2])  # ray . (-up) for rays with z = 1
-    hits = down_component > 1e-6
-    t = np.where(hits, params.camera_height_m / np.maximum(down_component, 1e-6), np.inf)
+    t, _ = road_plane_depth(
+        pixel_grid_xy(K, H, W)[2], up / np.linalg.norm(up), params.camera_height_m
+    )
     out = np.minimum(bound, (params.ground_margin * t).astype(np.float32))
     out.setflags(write=False)
     return out
@@ -209,7 +185,7 @@ def detect_sky(
     grey = _grey(image, "image")
     H, W = grey.shape
     K = check_array("K", K, shape=(3, 3), finite=True)
-    _, _, (x, y) = _pixel_rays(K, H, W)
+    _, _, (x, y) = pixel_grid_xy(K, H, W)
     up = np.asarray(params.ground_up_cam, np.float64)
     above = (up[0] * x + up[1] * y + up[2]) > 0.0
     g = cv2.GaussianBlur(grey, (0, 0), 1.5).astype(np.float32)
@@ -310,7 +286,7 @@ def two_view_depth(
     dis = _dis(params.dis_preset)
     flow_f = dis.calc(gk, gr, None)  # k -> r
     flow_b = dis.calc(gr, gk, None)  # r -> k
-    u, v, _ = _pixel_rays(K, H, W)
+    u, v, _ = pixel_grid_xy(K, H, W)
     u_r = u + flow_f[..., 0]
     v_r = v + flow_f[..., 1]
     back = cv2.remap(

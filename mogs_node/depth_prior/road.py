@@ -39,12 +39,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError
-from mogs_node.geometry import check_array, up_in_camera
+from mogs_node.geometry import check_array, road_plane_depth, up_in_camera
 
 __all__ = [
     "RoadPlane",
     "RoadPriorParams",
-    "plane_depth",
     "plane_relative_error",
     "project_depth",
     "road_prior",
@@ -109,21 +108,6 @@ class RoadPlane:
     verified: NDArray[np.bool_]  # plane confirmed by flow / photometry
     rejected: NDArray[np.bool_]  # below the horizon but inconsistent with the plane
     up_cam: NDArray[np.float64]  # [3] unit up direction used, camera frame
-
-
-def plane_depth(
-    rays_xy: NDArray[np.float32], up_cam: NDArray[np.float64], height_m: float
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Z-depth where each ray ``[x, y, 1]`` (``rays_xy`` ``[2, H, W]``) meets the plane
-    ``up . X = -height_m``, and the sine of the ray's angle below the horizon; depth is ``inf``
-    at or above the horizon."""
-    x, y = rays_xy
-    down = -(up_cam[0] * x + up_cam[1] * y + up_cam[2])  # -up . r with r = [x, y, 1]
-    norm = np.sqrt(x * x + y * y + 1.0)
-    sin_a = (down / norm).astype(np.float32)
-    with np.errstate(divide="ignore"):
-        z = np.where(down > 1e-9, np.float32(height_m) / np.maximum(down, 1e-9), np.inf)
-    return z.astype(np.float32), sin_a
 
 
 def plane_relative_error(
@@ -200,7 +184,7 @@ def road_prior(
     H, W = grey_k.shape
     if not (np.isfinite(height_m) and height_m > 0):
         raise ConfigError(f"camera_height_m: the road prior needs a height > 0, got {height_m}")
-    z, sin_a = plane_depth(rays_xy, up_cam, height_m)
+    z, sin_a = road_plane_depth(rays_xy, up_cam, height_m)
     below = (sin_a > np.sin(np.radians(params.min_angle_deg))) & (z <= params.max_depth_m)
     err = plane_relative_error(sin_a, params)
     verified = np.zeros((H, W), bool)

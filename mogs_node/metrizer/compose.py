@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.geometry import pixel_to_normalized
+from mogs_node.geometry import pixel_grid_xy, pixel_to_normalized, road_plane_depth
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.edge_snap import near_object_boundary, prior_edge_band, snap_edges
@@ -33,7 +33,6 @@ from mogs_node.metrizer.ground import (
     GroundParams,
     fill_ground_contact,
     fill_road_objects,
-    road_plane_depth,
     snap_road_objects,
 )
 from mogs_node.metrizer.params import MetrizedDepth, MetrizerParams
@@ -369,7 +368,7 @@ def _road_passes(fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.flo
         depth.min(initial=1.0) > 0 and not snap
     ):
         return 0, 0  # nothing to fill (a fully covered frame costs nothing)
-    z_road = road_plane_depth(fr.K, (H, W), fr.up_cam, h).ravel()
+    z_road = road_plane_depth(pixel_grid_xy(fr.K, H, W)[2], fr.up_cam, h)[0].ravel()
     n_road = n_contact = 0
     if snap:  # departure: docs/metrizer.md "The road plane over a learned prior's road"
         n_road += snap_road_objects(depth, fr.gobj, fr.G, z_road, gp, p.road_snap_rel)

@@ -3,8 +3,8 @@
 Departure from the paper (issue 16, docs/metrizer.md "The road plane: road objects and ground
 contact"). A car's camera at a calibrated height ``h`` above a planar road, with "up" from the
 keyframe's gravity-aligned pose, sees the road at ``z = h / (-up . r)`` along the ray
-``r = (x, y, 1)`` (the prior's road source, :mod:`mogs_node.depth_prior.road`, uses the same
-plane). Two passes use it where the prior leaves an object's pixels empty:
+``r = (x, y, 1)`` (:func:`mogs_node.geometry.road_plane_depth`, the one plane of the prior's
+road source and of these passes). Two passes use it where the prior leaves an object's pixels empty:
 
 - :func:`fill_road_objects`: an object (after merging) whose pixels with a depth agree with the
   plane, that lies below the horizon and has enough of them, is road: its empty pixels get the
@@ -23,13 +23,7 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError
 
-__all__ = [
-    "GroundParams",
-    "fill_ground_contact",
-    "fill_road_objects",
-    "road_plane_depth",
-    "snap_road_objects",
-]
+__all__ = ["GroundParams", "fill_ground_contact", "fill_road_objects", "snap_road_objects"]
 
 F32 = NDArray[np.float32]
 
@@ -57,23 +51,6 @@ class GroundParams:
         shares = (self.min_agree_share, self.min_depth_share, self.below_share)
         if not all(0 <= s <= 1 for s in (*shares, self.contact_min_share)):
             raise ConfigError("ground: shares must be in [0, 1]")
-
-
-def road_plane_depth(K: NDArray, hw: tuple[int, int], up_cam: NDArray, height_m: float) -> F32:
-    """Z-depth ``[H, W]`` of the road plane ``up . X = -height_m`` along each pixel's ray (``inf``
-    at and above the horizon). ``up_cam`` the unit up direction in the camera frame."""
-    H, W = hw
-    K = np.asarray(K, np.float64)
-    up = np.asarray(up_cam, np.float64)
-    v = np.arange(H, dtype=np.float64)
-    y = (v - K[1, 2]) / K[1, 1]
-    x = (np.arange(W, dtype=np.float64)[None, :] - K[0, 2] - K[0, 1] * y[:, None]) / K[0, 0]
-    # -up . (x, y, 1): separable without skew (the usual case), an outer sum
-    down = (-(up[1] * y + up[2]))[:, None] - up[0] * x
-    with np.errstate(divide="ignore"):
-        z = np.float32(height_m) / down.astype(np.float32)
-    z[~(down > 1e-9)] = np.inf
-    return z
 
 
 def _bincount(idx: NDArray[np.intp], G: int, w: NDArray | None = None) -> NDArray:

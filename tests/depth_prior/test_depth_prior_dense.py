@@ -20,17 +20,16 @@ from mogs_node.depth_prior.dense_prior import (
     error_from_confidence,
     fuse_candidates,
 )
-from mogs_node.depth_prior.flow_prior import FlowPriorParams, _pixel_rays, two_view_depth
+from mogs_node.depth_prior.flow_prior import FlowPriorParams, two_view_depth
 from mogs_node.depth_prior.road import (
     RoadPriorParams,
-    plane_depth,
     road_prior,
     up_in_camera,
 )
 from mogs_node.depth_prior.sequence import PriorSequence
 from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError, ShapeError
-from mogs_node.geometry import make_T, se3_inverse, so3_exp
+from mogs_node.geometry import make_T, pixel_grid_xy, road_plane_depth, se3_inverse, so3_exp
 
 sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/: the helpers
 from _two_view_scene import CAM, render  # noqa: E402
@@ -54,8 +53,8 @@ def views():
 def _ground_truth_plane(depth_gt: np.ndarray, up_cam: np.ndarray, h: float) -> np.ndarray:
     """Pixels whose rendered depth is the ground's (the renderer samples the depth a quarter
     pixel off the pixel centre: 2 % tolerance)."""
-    _, _, rays = _pixel_rays(K, *HW)
-    z, _ = plane_depth(rays, up_cam, h)
+    _, _, rays = pixel_grid_xy(K, *HW)
+    z, _ = road_plane_depth(rays, up_cam, h)
     return np.isfinite(z) & (np.abs(z - depth_gt) <= 0.02 * depth_gt)
 
 
@@ -70,8 +69,8 @@ def _ground_truth_plane(depth_gt: np.ndarray, up_cam: np.ndarray, h: float) -> n
 )
 def test_plane_depth_lies_on_the_plane(h: float, pitch: float, roll: float) -> None:
     up = so3_exp(np.array([pitch, 0.0, roll])) @ np.array([0.0, -1.0, 0.0])
-    _, _, rays = _pixel_rays(K, *HW)
-    z, sin_a = plane_depth(rays, up, h)
+    _, _, rays = pixel_grid_xy(K, *HW)
+    z, sin_a = road_plane_depth(rays, up, h)
     below = np.isfinite(z)
     assert np.array_equal(below, sin_a > 0)
     X = z[below] * np.stack([rays[0][below], rays[1][below], np.ones(below.sum())])
@@ -95,7 +94,7 @@ def test_road_plane_seen_from_two_poses_gives_the_plane_depth(views) -> None:
     T_r_k = se3_inverse(T0) @ T1
     pair = two_view_depth(g1, g0, K, T_r_k, FLOW)
     up = up_in_camera(T1, ROAD.up_world, FLOW.ground_up_cam)
-    _, _, rays = _pixel_rays(K, *HW)
+    _, _, rays = pixel_grid_xy(K, *HW)
     road = road_prior(g1, K, rays, up, 1.65, ROAD, (g0, T_r_k, pair.flow_px, pair.fb_error_px))
     truth = _ground_truth_plane(d1, up, 1.65)
     has = road.depth_m > 0
@@ -114,7 +113,7 @@ def test_road_plane_seen_from_two_poses_gives_the_plane_depth(views) -> None:
 def test_road_without_reference_is_empty_unless_image_only(views) -> None:
     (g0, _, T0), _ = views
     up = up_in_camera(T0, ROAD.up_world, FLOW.ground_up_cam)
-    _, _, rays = _pixel_rays(K, *HW)
+    _, _, rays = pixel_grid_xy(K, *HW)
     assert not road_prior(g0, K, rays, up, 1.65, ROAD).depth_m.any()
     p = RoadPriorParams(up_world=(0.0, -1.0, 0.0), image_only=True)
     road = road_prior(g0, K, rays, up, 1.65, p)
@@ -129,7 +128,7 @@ def test_wrong_height_is_rejected_by_the_flow(views) -> None:
     T_r_k = se3_inverse(T0) @ T1
     pair = two_view_depth(g1, g0, K, T_r_k, FLOW)
     up = up_in_camera(T1, ROAD.up_world, FLOW.ground_up_cam)
-    _, _, rays = _pixel_rays(K, *HW)
+    _, _, rays = pixel_grid_xy(K, *HW)
     ref = (g0, T_r_k, pair.flow_px, pair.fb_error_px)
     right = road_prior(g1, K, rays, up, 1.65, ROAD, ref)
     wrong = road_prior(g1, K, rays, up, 3.3, ROAD, ref)

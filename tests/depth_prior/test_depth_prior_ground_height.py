@@ -15,9 +15,9 @@ from mogs_node.depth_prior.ground_height import (
     ground_height_m,
     refine_ground_height,
 )
-from mogs_node.depth_prior.road import RoadPriorParams, plane_depth
+from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.errors import ConfigError
-from mogs_node.geometry import pixel_to_normalized
+from mogs_node.geometry import pixel_to_normalized, road_plane_depth
 
 W, H = 480, 180
 K = np.array([[270.0, 0.0, 240.0], [0.0, 270.0, 60.0], [0.0, 0.0, 1.0]])
@@ -38,10 +38,10 @@ def _scene(height_m: float, pitch_deg: float, box_drop_m: float | None = None):
     """Depth of a flat ground ``height_m`` below the camera, a wall far ahead above the horizon;
     optionally a box top ``box_drop_m`` below the camera over the lower-left quarter."""
     rays, up = _rays(), _up(pitch_deg)
-    ground, _ = plane_depth(rays, up, height_m)
+    ground, _ = road_plane_depth(rays, up, height_m)
     depth = np.where(np.isfinite(ground) & (ground < 60), ground, 80.0).astype(np.float32)
     if box_drop_m is not None:
-        top, _ = plane_depth(rays, up, box_drop_m)
+        top, _ = road_plane_depth(rays, up, box_drop_m)
         box = np.zeros((H, W), bool)
         box[H // 2 :, : W // 4] = True
         box &= np.isfinite(top) & (top < depth)
@@ -115,7 +115,7 @@ def test_the_dense_prior_measures_the_height_when_none_is_given():
     up = np.array([0.0, -1.0, 0.0])
     height = 1.7
     rays = _rays()
-    ground, _ = plane_depth(rays, up, height)
+    ground, _ = road_plane_depth(rays, up, height)
     T_w_k = np.eye(4)
     T_w_r = np.eye(4)
     T_w_r[2, 3] = -1.0  # the reference 1 m behind

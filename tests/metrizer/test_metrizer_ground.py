@@ -9,14 +9,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mogs_node.errors import ConfigError
+from mogs_node.geometry import pixel_grid_xy
+from mogs_node.geometry import road_plane_depth as _plane
 from mogs_node.metrizer.ground import (
     GroundParams,
     fill_ground_contact,
     fill_road_objects,
-    road_plane_depth,
 )
 from mogs_node.metrizer.params import MetrizerParams
 from mogs_node.metrizer.pipeline import metrize_depth
+
+
+def road_plane_depth(K: np.ndarray, hw: tuple[int, int], up: np.ndarray, h: float) -> np.ndarray:
+    """The plane depth ``[H, W]`` the metrizer's road pass uses (geometry's, on the pixel grid)."""
+    return _plane(pixel_grid_xy(K, *hw)[2], up, h)[0]
+
 
 H, W, HEIGHT = 60, 160, 1.5
 K = np.array([[100.0, 0.0, 80.0], [0.0, 100.0, 20.0], [0.0, 0.0, 1.0]])
@@ -46,7 +53,7 @@ def test_road_plane_depth_of_a_level_camera():
 def test_road_plane_points_lie_on_the_plane(tilt, roll, height):
     up = np.array([np.sin(roll), -np.cos(roll) * np.cos(tilt), np.cos(roll) * np.sin(tilt)])
     z = road_plane_depth(K, (H, W), up, height).ravel()
-    x, y = _rays()
+    x, y = (r.ravel().astype(np.float64) for r in pixel_grid_xy(K, H, W)[2])  # the rays it used
     ok = np.isfinite(z)
     assert (z[ok] > 0).all()
     X = np.stack([x[ok] * z[ok], y[ok] * z[ok], z[ok]], 1)

@@ -14,7 +14,7 @@ from test_metrizer_robustness import _absrel, _case, _check_valid
 
 from mogs_node.errors import ConfigError
 from mogs_node.metrizer.alignment import fit_global_affine
-from mogs_node.metrizer.ground import GroundParams, road_plane_depth, snap_road_objects
+from mogs_node.metrizer.ground import GroundParams, snap_road_objects
 from mogs_node.metrizer.mask_split import jump_band, split_masks
 from mogs_node.metrizer.pipeline import MetrizerParams, metrize_depth
 
@@ -79,7 +79,7 @@ UP = np.array([0.0, -1.0, 0.0])
 
 def test_road_snap_sets_agreeing_road_pixels_to_the_plane_only():
     H, W = 24, 64
-    z_road = road_plane_depth(K, (H, W), UP, 1.5).ravel()
+    z_road = tg.road_plane_depth(K, (H, W), UP, 1.5).ravel()
     obj = np.zeros(H * W, np.intp)
     obj[(np.arange(H * W) % W) >= 48] = 1  # object 1: a wall at 6 m, right of column 48
     rng = np.random.default_rng(1)
@@ -194,7 +194,7 @@ def test_metrize_snaps_a_warped_road_prior_to_the_plane():
     """A metric prior of the road with a smooth 10 % warp: with ``road_snap_rel`` the road's
     output is the plane (camera height and pose known), without it the warp stays."""
     H, W, K_ROAD, HEIGHT = tg.H, tg.W, tg.K, tg.HEIGHT
-    z_road = road_plane_depth(K_ROAD, (H, W), tg.UP, HEIGHT)
+    z_road = tg.road_plane_depth(K_ROAD, (H, W), tg.UP, HEIGHT)
     below = np.isfinite(z_road) & (z_road <= 40.0)
     u = np.arange(W)[None, :]
     warp = 1.0 + 0.1 * np.sin(2 * np.pi * u / W)
