@@ -17,8 +17,8 @@ reads their ``summary.json``: the figures a user sees (JSON keys ``live_absrel``
 
 The simulated-LFM rows are also run with the flow prior (frontend poses) beside the LFM as dense
 metric anchors (``MetrizerInputs.anchor_*``, docs/metrizer.md "Dense metric anchors"; JSON
-``anchored``, keyed as ``combos``), with the demo's metrizer parameters and with
-``launch/demo_lfm.yaml``'s (+ ``edge_snap``): the wiring of ``launch/demo_lfm.yaml``.
+``anchored``, keyed as ``combos``), with the demo's metrizer parameters, + ``edge_snap``, and with
+``launch/demo_lfm.yaml``'s (+ ``sky_anchor``, ``road_snap_rel``): its wiring.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -59,7 +60,8 @@ PRIOR_NAME = {
 MASK_NAME = {"graph": "graph masks", "oracle": "oracle masks"}
 ANCHORED_NAME = {
     "lfm_anchored": "simulated LFM + flow prior as dense metric anchors",
-    "lfm_anchored_snap": "the same + edge snap (`launch/demo_lfm.yaml`)",
+    "lfm_anchored_snap": "the same + edge snap",
+    "lfm_launch": "the same + sky anchor + road snap (`launch/demo_lfm.yaml`)",
 }
 REPO = Path(__file__).resolve().parents[1]
 LFM_LAUNCH = "launch/demo_lfm.yaml"
@@ -129,16 +131,19 @@ def markdown(fig: dict, info: dict, command: str) -> str:
 
 def anchored_stages(kfs: list, inputs: dict, params: dict) -> dict:
     """The simulated-LFM combinations with the flow prior (frontend poses) as dense metric anchors,
-    with the demo's metrizer parameters (``lfm_anchored``) and with ``launch/demo_lfm.yaml``'s
-    (``lfm_anchored_snap``: + the edge snap), scored as :func:`evaluate_stages` scores."""
+    with the demo's metrizer parameters (``lfm_anchored``), + the edge snap
+    (``lfm_anchored_snap``) and with ``launch/demo_lfm.yaml``'s (``lfm_launch``: + the sky anchor
+    and the road snap), scored as :func:`evaluate_stages` scores."""
     from mogs_node.eval.depth_prior_eval import metrizer_params
     from mogs_node.metrizer.matching import MatchedKeyframe, metrizer_inputs
     from mogs_node.metrizer.pipeline import metrize
     from mogs_node.report.collect import score_depth
 
+    p_demo, mode = metrizer_params(params)
     variants = {
-        "lfm_anchored": metrizer_params(params),
-        "lfm_anchored_snap": metrizer_params(demo_params(REPO / LFM_LAUNCH)),
+        "lfm_anchored": (p_demo, mode),
+        "lfm_anchored_snap": (replace(p_demo, edge_snap=True), mode),
+        "lfm_launch": metrizer_params(demo_params(REPO / LFM_LAUNCH)),
     }
     out = {}
     for (name, (p, mode)), sp, mk in itertools.product(variants.items(), SPARSE, MASKS):
@@ -187,7 +192,8 @@ def live_markdown(fig: dict) -> list[str]:
         (
             "live_lfm",
             "launch/demo_lfm.yaml",
-            "simulated LFM + flow prior as dense metric anchors + edge snap (evaluation only)",
+            "simulated LFM + flow prior as dense metric anchors + edge snap + sky anchor + road "
+            "snap (evaluation only)",
         ),
     ):
         d = fig.get(f"{key}_depth")

@@ -47,6 +47,7 @@ def fit_global_affine(
     huber: float = 0.05,
     iters: int = 10,
     shift_prior: float = 0.0,
+    zero_at: tuple[float, float] | None = None,
 ) -> tuple[F64, int]:
     """Robust affine ``(a, b)`` with ``a x + b ~ t``, relative residuals.
 
@@ -57,6 +58,10 @@ def fit_global_affine(
     total weight: a weak pull to the pure scale that decides only where the features' spread
     leaves the shift undetermined (a few points at one depth: the shift then sets where the
     far field ends; docs/metrizer.md, "Global affine shift prior").
+
+    ``zero_at = (x0, share)`` adds a pseudo-observation ``(a x0 + b) / median(t) = 0`` with that
+    share of the total weight: the prior value ``x0`` of the sky is at infinity (inverse depth 0;
+    docs/metrizer.md "The sky pins the shift").
 
     ``x`` ``[N]`` prior values at the features, ``t`` ``[N]`` targets (> 0), ``w`` ``[N]`` weights.
     With fewer than two usable rows, or a degenerate / sign-flipping solution, falls back to a pure
@@ -88,6 +93,9 @@ def fit_global_affine(
         # a weak pull of the shift to 0 (the pure scale), relative to the median target: it
         # decides only where the features' spread leaves the shift undetermined
         H[1, 1] += shift_prior * ww.sum() / t_med**2
+        if zero_at is not None:
+            x0, share = zero_at
+            H += share * ww.sum() / t_med**2 * np.array([[x0 * x0, x0], [x0, 1.0]])
         try:
             new = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:

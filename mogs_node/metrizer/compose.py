@@ -33,6 +33,7 @@ from mogs_node.metrizer.ground import (
     GroundParams,
     fill_ground_contact,
     fill_road_objects,
+    snap_road_objects,
 )
 from mogs_node.metrizer.params import MetrizedDepth, MetrizerParams
 
@@ -362,12 +363,17 @@ def _road_passes(fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.flo
         contact_check_rel=p.ground_contact_check_rel,
     )
     h = p.road_camera_height_m
-    if not (p.road_objects or p.ground_contact) or depth.min(initial=1.0) > 0:
+    snap = p.road_snap_rel > 0
+    if not (p.road_objects or p.ground_contact or snap) or (
+        depth.min(initial=1.0) > 0 and not snap
+    ):
         return 0, 0  # nothing to fill (a fully covered frame costs nothing)
     z_road = road_plane_depth(pixel_grid_xy(fr.K, H, W)[2], fr.up_cam, h)[0].ravel()
     n_road = n_contact = 0
+    if snap:  # departure: docs/metrizer.md "The road plane over a learned prior's road"
+        n_road += snap_road_objects(depth, fr.gobj, fr.G, z_road, gp, p.road_snap_rel)
     if p.road_objects:
-        n_road = fill_road_objects(depth, out_conf, fr.gobj, fr.G, z_road, gp)
+        n_road += fill_road_objects(depth, out_conf, fr.gobj, fr.G, z_road, gp)
     if p.ground_contact:
         u, v = np.meshgrid(np.arange(W), np.arange(H))
         x, y = pixel_to_normalized(fr.K, u.ravel(), v.ravel())

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError
 
-__all__ = ["GroundParams", "fill_ground_contact", "fill_road_objects"]
+__all__ = ["GroundParams", "fill_ground_contact", "fill_road_objects", "snap_road_objects"]
 
 F32 = NDArray[np.float32]
 
@@ -80,17 +80,9 @@ def fill_road_objects(
     has_hole = _bincount(obj[hole], G) > 0
     idx = np.flatnonzero(has_hole[obj])  # only objects with empty pixels
     o, d, zr = obj[idx], depth[idx], z_road[idx]
-    below = zr <= 1.5 * p.max_depth_m
-    hasd = (d > 0) & below
-    agree = hasd & (np.abs(d - zr) <= p.agree_rel * zr)
-    na = _bincount(o[agree], G)
-    if not (na >= p.min_pixels).any():
+    good, agree, nd = _road_objects(o, d, zr, G, p, p.agree_rel)
+    if good is None:
         return 0
-    nd = _bincount(o[hasd], G)
-    ns = _bincount(o, G)
-    nb = _bincount(o[below], G)
-    good = (na >= p.min_pixels) & (na >= p.min_agree_share * nd)
-    good &= (na >= p.min_depth_share * ns) & (nb >= p.below_share * ns)
     sel = good[o] & (d <= 0) & (zr <= p.max_depth_m)
     fill = idx[sel]
     if len(fill) == 0:
@@ -99,6 +91,41 @@ def fill_road_objects(
     depth[fill] = zr[sel]
     conf[fill] = c_g[o[sel]].astype(np.float32)
     return len(fill)
+
+
+def _road_objects(
+    o: NDArray[np.intp], d: F32, zr: F32, G: int, p: GroundParams, agree_rel: float
+) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_], NDArray]:
+    """Of pixels (object ``o``, depth ``d``, road-plane depth ``zr``): which objects ``[G]`` are
+    road (None: none), which pixels agree with the plane within ``agree_rel``, and the pixels
+    with a depth below the horizon per object ``[G]`` (the tests of :func:`fill_road_objects`)."""
+    below = zr <= 1.5 * p.max_depth_m
+    hasd = (d > 0) & below
+    agree = hasd & (np.abs(d - zr) <= agree_rel * zr)
+    na = _bincount(o[agree], G)
+    nd = _bincount(o[hasd], G)
+    if not (na >= p.min_pixels).any():
+        return None, agree, nd
+    ns = _bincount(o, G)
+    nb = _bincount(o[below], G)
+    good = (na >= p.min_pixels) & (na >= p.min_agree_share * nd)
+    good &= (na >= p.min_depth_share * ns) & (nb >= p.below_share * ns)
+    return good, agree, nd
+
+
+def snap_road_objects(
+    depth: F32, obj: NDArray[np.intp], G: int, z_road: F32, p: GroundParams, agree_rel: float
+) -> int:
+    """Give the pixels of road objects that agree with the road plane within ``agree_rel`` the
+    plane's depth (flat arrays, in place): the plane is known, a learned prior's road is warped
+    (departure, docs/metrizer.md "The road plane over a learned prior's road"). Road objects as
+    in :func:`fill_road_objects`, with ``agree_rel`` as the agreement. Returns the pixels set."""
+    good, agree, _ = _road_objects(obj, depth, z_road, G, p, agree_rel)
+    if good is None:
+        return 0
+    sel = np.flatnonzero(good[obj] & agree & (z_road <= p.max_depth_m))
+    depth[sel] = z_road[sel]
+    return len(sel)
 
 
 def _ground_basis(up: NDArray) -> tuple[NDArray, NDArray]:

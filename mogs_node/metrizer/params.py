@@ -68,6 +68,8 @@ class MetrizerParams:
     road_objects: bool = True  # road objects' empty pixels get the plane (ground.py)
     road_agree_rel: float = 0.05  # a pixel agrees with the plane within this relative depth
     road_max_depth_m: float = 40.0  # road farther than this gets no depth
+    road_snap_rel: float = 0.0  # > 0 (departure, ground.py): pixels of road objects within this
+    # relative depth of the road plane get the plane's depth (a learned prior's road is warped)
     ground_contact: bool = False  # objects standing on road pixels: a vertical plane through
     # the contact line for their empty pixels, when their confident pixels agree with it
     ground_contact_check_rel: float = 0.1
@@ -106,6 +108,9 @@ class MetrizerParams:
     sky_far_fraction: float = 0.6  # a featureless object is sky when this share of it is far
     global_huber: float = 0.05  # Huber width (relative) of the global affine alignment
     global_shift_prior: float = 0.05  # departure: weak pull of its shift to 0 (pure scale)
+    sky_anchor: float = 0.0  # > 0 (departure, relative inverse-depth priors): the sky's prior
+    # value maps to inverse depth 0, a pseudo-observation with this share of the features' weight
+    # in the global affine (refitted once sky is found; docs/metrizer.md "The sky pins the shift")
     fill_scale: float = 0.5  # resolution factor of the edge-aware fill
     fill_lambda: float = 50.0  # edge-aware fill: smoothing strength (FGS lambda)
     fill_sigma_color: float = 8.0  # edge-aware fill: colour edge scale (FGS sigma)
@@ -125,6 +130,14 @@ class MetrizerParams:
     edge_snap_rel: float = 0.1
     edge_snap_radius: int = 1
     edge_snap_boundary_px: int = 4
+    # departure (issue 16, mask_split.py): each mask is cut along the prior's depth edges
+    # (relative gradient > mask_split_rel per pixel, dilated by mask_split_radius px) into
+    # connected pieces of at least mask_split_min_frac of the image; the band goes back to the
+    # nearest piece of its mask (docs/metrizer.md "Masks split along the prior's depth edges")
+    mask_split: bool = False
+    mask_split_rel: float = 0.1
+    mask_split_radius: int = 1
+    mask_split_min_frac: float = 2e-4
     seed: int = 0  # RANSAC random seed (results are deterministic per input)
     consensus: ConsensusParams = ConsensusParams()  # Algorithm 1 parameters
     cdr: CdrParams = CdrParams()  # eqs. (6)-(11) parameters
@@ -162,6 +175,14 @@ class MetrizerParams:
                 "MetrizerParams: edge_snap_rel > 0, edge_snap_radius >= 0 and "
                 "edge_snap_boundary_px >= 0 required"
             )
+        if not 0 <= self.sky_anchor < float("inf"):
+            raise ConfigError(f"MetrizerParams: finite sky_anchor >= 0, got {self.sky_anchor}")
+        if not 0 <= self.road_snap_rel < 1:
+            raise ConfigError(f"MetrizerParams: road_snap_rel in [0, 1), got {self.road_snap_rel}")
+        if not (self.mask_split_rel > 0 and self.mask_split_radius >= 0):
+            raise ConfigError("MetrizerParams: mask_split_rel > 0 and mask_split_radius >= 0")
+        if not 0 <= self.mask_split_min_frac < 1:
+            raise ConfigError("MetrizerParams: mask_split_min_frac in [0, 1) required")
         if self.n_min < 1 or self.sample_stride < 1 or self.rho_contiguity < 0:
             raise ConfigError("MetrizerParams: n_min >= 1, sample_stride >= 1, rho >= 0 required")
 

@@ -5,12 +5,16 @@ Stages (wall / CPU milliseconds in ``stats["ms"]`` / ``stats["cpu_ms"]``):
 1. ``prepare``: compact labels, unmasked pixels -> connected components (association.py);
    sanitise inputs (non-finite prior -> no prior, features outside ``[d_min, d_max]`` dropped);
    with a metric anchor map (``MetrizerInputs.anchor_*``), its grid samples away from the
-   features join them as lower-weighted points (dense_anchors.py).
+   features join them as lower-weighted points (dense_anchors.py); with ``mask_split`` the masks
+   are cut along the prior's depth jumps (mask_split.py; in every mode, so that the ablations
+   see the same objects).
 2. ``associate``: features -> masks with a border vote.
 3. ``global``: one robust affine alignment of the prior to all features (the anchor of eq. 8 and
    the ``no_msc_cdr`` result).
 4. ``merge``: under-supported masks merge into contiguous neighbours (merging.py), mode ``full``;
-   CDR sample pixels; sky objects = featureless objects whose prior is mostly far.
+   CDR sample pixels; sky objects = featureless objects whose prior is mostly far; with
+   ``sky_anchor`` and a relative inverse-depth prior, the sky's prior value pins the global
+   affine's shift (inverse depth 0) and stages 3-4 are redone once.
 5. ``consensus``: Algorithm 1 for all objects (consensus.py), then groups without a shape join an
    adjacent shape that explains them (absorption), mode ``full``.
 6. ``propagate``: model depth by ray-shape intersection at the CDR sample pixels.
@@ -62,6 +66,7 @@ from mogs_node.metrizer.frame import (
     object_map,
 )
 from mogs_node.metrizer.inputs import MetrizerInputs
+from mogs_node.metrizer.mask_split import jump_band, split_masks
 from mogs_node.metrizer.merging import merge_undersupported
 from mogs_node.metrizer.params import MODES, MetrizedDepth, MetrizerParams
 from mogs_node.metrizer.refinement import CdrProblem, solve_cdr
@@ -111,19 +116,9 @@ def metrize(
     uv, z, w, prior, conf = c.sanitised(p.d_min_m, p.d_max_m)
     n_frontend = len(z)
     if c.anchor_depth_m is not None:  # dense metric anchors as extra points (dense_anchors.py)
-        uv_a, z_a, w_a = anchor_points(
-            c.anchor_depth_m,
-            c.anchor_confidence,
-            uv,
-            stride=p.dense_anchor_stride,
-            min_confidence=p.dense_anchor_min_conf,
-            gap_px=p.dense_anchor_gap * W,
-            weight=p.dense_anchor_weight,
-            depth_range_m=(p.d_min_m, p.d_max_m),
-        )
-        keep = w_a > 0
-        uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
-        w = np.concatenate([w, w_a[keep] + 1e-6])
+        uv, z, w = _with_anchors(p, c, uv, z, w)
+    if p.mask_split:  # departure: docs/metrizer.md "Masks split"
+        labels = _split_labels(p, labels, prior, conf, prior_kind)
     obj2d, n_obj, unmasked = prepare_labels(labels)
     tm.lap("prepare")
 
@@ -148,6 +143,12 @@ def metrize(
     tm.lap("global")
 
     ms = _merge_and_sample(p, mode, obj2d, n_obj, feat_obj, z, prior, conf, ga, prior_kind)
+    x_sky = _sky_value(p, ms, prior, prior_kind, ga)
+    if x_sky is not None:  # departure: docs/metrizer.md "The sky pins the shift"
+        ga = _align_global(p, prior, conf, z, w, fpix, prior_kind, zero_at=(x_sky, p.sky_anchor))
+        conf = ga.conf
+        stats.update(global_affine=[float(ga.theta0[0]), float(ga.theta0[1])], sky_prior=x_sky)
+        ms = _merge_and_sample(p, mode, obj2d, n_obj, feat_obj, z, prior, conf, ga, prior_kind)
     stats.update(n_objects=ms.G, merges=ms.n_merges, n_sky_objects=int(ms.sky.sum()))
     tm.lap("merge")
 
@@ -210,6 +211,38 @@ def metrize(
     return compose(fr, tm, models, theta, global_only=False)
 
 
+def _with_anchors(
+    p: MetrizerParams, c: MetrizerInputs, uv: F64, z: F64, w: F64
+) -> tuple[F64, F64, F64]:
+    """The features plus the metric anchor map's grid samples away from them (dense_anchors.py),
+    as lower-weighted points."""
+    uv_a, z_a, w_a = anchor_points(
+        c.anchor_depth_m,
+        c.anchor_confidence,
+        uv,
+        stride=p.dense_anchor_stride,
+        min_confidence=p.dense_anchor_min_conf,
+        gap_px=p.dense_anchor_gap * c.labels.shape[1],
+        weight=p.dense_anchor_weight,
+        depth_range_m=(p.d_min_m, p.d_max_m),
+    )
+    keep = w_a > 0
+    uv, z = np.concatenate([uv, uv_a[keep]]), np.concatenate([z, z_a[keep]])
+    return uv, z, np.concatenate([w, w_a[keep] + 1e-6])
+
+
+def _split_labels(
+    p: MetrizerParams, labels: NDArray, prior: NDArray, conf: NDArray, prior_kind: str
+) -> NDArray[np.int32]:
+    """The masks cut along the prior's depth jumps (mask_split.py, ``mask_split_*``)."""
+    H, W = labels.shape
+    band = jump_band(
+        prior.reshape(H, W), conf.reshape(H, W), prior_kind, p.mask_split_rel, p.mask_split_radius
+    )
+    reach = 2 * p.mask_split_radius + 4  # the band's width and then some
+    return split_masks(labels, band, round(p.mask_split_min_frac * H * W), reach)
+
+
 def _road_up(p: MetrizerParams, T_world_cam: F64 | None) -> F64 | None:
     """Unit "up" in the camera frame for the road plane (``road_*`` parameters), or None when
     the road plane is off (no camera height) or its "up" needs a pose the inputs lack."""
@@ -242,6 +275,7 @@ def _align_global(
     w: F64,
     fpix: NDArray[np.intp],
     prior_kind: str,
+    zero_at: tuple[float, float] | None = None,
 ) -> _GlobalFit:
     """One robust affine fit of the prior to every feature: the anchor of eq. (8) and the
     ``no_msc_cdr`` result. A relative prior that (almost) no metric point anchors has no metric
@@ -250,7 +284,13 @@ def _align_global(
     fx, fc = prior[fpix].astype(np.float64), conf[fpix].astype(np.float64)
     ft = space_from_depth(z, prior_kind)
     theta0, n_global = fit_global_affine(
-        fx, ft, w * fc, prior_kind, p.global_huber, shift_prior=p.global_shift_prior
+        fx,
+        ft,
+        w * fc,
+        prior_kind,
+        p.global_huber,
+        shift_prior=p.global_shift_prior,
+        zero_at=zero_at,
     )
     unanchored = prior_kind != DepthKind.METRIC and 0 < n_global < p.min_anchor_features
     if prior_kind != DepthKind.METRIC and n_global < p.min_anchor_features:
@@ -263,6 +303,33 @@ def _align_global(
     return _GlobalFit(
         theta0, int(n_global), fx, fc, ft, fd_glob, f_consistent, conf, bool(unanchored)
     )
+
+
+def _sky_value(
+    p: MetrizerParams, ms: _Merged, prior: NDArray, prior_kind: str, ga: _GlobalFit
+) -> float | None:
+    """The prior's value on the sky when it should pin the global shift (``sky_anchor`` > 0, a
+    relative inverse-depth prior, sky found), else None: the lowest median prior of the sky
+    groups with at least 5 sample pixels (a featureless far object counts as sky too; the sky
+    itself is the farthest, its inverse depth the lowest). An affine-invariant inverse-depth
+    model gives the sky its shift: inverse depth 0."""
+    if not (p.sky_anchor > 0 and prior_kind == DepthKind.RELATIVE_INVERSE_DEPTH and ms.sky.any()):
+        return None
+    if ga.n_global < p.min_anchor_features:
+        return None
+    on_sky = ms.sky[ms.gg_grid]
+    g, x = ms.gg_grid[on_sky], prior[ms.grid[on_sky]].astype(np.float64)
+    n_g = np.bincount(g, minlength=ms.G)
+    keep = n_g[g] >= 5
+    if not keep.any():
+        return None
+    g, x = g[keep], x[keep]
+    order = np.lexsort((x, g))
+    g, x = g[order], x[order]
+    start = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    cnt = np.diff(np.r_[start, len(g)])
+    med = 0.5 * (x[start + (cnt - 1) // 2] + x[start + cnt // 2])
+    return float(med.min())
 
 
 @dataclass
