@@ -33,9 +33,11 @@ from mogs_node.frontend.frontend import FrameOutput, KeyframeOutput
 from mogs_node.frontend.ground import (
     GroundParams,
     estimate_ground_translation,
+    road_height_of_points,
     road_normal_from_mount,
 )
 from mogs_node.frontend.keyframes import KeyframeParams, StandstillKeyframes, is_keyframe
+from mogs_node.frontend.point_scale import distance_from_points
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
@@ -69,6 +71,15 @@ class MonocularParams:
     relock_after: int = 5  # this many gated road speeds in a row, all on one side of the median:
     # the speed has changed (the car sped up or braked), not an outlier: they replace the recent
     # ones (without it one early median held the speed for the rest of the drive: issue 18)
+    still_flow_px: float = 0.5  # median track motion since the previous frame below this: parked,
+    # no step (a failed road measurement while parked kept the last speed: 0.56 m/s on KITTI)
+    road_points_min: int = 5  # a keyframe's own road points (at least this many; 0: off) check
+    # the scale: the calibrated camera height over their height below the camera corrects the
+    # road measurement's gain, the recent frames and the keyframe's points (round 12)
+    road_points_window: float = 0.1  # the road: the densest of the points' heights within +-this
+    road_points_max_correction: float = 4.0  # one check corrects by at most this factor
+    scale_points_min: int = 10  # the keyframe's points seen in a frame (at least this many; 0:
+    # off) give its distance from the keyframe (the points' scale carried on), not the road
     road_normal_cam: tuple[float, float, float] | None = None  # road normal (towards the road) in
     # the camera; None: from T_imu_cam (IMU mounted level) or +y (a level rectified camera)
     ground_max_residual: float = 20.0  # the road measurement's residual bound (grey levels):
@@ -92,6 +103,12 @@ class MonocularParams:
             raise ConfigError("camera-only: min_tracks >= 8, 0 < min_inlier_share <= 1")
         if self.relock_after < 2:
             raise ConfigError(f"camera-only: relock_after >= 2, got {self.relock_after}")
+        if self.still_flow_px < 0 or self.road_points_min < 0:
+            raise ConfigError("camera-only: still_flow_px >= 0, road_points_min >= 0")
+        if not 0 < self.road_points_window < 1 or self.road_points_max_correction < 1:
+            raise ConfigError(
+                "camera-only: 0 < road_points_window < 1, road_points_max_correction >= 1"
+            )
 
 
 def road_aligned_start(normal_cam: NDArray, height_m: float) -> NDArray[np.float64]:
@@ -161,6 +178,8 @@ class MonocularFrontend:
         self._speeds: list[float] = []
         self._standstill = StandstillKeyframes(params.keyframes)  # given poses: none while parked
         self._gated_run: list[float] = []  # consecutive gated road speeds, one side of the median
+        self._road_gain = 1.0  # metric step per road-measured step (the road points' checks)
+        self._prev_uv: dict[int, NDArray] = {}  # the previous frame's tracks (standstill test)
         # the previous frame with a pose: (t_ns, grey, R_cam_kf, T_world_cam)
         self._prev: tuple[int, NDArray, NDArray, NDArray] | None = None
         self._prev_R_kf = np.eye(3)
@@ -180,6 +199,10 @@ class MonocularFrontend:
             "ground_failed": 0,
             "ground_gated": 0,
             "ground_relocked": 0,
+            "standstill_frames": 0,
+            "scale_from_points": 0,
+            "road_points_checks": 0,
+            "road_points_unchecked": 0,
         }
 
     @property
@@ -212,6 +235,7 @@ class MonocularFrontend:
         idx = self._frame_index
         self._frame_index += 1
         uv = dict(zip(tr.ids.tolist(), tr.uv_px))
+        flow_px, self._prev_uv = _median_motion(self._prev_uv, uv), uv
         if self.given_poses and T_world_cam is None:
             self.counters["frames_without_pose"] += 1  # no pose of the user's for this frame
             return [self._output(stamp_ns, idx, None, "no_pose")]
@@ -232,7 +256,7 @@ class MonocularFrontend:
             self.counters["poses_given"] += 1
             self._prev_R_kf = T[:3, :3].T @ self.kf.T_world_cam[:3, :3]
         else:
-            T = self._estimate(stamp_ns, gray, uv, parallax, shared)
+            T = self._estimate(stamp_ns, gray, uv, parallax, shared, flow_px)
         if T is None:
             self.counters["frames_without_pose"] += 1
             return [self._output(stamp_ns, idx, None, "initializing")]
@@ -318,10 +342,12 @@ class MonocularFrontend:
         uv: dict[int, NDArray],
         parallax: float,
         shared: list[int],
+        flow_px: float,
     ) -> NDArray | None:
         """``T_world_cam`` of this frame (None: no scale yet): the rotation from the essential
         matrix against the keyframe (or the previous frame's, when there is too little parallax),
-        the step from the previous frame measured on the road along the motion direction."""
+        the step from the previous frame measured on the road along the motion direction (none
+        when the tracks stood still: ``flow_px`` below ``still_flow_px``)."""
         assert self.kf is not None and self._prev is not None
         p = self.params
         rel = self._relative_to_keyframe(uv, parallax, shared)
@@ -336,14 +362,24 @@ class MonocularFrontend:
         R_cur_prev = R_cur_kf @ R_prev_kf.T
         h = p.ground.camera_height_m
         step = None
-        if dt > 0:
+        still = flow_px < p.still_flow_px and self._speed_m_s is not None
+        from_points = None if still else self._distance_from_points(uv, R_cur_kf)
+        if still:
+            self.counters["standstill_frames"] += 1
+            step = 0.0
+        elif from_points is not None:
+            self.counters["scale_from_points"] += 1
+            step = from_points - self._dist_since_kf
+            if dt > 0:
+                self._speed_m_s = max(step, 0.0) / dt
+        elif dt > 0:
             if self._speed_m_s is None:
                 guess, g = (
                     p.first_speed_m_s * dt,
                     replace(p.ground, search_span=p.first_search_span),
                 )
             else:
-                guess, g = max(self._speed_m_s, 0.3) * dt, p.ground
+                guess, g = max(self._speed_m_s, 0.3) * dt / self._road_gain, p.ground
             m = estimate_ground_translation(
                 gray_prev,
                 gray,
@@ -355,8 +391,9 @@ class MonocularFrontend:
                 g,
                 search=True,
             )
-            if m is not None and m.distance_m <= p.max_speed_m_s * dt:
-                step = self._gate(m.distance_m / dt) * dt
+            dist = None if m is None else m.distance_m * self._road_gain
+            if dist is not None and dist <= p.max_speed_m_s * dt:
+                step = self._gate(dist / dt) * dt
         if step is None:
             self.counters["ground_failed"] += 1
             if self._speed_m_s is None:
@@ -403,6 +440,8 @@ class MonocularFrontend:
         self, stamp_ns: int, image: NDArray, gray: NDArray, uv: dict, T: NDArray
     ) -> KeyframeOutput:
         pts = keyframe_points(self.history, self.camera.pinhole, self.params.points)
+        if not self.given_poses and self.params.road_points_min > 0:
+            pts = self._road_points_check(pts, T)
         self.kf = _Keyframe(int(stamp_ns), gray, uv, T, pts)
         self._dir_kf = self._prev_R_kf @ self._dir_kf  # into the new keyframe's camera
         self._prev_R_kf = np.eye(3)
@@ -425,6 +464,48 @@ class MonocularFrontend:
         self._keyframe_id += 1
         return kf
 
+    def _distance_from_points(self, uv: dict[int, NDArray], R_cur_kf: NDArray) -> float | None:
+        """Distance from the keyframe along its motion direction, from its points seen here."""
+        assert self.kf is not None
+        p, pts = self.params, self.kf.points
+        if p.scale_points_min <= 0 or len(pts.ids) < p.scale_points_min:
+            return None
+        seen = [(k, i) for k, i in enumerate(pts.ids.tolist()) if i in uv]
+        if len(seen) < p.scale_points_min:
+            return None
+        K = self.camera.K
+        uv_cur = np.array([uv[i] for _, i in seen], np.float64)
+        xy = (uv_cur - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+        X = pts.xyz_cam_m[[k for k, _ in seen]].astype(np.float64)
+        est = distance_from_points(X, xy, R_cur_kf, self._dir_kf, min_points=p.scale_points_min)
+        return None if est is None or est[0] < 0 else est[0]
+
+    def _road_points_check(self, pts: KeyframePoints, T: NDArray) -> KeyframePoints:
+        """The keyframe's points in the lane below the camera are road: the calibrated height
+        over theirs is the error of the scale they (and the recent poses) were built with. It
+        corrects the road measurement's gain (the road under a vehicle ahead reads low: round
+        12), the recent speeds, the frames kept for the next keyframe's points and these points."""
+        p = self.params
+        est = road_height_of_points(
+            pts.xyz_cam_m,
+            self.normal_cam,
+            window=p.road_points_window,
+            min_points=p.road_points_min,
+        )
+        if est is None:
+            self.counters["road_points_unchecked"] += 1
+            return pts
+        self.counters["road_points_checks"] += 1
+        c = p.road_points_max_correction
+        r = float(np.clip(p.ground.camera_height_m / est[0], 1 / c, c))
+        self._road_gain *= r
+        self._speeds = [v * r for v in self._speeds]
+        self._gated_run = [v * r for v in self._gated_run]
+        if self._speed_m_s is not None:
+            self._speed_m_s *= r
+        self.history.rescale(T[:3, 3], r)
+        return replace(pts, xyz_cam_m=pts.xyz_cam_m * r, cov_cam_m2=pts.cov_cam_m2 * r**2)
+
     def _output(self, stamp_ns: int, idx: int, T: NDArray | None, status: str) -> FrameOutput:
         v = None
         if T is not None:
@@ -435,3 +516,11 @@ class MonocularFrontend:
                 v = np.zeros(3)
             self._last_pose = (int(stamp_ns), T)
         return FrameOutput(int(stamp_ns), idx, status, T, v)
+
+
+def _median_motion(prev: dict[int, NDArray], cur: dict[int, NDArray]) -> float:
+    """Median pixel motion of the tracks seen in both frames (inf: none shared)."""
+    shared = [i for i in cur if i in prev]
+    if not shared:
+        return float("inf")
+    return float(np.median(np.linalg.norm(np.array([cur[i] - prev[i] for i in shared]), axis=1)))
