@@ -31,13 +31,14 @@ def distance_from_points(
     min_points: int = 10,
     huber: float = 2e-3,
     iterations: int = 5,
-) -> tuple[float, int] | None:
+) -> tuple[float, float, int] | None:
     """Distance ``s`` moved along ``dir_kf`` [3] (keyframe camera; normalised here) since the
     keyframe from its points ``xyz_kf`` [N, 3] seen at normalised pixels ``xy_cur`` [N, 2] of the
     current camera (rotation ``R_cur_kf`` [3, 3]); the number of points used. ``huber``: the
     Huber threshold of the algebraic residual (normalised image units, ~1.5 px at f = 721).
     None with fewer than ``min_points`` points in front of both cameras or no constraint along
-    the motion (points on its axis)."""
+    the motion (points on its axis). Returned: ``s``, its 1-sigma (from the robust spread of the
+    residuals) and the number of points."""
     X = check_array("xyz_kf", xyz_kf, shape=(None, 3)).astype(np.float64)
     xy = check_array("xy_cur", xy_cur, shape=(len(X), 2)).astype(np.float64)
     R = check_array("R_cur_kf", R_cur_kf, shape=(3, 3), finite=True).astype(np.float64)
@@ -65,4 +66,5 @@ def distance_from_points(
     for _ in range(iterations):
         w = np.minimum(1.0, huber / np.maximum(np.abs(y - s * A), 1e-12))
         s = float((w * A) @ y / max(float((w * A) @ A), 1e-30))
-    return s, len(a)
+    spread = 1.4826 * float(np.median(np.abs(y - s * A)))
+    return s, spread / np.sqrt(max(float((w * A) @ A), 1e-30)), len(a)
