@@ -64,6 +64,8 @@ class MonocularParams:
     min_tracks: int = 40  # tracks shared with the keyframe to estimate a pose
     ransac_px: float = 1.0  # five-point RANSAC threshold (undistorted px)
     min_inlier_share: float = 0.5  # of the shared tracks, for a pose to be kept
+    max_turn_deg: float = 45.0  # a motion direction this far from the last one is not kept (a
+    # near-stop's essential matrix flipped it on KITTI: a 2 m jump; round 12)
     first_speed_m_s: float = 5.0  # scale search of the first pair: around this speed ...
     first_search_span: float = 8.0  # ... within this factor either way
     max_speed_m_s: float = 60.0  # a road measurement implying more is rejected
@@ -343,7 +345,10 @@ class MonocularFrontend:
         if n_in < p.min_inlier_share * mask.sum() or n_in < p.min_tracks // 2:
             return None
         t = t.reshape(3) / max(float(np.linalg.norm(t)), 1e-12)
-        return R, -R.T @ t  # X_cur = R X_kf + t: the camera moved along -R^T t
+        d = -R.T @ t  # X_cur = R X_kf + t: the camera moved along -R^T t
+        if d @ self._dir_kf < np.cos(np.radians(p.max_turn_deg)):
+            return None  # a car does not turn back: a degenerate essential matrix (round 12)
+        return R, d
 
     def _estimate(
         self,
@@ -417,7 +422,15 @@ class MonocularFrontend:
             self.speed.note(road, pts_step)
             self.speed.remember(max(pts_step, 0.0) / dt)
             return pts_step
-        return None if road is None else self._gate(road / dt) * dt
+        if self.points_mode or road is None:
+            return None  # not measured or not trusted: the recent speed (the caller's fallback)
+        v = self._gate(road / dt)
+        if self.kf is not None and not len(self.kf.points.ids) and self.speed.speed_m_s:
+            # no points to carry the scale yet: the recent median, a smooth chain (per frame
+            # the road jumps by 2x on KITTI) triangulates the first points, whose road check
+            # then corrects its scale
+            v = self.speed.speed_m_s
+        return v * dt
 
     def _road_step(
         self,
