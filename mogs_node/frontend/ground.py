@@ -361,15 +361,14 @@ def road_height_of_points(
     xyz_cam: NDArray,
     normal_cam: NDArray,
     *,
-    max_lateral: float = 2.5,
-    max_ahead: float = 18.0,
+    lane: tuple[float, float] = (2.5, 18.0),
     window: float = 0.1,
     min_points: int = 5,
 ) -> tuple[float, int] | None:
     """Height of the road below the camera from triangulated points [N, 3] (camera frame) in their
     own units, and the number of points it rests on. The points below the camera in the lane
     ahead are selected scale-free (an up-to-scale reconstruction's units are unknown): lateral
-    offset <= ``max_lateral`` x height (4 m at 1.65 m), ahead <= ``max_ahead`` x height (30 m).
+    offset <= ``lane[0]`` x height (4 m at 1.65 m), ahead <= ``lane[1]`` x height (30 m).
     The road is their densest height: the median of the most populated interval of heights
     (along ``normal_cam``, pointing to the road) within ``+-window`` (relative), the higher one on
     a tie. Vehicles' and kerbs' points spread over heights above it; points of a vehicle moving
@@ -378,6 +377,7 @@ def road_height_of_points(
     fewer than ``min_points`` selected points."""
     X = check_array("xyz_cam", xyz_cam, shape=(None, 3)).astype(np.float64)
     n = check_array("normal_cam", normal_cam, shape=(3,), finite=True).astype(np.float64)
+    max_lateral, max_ahead = lane
     if not 0 < window < 1 or min_points < 1 or max_lateral <= 0 or max_ahead <= 0:
         raise ConfigError("road points: 0 < window < 1, min_points >= 1, bounds > 0")
     nn = float(np.linalg.norm(n))

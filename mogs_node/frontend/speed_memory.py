@@ -20,9 +20,7 @@ class SpeedMemory:
     """Recent speeds [m/s], the speed gate, the road's gain and the interval's road/chain sums."""
 
     def __init__(self, gate_rel: float, gate_window: int, relock_after: int) -> None:
-        self.gate_rel = gate_rel
-        self.gate_window = gate_window
-        self.relock_after = relock_after
+        self.gate_rel, self.gate_window, self.relock_after = gate_rel, gate_window, relock_after
         self.speed_m_s: float | None = None  # the current speed (None: none measured yet)
         self.recent: list[float] = []
         self.gated_run: list[float] = []  # consecutive gated road speeds, one side of the median
