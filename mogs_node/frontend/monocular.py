@@ -5,9 +5,13 @@ The pose of a frame relative to the last keyframe comes from the essential matri
 KLT tracks (rotation and translation direction, five-point RANSAC) and the metric length of the
 translation from the road at the calibrated camera height (:func:`~mogs_node.frontend.ground.
 estimate_ground_translation`: the plane homography of the road between the two images; the
-visual-inertial frontend uses the same measurement for its scale). A frame with too little
-parallax for the essential matrix is placed by PnP on the last keyframe's points. With given
-poses (``add_image(..., T_world_cam=...)``) nothing is estimated. Either way the keyframes' sparse
+visual-inertial frontend uses the same measurement for its scale). Each keyframe's own road
+points check that scale (:func:`~mogs_node.frontend.ground.road_height_of_points`); where they
+find the road grossly off (under a vehicle ahead on KITTI: 3x low), the keyframe's points carry
+the scale from then on (:func:`~mogs_node.frontend.point_scale.distance_from_points`) until the
+road agrees again (docs/frontend.md, round 12). A frame whose tracks stand still does not move.
+A frame with too little parallax for the essential matrix keeps the previous rotation and
+direction. With given poses (``add_image(..., T_world_cam=...)``) nothing is estimated. Either way the keyframes' sparse
 points are the dense tracks triangulated over the last frames with those poses (DLT + Gauss-Newton
 and the gates of :func:`~mogs_node.frontend.track_points.keyframe_points`, paper IV-A).
 
