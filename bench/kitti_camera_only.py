@@ -76,10 +76,13 @@ def road_aligned(T_cam0_cams: np.ndarray) -> np.ndarray:
     return A[None] @ np.asarray(T_cam0_cams, np.float64)
 
 
-def run(points: dict, folder: Path, given_poses: bool = False) -> dict:
+def run(
+    points: dict, folder: Path, given_poses: bool = False, drop: frozenset[int] = frozenset()
+) -> dict:
     """Every frame of the excerpt through the camera-only frontend; figures against the LiDAR.
     ``given_poses``: the LiDAR-PnP poses are given to the frontend (as ``player.poses`` would):
-    the points' errors are then the triangulation's, not the estimated poses'."""
+    the points' errors are then the triangulation's, not the estimated poses'. ``drop``: frames
+    left out (as a live run's superseded frames: the launch at ``rate: 1.0`` drops 1-2)."""
     from bridges.sources import camera_info_of
     from mogs_node.datasets.kitti import read_kitti_raw
 
@@ -92,6 +95,8 @@ def run(points: dict, folder: Path, given_poses: bool = False) -> dict:
     period_ns = 100_000_000  # the player's stamps: the excerpt has no timestamps.txt
     cpu, pos, kfs = [], {}, []
     for i, rgb in enumerate(data.rgb):
+        if i in drop:
+            continue
         c0 = time.process_time()
         outs = fe.add_image(i * period_ns, rgb, T_pnp[i] if given_poses else None)
         cpu.append(time.process_time() - c0)
@@ -102,12 +107,11 @@ def run(points: dict, folder: Path, given_poses: bool = False) -> dict:
                 kfs.append(o.keyframe)
     n = len(data.rgb)
     true_step = np.linalg.norm(np.diff(T_pnp[:, :3, 3], axis=0), axis=1)
-    fe_step = np.array(
-        [
-            np.linalg.norm(pos[i + 1] - pos[i]) if i in pos and i + 1 in pos else np.nan
-            for i in range(n - 1)
-        ]
-    )
+    fe_pos = np.array([pos.get(i, np.full(3, np.nan)) for i in range(n)])
+    for i in range(1, n):  # a dropped frame: halfway (the path is what counts)
+        if i not in pos and i - 1 in pos and i + 1 in pos:
+            fe_pos[i] = (pos[i - 1] + pos[i + 1]) / 2
+    fe_step = np.linalg.norm(np.diff(fe_pos, axis=0), axis=1)
     rows, rel_all = [], []
     for k in kfs:
         f = int(k.stamp_ns // period_ns)
@@ -159,6 +163,7 @@ def main() -> None:
             metavar="PATH", help="write the LiDAR-PnP poses (road-aligned, KITTI format) and exit"
         ),
         "--json": dict(metavar="PATH", help="write the figures here"),
+        "--drop": dict(default="", help="frames left out, comma-separated (a live run's)"),
     }
     for flag, kw in options.items():
         ap.add_argument(flag, **kw)
@@ -172,7 +177,8 @@ def main() -> None:
         from bench.frontend import ROUND9
 
         points = {**ROUND9, **points}
-    out = run(points, Path(args.data), args.given_poses)
+    drop = frozenset(int(f) for f in args.drop.split(",") if f.strip())
+    out = run(points, Path(args.data), args.given_poses, drop)
     for r in out["keyframes"]:
         print(json.dumps(r))
     print(

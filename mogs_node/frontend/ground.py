@@ -27,6 +27,7 @@ __all__ = [
     "GroundMeasurement",
     "GroundParams",
     "estimate_ground_translation",
+    "road_height_of_points",
     "road_normal_from_mount",
     "road_scale_of_sfm",
 ]
@@ -354,3 +355,50 @@ def road_scale_of_sfm(
     if np.median(np.abs(np.asarray(ratios) / med - 1)) > params.max_spread:
         return None  # the steps disagree: something else than the road moved in the lane
     return med
+
+
+def road_height_of_points(
+    xyz_cam: NDArray,
+    normal_cam: NDArray,
+    *,
+    lane: tuple[float, float] = (2.5, 18.0),
+    window: float = 0.1,
+    min_points: int = 5,
+) -> tuple[float, int] | None:
+    """Height of the road below the camera from triangulated points [N, 3] (camera frame) in their
+    own units, and the number of points it rests on. The points below the camera in the lane
+    ahead are selected scale-free (an up-to-scale reconstruction's units are unknown): lateral
+    offset <= ``lane[0]`` x height (4 m at 1.65 m), ahead <= ``lane[1]`` x height (30 m).
+    The road is their densest height: the median of the most populated interval of heights
+    (along ``normal_cam``, pointing to the road) within ``+-window`` (relative), the higher one on
+    a tie. Vehicles' and kerbs' points spread over heights above it; points of a vehicle moving
+    ahead triangulate too far, i.e. below it (a high quantile took those: docs/frontend.md,
+    round 12). The calibrated height over this one is the reconstruction's scale. None with
+    fewer than ``min_points`` selected points."""
+    X = check_array("xyz_cam", xyz_cam, shape=(None, 3)).astype(np.float64)
+    n = check_array("normal_cam", normal_cam, shape=(3,), finite=True).astype(np.float64)
+    max_lateral, max_ahead = lane
+    if not 0 < window < 1 or min_points < 1 or max_lateral <= 0 or max_ahead <= 0:
+        raise ConfigError("road points: 0 < window < 1, min_points >= 1, bounds > 0")
+    nn = float(np.linalg.norm(n))
+    if nn < 1e-9:
+        raise ConfigError("road points: normal_cam must be non-zero")
+    n = n / nn
+    fwd = np.array([0.0, 0.0, 1.0]) - n * n[2]  # the view along the road
+    if np.linalg.norm(fwd) < 1e-6:
+        raise ConfigError(
+            "road points: normal along the optical axis: the camera looks at the road"
+        )
+    fwd /= np.linalg.norm(fwd)
+    X = X[np.all(np.isfinite(X), axis=1)]
+    h, ahead, lateral = X @ n, X @ fwd, np.abs(X @ np.cross(n, fwd))
+    keep = (h > 0) & (ahead > 0) & (lateral <= max_lateral * h) & (ahead <= max_ahead * h)
+    if int(keep.sum()) < min_points:
+        return None
+    lh = np.sort(np.log(h[keep]))
+    w = np.log1p(window)
+    lo = np.searchsorted(lh, lh - w, side="left")
+    hi = np.searchsorted(lh, lh + w, side="right")
+    count = hi - lo
+    best = int(np.flatnonzero(count == count.max())[-1])  # the highest of the densest
+    return float(np.exp(np.median(lh[lo[best] : hi[best]]))), int(keep.sum())

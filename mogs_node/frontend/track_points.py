@@ -437,7 +437,14 @@ class TrackHistory:
     def set_pose(self, t_ns: int, T_world_cam: NDArray) -> None:
         """Latest estimate of the camera pose [4, 4] of frame ``t_ns`` (ignored if not kept)."""
         if any(fr[0] == t_ns for fr in self._frames):
-            self._poses[int(t_ns)] = np.asarray(T_world_cam, np.float64)
+            self._poses[int(t_ns)] = np.array(T_world_cam, np.float64)
+
+    def rescale(self, center: NDArray, ratio: float) -> None:
+        """Scale the kept poses' positions about ``center`` [3] by ``ratio`` (a corrected metric
+        scale: the next keyframe's points are triangulated over frames of one scale)."""
+        c = np.asarray(center, np.float64)
+        for T in self._poses.values():
+            T[:3, 3] = c + ratio * (T[:3, 3] - c)
 
     def views(self) -> TrackViews | None:
         """The newest frame's tracks in every kept frame with a pose (None: the newest frame
