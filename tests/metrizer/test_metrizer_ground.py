@@ -149,6 +149,21 @@ def test_ground_params_are_checked():
         MetrizerParams(road_camera_height_m=-1.0)
 
 
+def road_inputs(labels: np.ndarray, prior: np.ndarray, T_world_cam: np.ndarray) -> dict:
+    """Metrizer inputs of a road frame of this module's camera: no feature, a metric prior."""
+    return dict(
+        K=K,
+        labels=labels,
+        feature_uv_px=np.zeros((0, 2)),
+        feature_depth_m=np.zeros(0),
+        feature_weight=np.zeros(0),
+        prior=prior,
+        prior_confidence=(prior > 0).astype(np.float32),
+        prior_kind="metric",
+        T_world_cam=T_world_cam,
+    )
+
+
 def _metrize_road(T_world_cam, height):
     """A frame of road below the horizon with a third of it covered by a metric prior."""
     z_road = road_plane_depth(K, (H, W), UP, HEIGHT)
@@ -159,18 +174,7 @@ def _metrize_road(T_world_cam, height):
     p = MetrizerParams(
         road_camera_height_m=height, d_max_m=1e3, road_max_depth_m=1e3, mask_plane_fill=False
     )
-    return metrize_depth(
-        K=K,
-        labels=labels,
-        feature_uv_px=np.zeros((0, 2)),
-        feature_depth_m=np.zeros(0),
-        feature_weight=np.zeros(0),
-        prior=prior,
-        prior_confidence=(prior > 0).astype(np.float32),
-        prior_kind="metric",
-        T_world_cam=T_world_cam,
-        params=p,
-    ), z_road
+    return metrize_depth(**road_inputs(labels, prior, T_world_cam), params=p), z_road
 
 
 def test_metrize_fills_the_road_with_the_pose_and_height():

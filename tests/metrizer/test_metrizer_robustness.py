@@ -93,6 +93,22 @@ def _check_valid(out, d_max):
     assert np.all((c >= 0) & (c <= 1)) and np.all(c[d == 0] == 0)
 
 
+def _metrize_within_baseline(kw, params, gt, mode="full"):
+    """Metrized and global-affine depth ``(d, b)`` of one case, after the checks every stress
+    test makes: both valid, every baseline pixel covered, AbsRel within 10 % of the baseline's."""
+    out = metrize_depth(**kw, params=params, mode=mode)
+    base = metrize_depth(**kw, params=params, mode="no_msc_cdr")
+    for o in (out, base):
+        _check_valid(o, params.d_max_m)
+    d, b = out.depth_m, base.depth_m
+    shared = (gt > 0) & (b > 0) & (d > 0)
+    # the metrizer covers every pixel the baseline covers (it never drops a prior pixel)
+    assert np.all(d[(gt > 0) & (b > 0)] > 0)
+    if shared.any():
+        assert _absrel(d, gt, shared) <= 1.1 * _absrel(b, gt, shared) + 1e-4
+    return d, b
+
+
 @settings(
     max_examples=30,
     deadline=None,
@@ -112,16 +128,7 @@ def test_never_worse_than_global_affine(
     frame, n_points, coverage, outliers, log_scale, masks, mode, seed
 ):
     kw, params, gt = _case(frame, n_points, coverage, outliers, 10.0**log_scale, masks, seed)
-    out = metrize_depth(**kw, params=params, mode=mode)
-    base = metrize_depth(**kw, params=params, mode="no_msc_cdr")
-    for o in (out, base):
-        _check_valid(o, params.d_max_m)
-    d, b = out.depth_m, base.depth_m
-    shared = (gt > 0) & (b > 0) & (d > 0)
-    # the metrizer covers every pixel the baseline covers (it never drops a prior pixel)
-    assert np.all(d[(gt > 0) & (b > 0)] > 0)
-    if shared.any():
-        assert _absrel(d, gt, shared) <= 1.1 * _absrel(b, gt, shared) + 1e-4
+    d, b = _metrize_within_baseline(kw, params, gt, mode)
     hole = (gt > 0) & (b == 0) & (d > 0)
     if hole.sum() >= 50:  # pixels without prior: only near, confirmed sparse evidence
         assert _absrel(d, gt, hole) <= 0.6

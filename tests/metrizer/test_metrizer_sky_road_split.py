@@ -10,7 +10,7 @@ import pytest
 import test_metrizer_ground as tg
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_metrizer_robustness import _absrel, _case, _check_valid
+from test_metrizer_robustness import _absrel, _case, _check_valid, _metrize_within_baseline
 
 from mogs_node.errors import ConfigError
 from mogs_node.metrizer.alignment import fit_global_affine
@@ -201,17 +201,7 @@ def test_metrize_snaps_a_warped_road_prior_to_the_plane():
     prior = np.where(np.isfinite(z_road), z_road * warp, 0.0).astype(np.float32)
     T = np.eye(4)
     T[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
-    kw = dict(
-        K=K_ROAD,
-        labels=np.where(np.isfinite(z_road), 0, 1).astype(np.int32),
-        feature_uv_px=np.zeros((0, 2)),
-        feature_depth_m=np.zeros(0),
-        feature_weight=np.zeros(0),
-        prior=prior,
-        prior_confidence=(prior > 0).astype(np.float32),
-        prior_kind="metric",
-        T_world_cam=T,
-    )
+    kw = tg.road_inputs(np.where(np.isfinite(z_road), 0, 1).astype(np.int32), prior, T)
     base = dict(road_camera_height_m=HEIGHT, d_max_m=1e3, mask_plane_fill=False)
     on = metrize_depth(**kw, params=MetrizerParams(**base, road_snap_rel=0.25))
     off = metrize_depth(**kw, params=MetrizerParams(**base))
@@ -240,12 +230,4 @@ def test_sky_anchor_and_split_keep_the_bound_of_the_global_affine(
     p = MetrizerParams(
         d_min_m=params.d_min_m, d_max_m=params.d_max_m, sky_anchor=5.0, mask_split=True
     )
-    out = metrize_depth(**kw, params=p)
-    base = metrize_depth(**kw, params=p, mode="no_msc_cdr")
-    for o in (out, base):
-        _check_valid(o, p.d_max_m)
-    d, b = out.depth_m, base.depth_m
-    shared = (gt > 0) & (b > 0) & (d > 0)
-    assert np.all(d[(gt > 0) & (b > 0)] > 0)
-    if shared.any():
-        assert _absrel(d, gt, shared) <= 1.1 * _absrel(b, gt, shared) + 1e-4
+    _metrize_within_baseline(kw, p, gt)
