@@ -101,6 +101,9 @@ class MetrizerParams:
     # many features per Gaussian footprint (pseudo-observation of "no correction")
     absorb_prior_gate: float = 0.15  # featureless groups: model vs globally aligned prior
     absorb_sample_below: int = 5  # groups with fewer features also use sample-pixel evidence
+    shape_prior_check: bool = True  # departure 17 (holdout.py): a shape must also explain its
+    # object's prior samples (calibrated by the object's features): at least consensus.tau of
+    # them within model_output_gate, else it is dropped
     model_output: bool = True  # departure: output the model depth where it agrees (below)
     model_output_gate: float = 0.1  # output the model depth where it is within this relative
     # distance of the calibrated prior (accepted shapes only); else the calibrated prior

@@ -65,6 +65,7 @@ from mogs_node.metrizer.frame import (
     model_depth,
     object_map,
 )
+from mogs_node.metrizer.holdout import shapes_explain_prior
 from mogs_node.metrizer.inputs import MetrizerInputs
 from mogs_node.metrizer.mask_split import jump_band, split_masks
 from mogs_node.metrizer.merging import merge_undersupported
@@ -182,6 +183,7 @@ def metrize(
 
     # ---- shape consensus, Algorithm 1 (III-B), then absorption
     models, Xf, counts = _fit_shapes(fr, uv, w, mode)
+    n_held_out = _held_out_check(fr, ms, ga, models) if mode == "full" else 0
     tm.lap("consensus")
     models, gg_grid, n_absorbed = _absorb(fr, ms, models, Xf, mode)
     kind_g = models.kind
@@ -197,6 +199,7 @@ def metrize(
         },
         rejected=int(counts["tried"] - (kind_g > 0).sum()),
         rejected_degenerate=counts["degenerate"],
+        rejected_held_out=n_held_out,
     )
     tm.lap("absorb")
 
@@ -508,6 +511,29 @@ def _fit_shapes(
         models.zlo[g] = max(zi.min() / p.model_extrapolation, p.d_min_m)
         models.zhi[g] = min(zi.max() * p.model_extrapolation, p.d_max_m)
     return models, Xf, counts
+
+
+def _held_out_check(fr: Frame, ms: _Merged, ga: _GlobalFit, models: ShapeModels) -> int:
+    """Departure 17 (holdout.py): drop, in place, the accepted shapes that their object's prior
+    samples (held out from the fit) do not support. Returns the number dropped."""
+    p = fr.p
+    if not p.shape_prior_check or not (models.kind > 0).any():
+        return 0
+    keep = ~fr.sky[ms.gg_grid]
+    d_grid = depth_from_space(ms.norm_grid[keep], fr.prior_kind, p.d_min_m, p.d_max_m)
+    fok = ga.f_consistent
+    fail = shapes_explain_prior(
+        models,
+        (ms.grid[keep], ms.gg_grid[keep], d_grid, fr.conf[ms.grid[keep]].astype(np.float64)),
+        (ms.feat_g[fok], fr.z[fok], ga.fd_glob[fok]),
+        fr.W,
+        fr.K,
+        tau=p.consensus.tau,
+        gate=p.model_output_gate,
+    )
+    models.kind[fail] = 0
+    models.conf[fail] = 0.0
+    return int(fail.sum())
 
 
 def _refine(
