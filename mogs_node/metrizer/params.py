@@ -110,6 +110,8 @@ class MetrizerParams:
     sky_depth_frac: float = 0.9  # a prior pixel is "far" beyond this fraction of d_max (globally)
     sky_far_fraction: float = 0.6  # a featureless object is sky when this share of it is far
     global_huber: float = 0.05  # Huber width (relative) of the global affine alignment
+    metric_identity_test: bool = True  # departure 18: a metric prior's global affine is kept
+    # only when it explains the features better than the identity (2 parameters corrected for)
     global_shift_prior: float = 0.05  # departure: weak pull of its shift to 0 (pure scale)
     sky_anchor: float = 0.0  # > 0 (departure, relative inverse-depth priors): the sky's prior
     # value maps to inverse depth 0, a pseudo-observation with this share of the features' weight

@@ -45,7 +45,12 @@ from mogs_node.depth_kind import DepthKind
 from mogs_node.geometry import pixel_to_normalized, up_in_camera
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.absorption import absorb_groups
-from mogs_node.metrizer.alignment import depth_from_space, fit_global_affine, space_from_depth
+from mogs_node.metrizer.alignment import (
+    depth_from_space,
+    fit_global_affine,
+    metric_affine_earned,
+    space_from_depth,
+)
 from mogs_node.metrizer.association import (
     associate_features,
     boundary_pairs,
@@ -295,6 +300,13 @@ def _align_global(
         shift_prior=p.global_shift_prior,
         zero_at=zero_at,
     )
+    if (
+        p.metric_identity_test
+        and prior_kind == DepthKind.METRIC
+        and zero_at is None
+        and not metric_affine_earned(fx, ft, w * fc, theta0)
+    ):  # departure 18: a metric prior keeps its scale unless the features show otherwise
+        theta0 = np.array([1.0, 0.0])
     unanchored = prior_kind != DepthKind.METRIC and 0 < n_global < p.min_anchor_features
     if prior_kind != DepthKind.METRIC and n_global < p.min_anchor_features:
         conf = np.zeros_like(conf)
@@ -515,9 +527,11 @@ def _fit_shapes(
 
 def _held_out_check(fr: Frame, ms: _Merged, ga: _GlobalFit, models: ShapeModels) -> int:
     """Departure 17 (holdout.py): drop, in place, the accepted shapes that their object's prior
-    samples (held out from the fit) do not support. Returns the number dropped."""
+    samples (held out from the fit) do not support. Returns the number dropped. Only for a metric
+    prior: a relative prior's depth at a pixel has no metric meaning before the object's own
+    affine (eq. 6), which CDR takes from the shape itself, so it cannot hold the shape out."""
     p = fr.p
-    if not p.shape_prior_check or not (models.kind > 0).any():
+    if not p.shape_prior_check or fr.prior_kind != DepthKind.METRIC or not (models.kind > 0).any():
         return 0
     keep = ~fr.sky[ms.gg_grid]
     d_grid = depth_from_space(ms.norm_grid[keep], fr.prior_kind, p.d_min_m, p.d_max_m)
