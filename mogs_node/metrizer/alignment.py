@@ -130,9 +130,10 @@ def metric_affine_earned(x: F64, t: F64, w: F64, theta: F64) -> bool:
     if n <= 2:
         return False
     x, t, w = x[ok], t[ok], w[ok]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(all="ignore"):
         e_aff = np.abs(np.log((theta[0] * x + theta[1]) / t))
-    if not np.all(np.isfinite(e_aff)):
+        e_id = np.abs(np.log(x / t))
+        l_aff, l_id = w @ e_aff, w @ e_id
+    if not (np.isfinite(l_aff) and np.isfinite(l_id)):
         return False
-    e_id = np.abs(np.log(x / t))
-    return bool((w @ e_aff) * n / (n - 2) < w @ e_id)
+    return bool(l_aff * n / (n - 2) < l_id)
