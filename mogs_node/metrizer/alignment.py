@@ -117,7 +117,7 @@ def fit_global_affine(
 def metric_affine_earned(x: F64, t: F64, w: F64, theta: F64) -> bool:
     """Whether the global affine ``theta`` of a **metric** prior explains the features better
     than the prior as it is (the identity), after correcting for its two fitted parameters
-    (departure 18, docs/metrizer.md "MSC on real images, session 15").
+    (departure 23, docs/metrizer.md "MSC on real images, session 15").
 
     A metric prior (the weight-free flow prior: depth from the system's own metric poses) needs
     no calibration; the identity is its zero-parameter baseline, as the global affine is every

@@ -1,4 +1,4 @@
-"""A shape must also explain its object's prior pixels (departure 17, docs/metrizer.md "MSC on
+"""A shape must also explain its object's prior pixels (departure 22, docs/metrizer.md "MSC on
 real images, session 15").
 
 Algorithm 1 accepts a shape on the features it was fitted to (at least ``tau`` of them inliers).

@@ -305,7 +305,7 @@ def _align_global(
         and prior_kind == DepthKind.METRIC
         and zero_at is None
         and not metric_affine_earned(fx, ft, w * fc, theta0)
-    ):  # departure 18: a metric prior keeps its scale unless the features show otherwise
+    ):  # departure 23: a metric prior keeps its scale unless the features show otherwise
         theta0 = np.array([1.0, 0.0])
     unanchored = prior_kind != DepthKind.METRIC and 0 < n_global < p.min_anchor_features
     if prior_kind != DepthKind.METRIC and n_global < p.min_anchor_features:
@@ -526,7 +526,7 @@ def _fit_shapes(
 
 
 def _held_out_check(fr: Frame, ms: _Merged, ga: _GlobalFit, models: ShapeModels) -> int:
-    """Departure 17 (holdout.py): drop, in place, the accepted shapes that their object's prior
+    """Departure 22 (holdout.py): drop, in place, the accepted shapes that their object's prior
     samples (held out from the fit) do not support. Returns the number dropped. Only for a metric
     prior: a relative prior's depth at a pixel has no metric meaning before the object's own
     affine (eq. 6), which CDR takes from the shape itself, so it cannot hold the shape out."""

@@ -1,4 +1,4 @@
-"""Departures 17 and 18 (session 15): a shape must explain its object's prior pixels, and a metric
+"""Departures 22 and 23 (session 15): a shape must explain its object's prior pixels, and a metric
 prior keeps its scale unless the features show otherwise."""
 
 from __future__ import annotations
@@ -134,11 +134,13 @@ def test_metric_identity_unless_the_features_show_a_scale():
 
 def test_pipeline_keeps_a_right_metric_prior_as_it_is():
     f = _frame(0.0, "metric")
-    out = metrize_depth(**f, params=MetrizerParams(), mode="no_msc_cdr")
+    p = MetrizerParams(metric_identity_test=True)
+    out = metrize_depth(**f, params=p, mode="no_msc_cdr")
     assert out.stats["global_affine"] == [1.0, 0.0]
     np.testing.assert_allclose(out.depth_m, 10.0, rtol=1e-6)
+    assert metrize_depth(**f, mode="no_msc_cdr").stats["global_affine"] != [1.0, 0.0]
     f["feature_depth_m"] = 1.3 * f["feature_depth_m"]
-    out = metrize_depth(**f, params=MetrizerParams(), mode="no_msc_cdr")
+    out = metrize_depth(**f, params=p, mode="no_msc_cdr")
     np.testing.assert_allclose(out.depth_m, 13.0, rtol=0.01)
 
 
