@@ -19,9 +19,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.metrizer.frame import ShapeModels, model_depth
+from mogs_node.depth_kind import DepthKind
+from mogs_node.metrizer.alignment import depth_from_space
+from mogs_node.metrizer.frame import Frame, ShapeModels, model_depth
 
-__all__ = ["group_medians", "shapes_explain_prior"]
+__all__ = ["drop_unsupported_shapes", "group_medians", "shapes_explain_prior"]
 
 F64 = NDArray[np.float64]
 
@@ -85,3 +87,39 @@ def shapes_explain_prior(
     tested = has & (n_hit >= min_samples)
     fail[tested] = w_agree[tested] < tau * w_hit[tested]
     return fail
+
+
+def drop_unsupported_shapes(
+    fr: Frame,
+    models: ShapeModels,
+    grid: tuple[NDArray[np.intp], NDArray[np.intp], F64],
+    features: tuple[NDArray[np.intp], F64, F64],
+) -> int:
+    """Stage 5 of ``fr`` (after Algorithm 1, before absorption): drop, in place, the accepted
+    shapes that their object's prior samples do not support (:func:`shapes_explain_prior`).
+    Returns the number dropped.
+
+    ``grid`` = the CDR sample pixels with a prior, their group and the globally aligned prior
+    there in its normalised space; ``features`` as in :func:`shapes_explain_prior`. Only for a
+    metric prior: a relative prior's depth at a pixel has no metric meaning before the object's
+    own affine (eq. 6), which CDR takes from the shape itself, so it cannot hold the shape out.
+    """
+    p = fr.p
+    if not p.shape_prior_check or fr.prior_kind != DepthKind.METRIC or not (models.kind > 0).any():
+        return 0
+    pix, grp, norm = grid
+    keep = ~fr.sky[grp]
+    d_ref = depth_from_space(norm[keep], fr.prior_kind, p.d_min_m, p.d_max_m)
+    conf = fr.conf[pix[keep]].astype(np.float64)
+    fail = shapes_explain_prior(
+        models,
+        (pix[keep], grp[keep], d_ref, conf),
+        features,
+        fr.W,
+        fr.K,
+        tau=p.consensus.tau,
+        gate=p.model_output_gate,
+    )
+    models.kind[fail] = 0
+    models.conf[fail] = 0.0
+    return int(fail.sum())

@@ -70,7 +70,7 @@ from mogs_node.metrizer.frame import (
     model_depth,
     object_map,
 )
-from mogs_node.metrizer.holdout import shapes_explain_prior
+from mogs_node.metrizer.holdout import drop_unsupported_shapes
 from mogs_node.metrizer.inputs import MetrizerInputs
 from mogs_node.metrizer.mask_split import jump_band, split_masks
 from mogs_node.metrizer.merging import merge_undersupported
@@ -188,7 +188,15 @@ def metrize(
 
     # ---- shape consensus, Algorithm 1 (III-B), then absorption
     models, Xf, counts = _fit_shapes(fr, uv, w, mode)
-    n_held_out = _held_out_check(fr, ms, ga, models) if mode == "full" else 0
+    n_held_out = 0
+    if mode == "full":  # departure 22 (holdout.py): the shape must explain its prior pixels
+        fok = ga.f_consistent
+        n_held_out = drop_unsupported_shapes(
+            fr,
+            models,
+            (ms.grid, ms.gg_grid, ms.norm_grid),
+            (ms.feat_g[fok], fr.z[fok], ga.fd_glob[fok]),
+        )
     tm.lap("consensus")
     models, gg_grid, n_absorbed = _absorb(fr, ms, models, Xf, mode)
     kind_g = models.kind
@@ -523,31 +531,6 @@ def _fit_shapes(
         models.zlo[g] = max(zi.min() / p.model_extrapolation, p.d_min_m)
         models.zhi[g] = min(zi.max() * p.model_extrapolation, p.d_max_m)
     return models, Xf, counts
-
-
-def _held_out_check(fr: Frame, ms: _Merged, ga: _GlobalFit, models: ShapeModels) -> int:
-    """Departure 22 (holdout.py): drop, in place, the accepted shapes that their object's prior
-    samples (held out from the fit) do not support. Returns the number dropped. Only for a metric
-    prior: a relative prior's depth at a pixel has no metric meaning before the object's own
-    affine (eq. 6), which CDR takes from the shape itself, so it cannot hold the shape out."""
-    p = fr.p
-    if not p.shape_prior_check or fr.prior_kind != DepthKind.METRIC or not (models.kind > 0).any():
-        return 0
-    keep = ~fr.sky[ms.gg_grid]
-    d_grid = depth_from_space(ms.norm_grid[keep], fr.prior_kind, p.d_min_m, p.d_max_m)
-    fok = ga.f_consistent
-    fail = shapes_explain_prior(
-        models,
-        (ms.grid[keep], ms.gg_grid[keep], d_grid, fr.conf[ms.grid[keep]].astype(np.float64)),
-        (ms.feat_g[fok], fr.z[fok], ga.fd_glob[fok]),
-        fr.W,
-        fr.K,
-        tau=p.consensus.tau,
-        gate=p.model_output_gate,
-    )
-    models.kind[fail] = 0
-    models.conf[fail] = 0.0
-    return int(fail.sum())
 
 
 def _refine(
