@@ -13,7 +13,13 @@ from numpy.typing import NDArray
 
 from mogs_node.depth_kind import DEPTH_KINDS, DepthKind
 
-__all__ = ["PRIOR_KINDS", "depth_from_space", "fit_global_affine", "space_from_depth"]
+__all__ = [
+    "PRIOR_KINDS",
+    "depth_from_space",
+    "fit_global_affine",
+    "metric_affine_earned",
+    "space_from_depth",
+]
 
 F64 = NDArray[np.float64]
 PRIOR_KINDS = DEPTH_KINDS  # every kind can be a prior (mogs_node.depth_kind.DepthKind)
@@ -106,3 +112,28 @@ def fit_global_affine(
     if not np.all(np.isfinite(theta)) or theta[0] <= 0:
         return scale_only, n
     return theta, n
+
+
+def metric_affine_earned(x: F64, t: F64, w: F64, theta: F64) -> bool:
+    """Whether the global affine ``theta`` of a **metric** prior explains the features better
+    than the prior as it is (the identity), after correcting for its two fitted parameters
+    (departure 23, docs/metrizer.md "MSC on real images, session 15").
+
+    A metric prior (the weight-free flow prior: depth from the system's own metric poses) needs
+    no calibration; the identity is its zero-parameter baseline, as the global affine is every
+    object's (``compose.fallback_to_global``). The affine is kept only when
+    ``L1_aff * n / (n - 2) < L1_id``, ``L1`` the weighted absolute log-depth error at the ``n``
+    features with a prior (``x`` prior depth, ``t`` feature depth, ``w`` weight, all ``[N]``).
+    """
+    ok = np.isfinite(x) & np.isfinite(t) & np.isfinite(w) & (x > 0) & (t > 0) & (w > 0)
+    n = int(ok.sum())
+    if n <= 2:
+        return False
+    x, t, w = x[ok], t[ok], w[ok]
+    with np.errstate(all="ignore"):
+        e_aff = np.abs(np.log((theta[0] * x + theta[1]) / t))
+        e_id = np.abs(np.log(x / t))
+        l_aff, l_id = w @ e_aff, w @ e_id
+    if not (np.isfinite(l_aff) and np.isfinite(l_id)):
+        return False
+    return bool(l_aff * n / (n - 2) < l_id)

@@ -101,12 +101,18 @@ class MetrizerParams:
     # many features per Gaussian footprint (pseudo-observation of "no correction")
     absorb_prior_gate: float = 0.15  # featureless groups: model vs globally aligned prior
     absorb_sample_below: int = 5  # groups with fewer features also use sample-pixel evidence
+    shape_prior_check: bool = True  # departure 22 (holdout.py): a shape must also explain its
+    # object's prior samples (calibrated by the object's features): at least consensus.tau of
+    # them within model_output_gate, else it is dropped
     model_output: bool = True  # departure: output the model depth where it agrees (below)
     model_output_gate: float = 0.1  # output the model depth where it is within this relative
     # distance of the calibrated prior (accepted shapes only); else the calibrated prior
     sky_depth_frac: float = 0.9  # a prior pixel is "far" beyond this fraction of d_max (globally)
     sky_far_fraction: float = 0.6  # a featureless object is sky when this share of it is far
     global_huber: float = 0.05  # Huber width (relative) of the global affine alignment
+    metric_identity_test: bool = False  # departure 23 (off: measured both ways, docs): a metric
+    # prior's global affine is kept only when it explains the features better than the identity
+    # (2 parameters corrected for)
     global_shift_prior: float = 0.05  # departure: weak pull of its shift to 0 (pure scale)
     sky_anchor: float = 0.0  # > 0 (departure, relative inverse-depth priors): the sky's prior
     # value maps to inverse depth 0, a pseudo-observation with this share of the features' weight

@@ -45,7 +45,12 @@ from mogs_node.depth_kind import DepthKind
 from mogs_node.geometry import pixel_to_normalized, up_in_camera
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.absorption import absorb_groups
-from mogs_node.metrizer.alignment import depth_from_space, fit_global_affine, space_from_depth
+from mogs_node.metrizer.alignment import (
+    depth_from_space,
+    fit_global_affine,
+    metric_affine_earned,
+    space_from_depth,
+)
 from mogs_node.metrizer.association import (
     associate_features,
     boundary_pairs,
@@ -65,6 +70,7 @@ from mogs_node.metrizer.frame import (
     model_depth,
     object_map,
 )
+from mogs_node.metrizer.holdout import drop_unsupported_shapes
 from mogs_node.metrizer.inputs import MetrizerInputs
 from mogs_node.metrizer.mask_split import jump_band, split_masks
 from mogs_node.metrizer.merging import merge_undersupported
@@ -182,6 +188,15 @@ def metrize(
 
     # ---- shape consensus, Algorithm 1 (III-B), then absorption
     models, Xf, counts = _fit_shapes(fr, uv, w, mode)
+    n_held_out = 0
+    if mode == "full":  # departure 22 (holdout.py): the shape must explain its prior pixels
+        fok = ga.f_consistent
+        n_held_out = drop_unsupported_shapes(
+            fr,
+            models,
+            (ms.grid, ms.gg_grid, ms.norm_grid),
+            (ms.feat_g[fok], fr.z[fok], ga.fd_glob[fok]),
+        )
     tm.lap("consensus")
     models, gg_grid, n_absorbed = _absorb(fr, ms, models, Xf, mode)
     kind_g = models.kind
@@ -197,6 +212,7 @@ def metrize(
         },
         rejected=int(counts["tried"] - (kind_g > 0).sum()),
         rejected_degenerate=counts["degenerate"],
+        rejected_held_out=n_held_out,
     )
     tm.lap("absorb")
 
@@ -292,6 +308,13 @@ def _align_global(
         shift_prior=p.global_shift_prior,
         zero_at=zero_at,
     )
+    if (
+        p.metric_identity_test
+        and prior_kind == DepthKind.METRIC
+        and zero_at is None
+        and not metric_affine_earned(fx, ft, w * fc, theta0)
+    ):  # departure 23: a metric prior keeps its scale unless the features show otherwise
+        theta0 = np.array([1.0, 0.0])
     unanchored = prior_kind != DepthKind.METRIC and 0 < n_global < p.min_anchor_features
     if prior_kind != DepthKind.METRIC and n_global < p.min_anchor_features:
         conf = np.zeros_like(conf)
