@@ -36,8 +36,7 @@ from mogs_node.frontend.track_points import (
     TrackHistory,
     carry_forward,
     keyframe_points,
-    merge_points,
-    reproject_points,
+    reobserved_points,
 )
 from mogs_node.frontend.tracker import FeatureTracker
 from mogs_node.geometry import check_array, se3_inverse, so3_exp
@@ -547,19 +546,10 @@ class Frontend:
             return pts
         pp = self.params.points
         image = self._history.newest_image()
-        for T_world_prev, prev, image_prev in reversed(self._recent_points):  # newest first
-            if image is None or len(prev) == 0:
-                continue
-            old = reproject_points(
-                prev,
-                se3_inverse(T_world_cam) @ T_world_prev,
-                self.camera.pinhole,
-                image_prev,
-                image,
-                radius_px=pp.patch_radius_px,
-                min_zncc=pp.reproject_min_zncc,
+        if image is not None:
+            pts = reobserved_points(
+                pts, self._recent_points, T_world_cam, self.camera.pinhole, image, pp
             )
-            pts = merge_points(pts, old, min_distance_px=pp.min_distance_px, params=pp)
         if len(pts) < pp.carry_min_points and self._last_points is not None:
             T_world_prev, prev = self._last_points
             T_cur_prev = se3_inverse(T_world_cam) @ T_world_prev
