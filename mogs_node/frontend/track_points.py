@@ -291,7 +291,8 @@ def patch_zncc(
     """Zero-mean normalised cross-correlation [N] of a ``(2r+1)^2`` patch around each point in
     the reference image with the patch around its observation in another view, sampled at
     ``scale`` [N] times the offsets (a fronto-parallel patch at the point's depth: ``z_ref /
-    z_view``). Images are [H, W] grey; pixels [N, 2]. A patch with no texture gives 0."""
+    z_view``). Images are [H, W] grey (float32 ones are sampled without a copy); pixels [N, 2].
+    A patch with no texture gives 0."""
     uv_r = check_array("uv_ref_px", uv_ref_px, shape=(None, 2)).astype(np.float32)
     uv_v = check_array("uv_view_px", uv_view_px, shape=(len(uv_r), 2)).astype(np.float32)
     s = check_array("scale", scale, shape=(len(uv_r),)).astype(np.float32)
@@ -305,7 +306,7 @@ def patch_zncc(
         mx = (uv[:, :1] + k[:, None] * ox).astype(np.float32)
         my = (uv[:, 1:] + k[:, None] * oy).astype(np.float32)
         return cv2.remap(
-            img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            np.asarray(img, np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         ).astype(np.float64)
 
     a = sample(image_ref, uv_r, np.ones_like(s))
@@ -404,12 +405,14 @@ def reobserved_points(
     :func:`reproject_points` then :func:`merge_points` for each keyframe in turn, ~3x the CPU).
 
     A recent point joins when it lands in the image in front of the camera, is no fresh track
-    (its id) and no newer keyframe's point (the newest keyframe's copy of a track wins), lies at
+    (its id) and no newer keyframe's point (only the newest keyframe's copy of a track is
+    tested: one patch test per track, where merging keyframe by keyframe tested every copy), lies at
     least ``params.min_distance_px`` from every fresh point and from every joining point of a
     newer keyframe, its patch still matches (:func:`patch_zncc` against its own keyframe's image,
     at least ``params.reproject_min_zncc``), and no close neighbour in the union contradicts
     its depth (the edge rule of ``params``; fresh points are kept as they are)."""
     T_cam_world = se3_inverse(check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True))
+    image = np.asarray(image, np.float32)  # converted once, not per patch test
     groups = []  # newest keyframe first: (points, T_cur_prev, image, index of kept, pixels, z)
     for T_world_prev, prev, image_prev in reversed(list(recent)):
         if len(prev) == 0:
@@ -418,38 +421,31 @@ def reobserved_points(
         xyz = transform_points(T, prev.xyz_cam_m.astype(np.float64))
         uv, front = camera.project(xyz)
         idx = np.flatnonzero(front & camera.in_image(uv) & ~np.isin(prev.ids, fresh.ids))
-        groups.append((prev, T, image_prev, idx, uv[idx], xyz[idx]))
+        groups.append((prev, T, np.asarray(image_prev, np.float32), idx, uv[idx], xyz[idx]))
     if not groups:
         return fresh
     ids = np.concatenate([g[0].ids[g[3]] for g in groups])
     uv = np.concatenate([g[4] for g in groups])
-    group = np.concatenate([np.full(len(g[3]), k) for k, g in enumerate(groups)])
     offset = np.cumsum([0] + [len(g[3]) for g in groups])
-    untested = np.ones(len(ids), bool)
-    if len(fresh) and len(ids):
-        d, _ = cKDTree(fresh.uv_px).query(uv, k=1)
-        untested = d >= params.min_distance_px
+    # the newest copy of each track (a track occluded there is taken as occluded), away from
+    # the fresh points
     ok = np.zeros(len(ids), bool)
-    while True:  # the newest untested copy of each track not yet joined (<= len(recent) rounds)
-        pool = np.flatnonzero(untested & ~np.isin(ids, ids[ok]))
-        if len(pool) == 0:
-            break
-        sel = pool[np.unique(ids[pool], return_index=True)[1]]
-        untested[sel] = False
-        for k in np.unique(group[sel]).tolist():  # one patch test per keyframe image
-            prev, _, image_prev, idx, g_uv, g_xyz = groups[k]
-            s_k = sel[group[sel] == k]
-            loc = s_k - offset[k]
-            z_prev = np.maximum(prev.xyz_cam_m[idx[loc], 2].astype(np.float64), 1e-9)
-            zncc = patch_zncc(
-                image,
-                g_uv[loc],
-                image_prev,
-                prev.uv_px[idx[loc]],
-                g_xyz[loc, 2] / z_prev,
-                params.patch_radius_px,
-            )
-            ok[s_k] = zncc >= params.reproject_min_zncc
+    ok[np.unique(ids, return_index=True)[1]] = True
+    if len(fresh) and ok.any():
+        d, _ = cKDTree(fresh.uv_px).query(uv[ok], k=1)
+        ok[np.flatnonzero(ok)] = d >= params.min_distance_px
+    for k, (prev, _, image_prev, idx, g_uv, g_xyz) in enumerate(groups):  # per keyframe image
+        loc = np.flatnonzero(ok[offset[k] : offset[k + 1]])
+        z_prev = np.maximum(prev.xyz_cam_m[idx[loc], 2].astype(np.float64), 1e-9)
+        zncc = patch_zncc(
+            image,
+            g_uv[loc],
+            image_prev,
+            prev.uv_px[idx[loc]],
+            g_xyz[loc, 2] / z_prev,
+            params.patch_radius_px,
+        )
+        ok[offset[k] + loc] = zncc >= params.reproject_min_zncc
     # a joining point close to one of a newer keyframe's (earlier in the order) gives way
     cand = np.flatnonzero(ok)
     if len(cand) > 1:
@@ -604,6 +600,7 @@ def _patch_scores(
     img_ref = views.images[-1]
     if img_ref is None:
         return score
+    img_ref = np.asarray(img_ref, np.float32)  # converted once, not per view
     oldest = np.argmax(np.isfinite(uv[..., 0]), axis=1)  # first view that saw each point
     T_cam_ref = se3_inverse(T_ref_cams)
     for f in np.unique(oldest).tolist():  # over <= history_frames views
