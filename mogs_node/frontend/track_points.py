@@ -84,7 +84,6 @@ class TrackPointsParams:
     top_up_every: int = 2  # new corners every this many frames (2: ~40 % less tracker time,
     # ~7 % fewer points on the demo drive, whose tracks die in bursts; round 9)
     ransac_thresh_px: float = 1.0  # F-RANSAC threshold of the dense tracker (undistorted px)
-    predict_flow: bool = False  # KLT guess from each track's last image motion (round 13)
     bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
     bucket_rows: int = 5
     history_frames: int = 10  # frames of observations (and poses) a track is triangulated from
@@ -166,7 +165,6 @@ class TrackPointsParams:
             klt_max_iter=self.klt_max_iter,
             top_up_every=self.top_up_every,
             ransac_thresh_px=self.ransac_thresh_px,
-            predict_flow=self.predict_flow,
             square_spacing=True,
             bucket_cols=self.bucket_cols,
             bucket_rows=self.bucket_rows,

@@ -47,9 +47,6 @@ class TrackerParams:
     bucket_cols: int = 0  # bucketing grid for new corners (0: none): a cell takes new corners
     bucket_rows: int = 0  # only while it holds fewer than bucket_cap tracks, so that corners
     bucket_cap: int = 0  # spread over the image instead of piling up on the strongest texture
-    predict_flow: bool = False  # KLT guess: each track's last image motion repeated (constant
-    # image velocity; new tracks: the rotation prediction); near, fast-moving texture is lost
-    # less (docs/frontend.md, round 13)
 
     def __post_init__(self) -> None:
         if self.max_features < 8:
@@ -93,7 +90,6 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2), np.float32)
         self._len = np.zeros(0, np.int32)
-        self._vel = np.zeros((0, 2), np.float32)  # each track's last image motion [px]
         self._next_id = 0
         self._frames = 0
         w = params.win_size_px
@@ -109,7 +105,6 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2), np.float32)
         self._len = np.zeros(0, np.int32)
-        self._vel = np.zeros((0, 2), np.float32)
 
     def _prepare(self, image: NDArray) -> NDArray[np.uint8]:
         img = check_array("image", image, dtype=np.uint8)
@@ -151,11 +146,7 @@ class FeatureTracker:
         stats: dict[str, float] = {}
         if self._prev_img is not None and n_prev > 0:
             p0 = self._uv.reshape(-1, 1, 2)
-            guess = self.predict_px(self._uv, R_cur_prev_cam)
-            if p.predict_flow:
-                moving = self._len > 1  # tracks with a last motion
-                guess[moving] = self._uv[moving] + self._vel[moving]
-            guess = guess.reshape(-1, 1, 2)
+            guess = self.predict_px(self._uv, R_cur_prev_cam).reshape(-1, 1, 2)
             p1, st1, _ = cv2.calcOpticalFlowPyrLK(
                 self._prev_img,
                 img,
@@ -194,13 +185,11 @@ class FeatureTracker:
                         keep[idx[inl.ravel() == 0]] = False
                         stats["ransac_rejected"] = float(np.count_nonzero(inl.ravel() == 0))
             ids, uv, tl = self._ids[keep], p1[keep].astype(np.float32), self._len[keep] + 1
-            vel = uv - self._uv[keep]
         else:
             ids, uv, tl = np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.int32)
-            vel = np.zeros((0, 2), np.float32)
         n_tracked = len(ids)
-        ids, uv, tl, vel = self._top_up(img, ids, uv, tl, vel)
-        self._prev_img, self._ids, self._uv, self._len, self._vel = img, ids, uv, tl, vel
+        ids, uv, tl = self._top_up(img, ids, uv, tl)
+        self._prev_img, self._ids, self._uv, self._len = img, ids, uv, tl
         return TrackResult(
             ids=ids.copy(),
             uv_raw_px=uv.copy(),
@@ -212,20 +201,20 @@ class FeatureTracker:
         )
 
     def _top_up(
-        self, img: NDArray[np.uint8], ids: NDArray, uv: NDArray, tl: NDArray, vel: NDArray
-    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        self, img: NDArray[np.uint8], ids: NDArray, uv: NDArray, tl: NDArray
+    ) -> tuple[NDArray, NDArray, NDArray]:
         p = self.params
         H, W = img.shape
         d = p.min_distance_px
         # Enforce the minimum distance among tracked features, longest tracks first (VINS-Mono).
         if len(ids):
             order = np.argsort(-tl, kind="stable")
-            ids, uv, tl, vel = ids[order], uv[order], tl[order], vel[order]
+            ids, uv, tl = ids[order], uv[order], tl[order]
             cell = np.floor(uv / (0.5 * d)).astype(np.int64)
             key = cell[:, 0] * 100003 + cell[:, 1]
             _, first = np.unique(key, return_index=True)
             sel = np.sort(first)
-            ids, uv, tl, vel = ids[sel], uv[sel], tl[sel], vel[sel]
+            ids, uv, tl = ids[sel], uv[sel], tl[sel]
         need = p.max_features - len(ids)
         self._frames += 1
         if (
@@ -233,7 +222,7 @@ class FeatureTracker:
             or len(ids) >= p.top_up_below * p.max_features
             or (self._frames - 1) % p.top_up_every
         ):
-            return ids, uv, tl, vel
+            return ids, uv, tl
         mask = np.full((H, W), 255, np.uint8)
         xy = np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1])
         if p.square_spacing:
@@ -256,7 +245,7 @@ class FeatureTracker:
             blockSize=3,
         )
         if pts is None:
-            return ids, uv, tl, vel
+            return ids, uv, tl
         pts = pts.reshape(-1, 2).astype(np.float32)
         if bucketed:
             pts = self._bucket(pts, uv, (H, W))[:need]
@@ -266,7 +255,6 @@ class FeatureTracker:
             np.concatenate([ids, new_ids]),
             np.concatenate([uv, pts]),
             np.concatenate([tl, np.ones(len(pts), np.int32)]),
-            np.concatenate([vel, np.zeros((len(pts), 2), np.float32)]),
         )
 
     def _bucket(

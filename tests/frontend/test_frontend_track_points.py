@@ -24,8 +24,10 @@ from mogs_node.frontend.track_points import (
     merge_points,
     patch_zncc,
     refine_points,
+    reobserved_points,
     reproject_points,
     triangulate_dlt,
+    triangulate_on_ray,
     unsupported_depth_flags,
 )
 from mogs_node.frontend.tracker import FeatureTracker
@@ -377,3 +379,105 @@ def test_dense_tracker_options_are_validated_and_track_without_the_backward_pass
     assert second.ids.max() <= first.ids.max()
     third = tr.track(seq.render(2).rgb)
     assert third.ids.max() > first.ids.max()
+
+
+def test_linear_triangulation_along_the_keyframe_ray_matches_the_dlt():
+    """Round 13: the start of the refinement from the keyframe's ray (one unknown, closed form)
+    gives the DLT's exact points on exact tracks, and after the Gauss-Newton refinement the same
+    gated points on noisy ones."""
+    rng = np.random.default_rng(21)
+    X = _scene(300, rng, (4.0, 40.0))
+    T = _poses(7, rng=rng)
+    uv = _project(X, T)
+    np.testing.assert_allclose(triangulate_on_ray(uv, T, CAM), X, rtol=1e-7)
+    noisy = uv + rng.normal(0, 0.3, uv.shape)
+    params = RefineParams(iterations=1, pixel_sigma_px=0.5)
+    a = refine_points(noisy, T, CAM, triangulate_dlt(noisy, T, CAM), params)
+    b = refine_points(noisy, T, CAM, triangulate_on_ray(noisy, T, CAM), params)
+    keep_a, _ = gate_points(a, TrackPointsParams())
+    keep_b, _ = gate_points(b, TrackPointsParams())
+    assert keep_a.sum() > 150 and (keep_a != keep_b).sum() <= 2
+    both = keep_a & keep_b
+    np.testing.assert_allclose(b.xyz_ref_m[both], a.xyz_ref_m[both], rtol=2e-3)
+    # no keyframe observation, or no other view: NaN; a point behind the cameras: NaN
+    no_ref, alone = uv[:3].copy(), uv[3:6].copy()
+    no_ref[:, -1] = np.nan
+    alone[:, :-1] = np.nan
+    behind = uv[6:9].copy()
+    behind[:, :-1] = 2 * behind[:, -1:] - behind[:, :-1]  # the flow reversed: X behind
+    out = triangulate_on_ray(np.concatenate([no_ref, alone, behind]), T, CAM)
+    assert np.all(np.isnan(out))
+    with pytest.raises(ValueError, match="identity"):
+        triangulate_on_ray(uv, T[::-1], CAM)  # the last view is not the reference camera
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    depth_m=st.floats(1e-2, 1e3),
+    step_m=st.floats(0.0, 5.0),
+    nan_share=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**16),
+)
+def test_linear_triangulation_along_the_ray_is_finite_in_front_or_nan(
+    depth_m, step_m, nan_share, seed
+):
+    rng = np.random.default_rng(seed)
+    uv_kf = np.stack([rng.uniform(0, 621, 30), rng.uniform(0, 188, 30)], 1)
+    X = CAM.backproject(uv_kf, np.full(30, depth_m) * rng.uniform(0.5, 2.0, 30))
+    T = _poses(5, step_m=step_m, rng=rng)
+    uv = _project(X, T)
+    uv[rng.random(uv.shape[:2]) < nan_share] = np.nan
+    out = triangulate_on_ray(uv, T, CAM)
+    finite = np.all(np.isfinite(out), axis=1)
+    assert np.all(np.isnan(out[~finite]))
+    assert np.all(out[finite, 2] > 0)
+    if step_m == 0.0:
+        assert not finite.any()  # no baseline: no point
+
+
+@settings(max_examples=60, deadline=None)
+@given(scale=st.floats(1e-6, 1e6), seed=st.integers(0, 2**16))
+def test_inverse_of_3x3_stacks_matches_lapack(scale, seed):
+    from mogs_node.frontend.triangulation import _inv3
+
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(50, 3, 3))
+    A = scale * (A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3))  # well-conditioned, any scale
+    np.testing.assert_allclose(_inv3(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-6)
+    singular = np.zeros((1, 3, 3))
+    assert not np.all(np.isfinite(_inv3(singular)))
+
+
+def test_reobserved_points_in_one_pass_match_merging_keyframe_by_keyframe():
+    """Round 13: two recent keyframes' points joining the fresh ones in one pass give what
+    reproject_points + merge_points per keyframe give (newest first), where every track has
+    one copy; a track in both keyframes joins with the newest keyframe's copy."""
+    rng = np.random.default_rng(31)
+    img = rng.integers(0, 255, (188, 621)).astype(np.uint8)
+    p = TrackPointsParams(min_distance_px=4, reproject_min_zncc=0.9)
+    u, v = np.meshgrid(np.arange(20.0, 600, 10), np.arange(20.0, 170, 10))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    n = len(uv)
+    z = np.where(uv[:, 0] < 300, 12.0, 30.0)  # two walls: a depth edge at u = 300
+    fresh = _points(uv[::3], z[::3], np.arange(0, n, 3))
+    older = _points(uv[1::3], z[1::3], np.arange(1, n, 3))
+    newer = _points(uv[2::3], z[2::3], np.arange(2, n, 3))
+    T = np.eye(4)  # the camera did not move: every patch matches
+    recent = [(T, older, img), (T, newer, img)]
+    one = reobserved_points(fresh, recent, T, CAM, img, p)
+    seq = fresh
+    for T_prev, prev, image_prev in reversed(recent):
+        old = reproject_points(prev, T_prev, CAM, image_prev, img, radius_px=3, min_zncc=0.9)
+        seq = merge_points(seq, old, min_distance_px=p.min_distance_px, params=p)
+    assert len(one) > len(fresh)
+    np.testing.assert_array_equal(np.sort(one.ids), np.sort(seq.ids))
+    np.testing.assert_array_equal(one.ids[: len(fresh)], fresh.ids)
+    # the same track in both keyframes, 8 px apart: the newer keyframe's copy joins
+    dup_new = _points(np.array([[400.0, 100.0]]), np.array([30.0]), np.array([999]))
+    dup_old = _points(np.array([[408.0, 100.0]]), np.array([30.0]), np.array([999]))
+    out = reobserved_points(
+        KeyframePoints.empty(), [(T, dup_old, img), (T, dup_new, img)], T, CAM, img, p
+    )
+    np.testing.assert_array_equal(out.ids, [999])
+    np.testing.assert_allclose(out.uv_px, [[400.0, 100.0]])
+    assert reobserved_points(fresh, [], T, CAM, img, p) is fresh
