@@ -35,6 +35,7 @@ from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
     carry_forward,
+    epipole_cell_caps,
     keyframe_points,
     reobserved_points,
 )
@@ -220,7 +221,7 @@ class Frontend:
         self._update_platform(prev_t=self._last_frame_ns, t_ns=t_ns)
         t1 = time.perf_counter()
         if self.point_tracker is not None:
-            dense = self.point_tracker.track(image, R_pred)
+            dense = self.point_tracker.track(image, R_pred, self._dense_cell_caps())
             self._history.add(t_ns, dense.ids, dense.uv_px, self._undistorted_gray(image))
         points_s = time.perf_counter() - t1  # dense tracks and the keyframe's points
         self.counters["frames"] += 1
@@ -519,6 +520,16 @@ class Frontend:
                 f.t_ns * 1e-9,
                 float(np.linalg.norm(est.state().velocity_world_m_s)),
             )
+
+    def _dense_cell_caps(self) -> NDArray | None:
+        """The dense tracker's per-cell caps around the focus of expansion (the latest velocity
+        in the camera frame; :func:`epipole_cell_caps`); None before the initialisation."""
+        if self.params.points.epipole_radius_deg <= 0 or not self.initialized:
+            return None
+        st = self.estimator.state()
+        R_world_cam = st.T_world_imu[:3, :3] @ self.T_imu_cam[:3, :3]
+        v_cam = R_world_cam.T @ st.velocity_world_m_s
+        return epipole_cell_caps(self.camera.pinhole, v_cam, self.params.points)
 
     def _undistorted_gray(self, image: NDArray) -> NDArray[np.uint8]:
         """Grey image in the undistorted pinhole camera (the dense tracks' photometric check)."""

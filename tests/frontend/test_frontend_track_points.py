@@ -19,6 +19,7 @@ from mogs_node.frontend.track_points import (
     TrackPointsParams,
     carry_forward,
     depth_edge_flags,
+    epipole_cell_caps,
     gate_points,
     keyframe_points,
     merge_points,
@@ -481,3 +482,52 @@ def test_reobserved_points_in_one_pass_match_merging_keyframe_by_keyframe():
     np.testing.assert_array_equal(out.ids, [999])
     np.testing.assert_allclose(out.uv_px, [[400.0, 100.0]])
     assert reobserved_points(fresh, [], T, CAM, img, p) is fresh
+
+
+def test_epipole_cell_caps_thin_the_focus_of_expansion_only_when_driving_forward():
+    p = TrackPointsParams(max_tracks=1600, epipole_radius_deg=10.0, epipole_cap_share=0.25)
+    cap = p.bucket_cap()
+    caps = epipole_cell_caps(CAM, np.array([0.0, 0.0, 10.0]), p)
+    assert caps.shape == (p.bucket_rows, p.bucket_cols)
+    low = caps < cap
+    # straight ahead: the cells around the principal point (304, 86) and no others
+    rows, cols = np.nonzero(low)
+    assert set(cols.tolist()) <= {6, 7, 8, 9} and set(rows.tolist()) <= {1, 2, 3}
+    assert low[2, 7] and low[2, 8] and np.all(caps[low] == int(np.ceil(0.25 * cap)))
+    # turning right: the thinned cells move right; any speed gives the same caps
+    turned = epipole_cell_caps(CAM, np.array([np.tan(np.radians(20.0)), 0.0, 1.0]), p)
+    assert np.nonzero(turned < cap)[1].min() > cols.max()
+    np.testing.assert_array_equal(epipole_cell_caps(CAM, np.array([0.0, 0.0, 0.01]), p), caps)
+    # standing, reversing, sideways, NaN, or switched off: no caps
+    for v in ([0.0, 0.0, 0.0], [0.0, 0.0, -5.0], [5.0, 0.0, 1.0], [np.nan, 0.0, 1.0]):
+        assert epipole_cell_caps(CAM, np.array(v), p) is None
+    off = dataclasses.replace(p, epipole_radius_deg=0.0)
+    assert epipole_cell_caps(CAM, np.array([0.0, 0.0, 10.0]), off) is None
+    with pytest.raises(ConfigError):
+        TrackPointsParams(epipole_cap_share=1.5)
+
+
+def test_tracker_cell_caps_prune_to_the_longest_tracks_and_limit_new_corners():
+    from mogs_node.sim import SimConfig, make_sequence
+
+    seq = make_sequence(SimConfig(seed=0, n_frames=3, width=621, height=188))
+    p = TrackPointsParams(max_tracks=1600, min_distance_px=3)
+    tp = p.tracker()
+    caps = np.full((tp.bucket_rows, tp.bucket_cols), tp.bucket_cap)
+    caps[:, :8] = 3  # the left half: at most 3 tracks per cell
+    tr = FeatureTracker(tp, CameraModel(seq.camera))
+    first = tr.track(seq.render(0).rgb)
+    second = tr.track(seq.render(1).rgb, None, caps)
+
+    def cells(res):
+        cx = np.minimum((res.uv_raw_px[:, 0] * tp.bucket_cols / 621).astype(int), 15)
+        cy = np.minimum((res.uv_raw_px[:, 1] * tp.bucket_rows / 188).astype(int), 4)
+        return np.bincount(cy * tp.bucket_cols + cx, minlength=80).reshape(5, 16)
+
+    assert cells(first)[:, :8].max() > 3
+    assert cells(second)[:, :8].max() <= 3 and cells(second)[:, 8:].max() > 3
+    # the tracks kept in a capped cell are old ones (longest first), not new corners
+    left = second.uv_raw_px[:, 0] < 8 * 621 / 16
+    assert np.all(second.track_len[left] == 2)
+    with pytest.raises(ShapeError, match="cell_caps"):
+        tr.track(seq.render(2).rgb, None, caps[:, :4])
