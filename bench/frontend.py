@@ -432,9 +432,9 @@ def points_only(
     if args.write_points_docs and new is not None:
         note = (
             f"Sparse points block: `{bench_command(argv)}` ({machine_line()}), 1-min load "
-            f"average {figures['load_average_1min']:.1f} (times inflated; the ratios with / "
-            "without points are from one run); the speed tables above it are from their own "
-            "run."
+            f"average {figures['load_average_1min']:.1f} (times inflated; each CPU figure is the "
+            "least of interleaved runs, the ratios with / without points from the same rounds); "
+            "the speed tables above it are from their own run."
         )
         update_markdown_section(
             "frontend", new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1)
