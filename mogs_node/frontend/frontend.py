@@ -29,15 +29,14 @@ from mogs_node.frontend.keyframes import (
 )
 from mogs_node.frontend.platform import PlatformChooser, motion_violation
 from mogs_node.frontend.preintegration import ImuBuffer, ImuSamples, make_params
+from mogs_node.frontend.reobserve import carry_forward, reobserved_points
 from mogs_node.frontend.road_distance import RoadDistance
 from mogs_node.frontend.time_offset import TimeOffsetEstimator, gyro_variation
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
-    carry_forward,
     epipole_cell_caps,
     keyframe_points,
-    reobserved_points,
 )
 from mogs_node.frontend.tracker import FeatureTracker
 from mogs_node.geometry import check_array, se3_inverse, so3_exp

@@ -13,20 +13,22 @@ from hypothesis import strategies as st
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.reobserve import (
+    carry_forward,
+    merge_points,
+    reobserved_points,
+    reproject_points,
+)
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
     TrackPointsParams,
-    carry_forward,
     depth_edge_flags,
     epipole_cell_caps,
     gate_points,
     keyframe_points,
-    merge_points,
     patch_zncc,
     refine_points,
-    reobserved_points,
-    reproject_points,
     triangulate_dlt,
     triangulate_on_ray,
     unsupported_depth_flags,
