@@ -84,7 +84,8 @@ class TrackPointsParams:
     bucket_rows: int = 5
     epipole_radius_deg: float = 0.0  # cells whose centre ray is within this angle of the
     # direction of motion (the focus of expansion) hold at most epipole_cap_share of the cap:
-    # tracks there rarely get the parallax for a point (round 13; 0: off)
+    # tracks there rarely get the parallax for a point (round 13; 0: off; the visual-inertial
+    # frontend only: the camera-only one's poses come from these tracks)
     epipole_cap_share: float = 0.25
     history_frames: int = 10  # frames of observations (and poses) a track is triangulated from
     min_views: int = 3  # observations needed (the keyframe's included)
