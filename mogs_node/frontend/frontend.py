@@ -29,15 +29,14 @@ from mogs_node.frontend.keyframes import (
 )
 from mogs_node.frontend.platform import PlatformChooser, motion_violation
 from mogs_node.frontend.preintegration import ImuBuffer, ImuSamples, make_params
+from mogs_node.frontend.reobserve import carry_forward, reobserved_points
 from mogs_node.frontend.road_distance import RoadDistance
 from mogs_node.frontend.time_offset import TimeOffsetEstimator, gyro_variation
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
-    carry_forward,
+    epipole_cell_caps,
     keyframe_points,
-    merge_points,
-    reproject_points,
 )
 from mogs_node.frontend.tracker import FeatureTracker
 from mogs_node.geometry import check_array, se3_inverse, so3_exp
@@ -221,7 +220,7 @@ class Frontend:
         self._update_platform(prev_t=self._last_frame_ns, t_ns=t_ns)
         t1 = time.perf_counter()
         if self.point_tracker is not None:
-            dense = self.point_tracker.track(image, R_pred)
+            dense = self.point_tracker.track(image, R_pred, self._dense_cell_caps())
             self._history.add(t_ns, dense.ids, dense.uv_px, self._undistorted_gray(image))
         points_s = time.perf_counter() - t1  # dense tracks and the keyframe's points
         self.counters["frames"] += 1
@@ -521,6 +520,16 @@ class Frontend:
                 float(np.linalg.norm(est.state().velocity_world_m_s)),
             )
 
+    def _dense_cell_caps(self) -> NDArray | None:
+        """The dense tracker's per-cell caps around the focus of expansion (the latest velocity
+        in the camera frame; :func:`epipole_cell_caps`); None before the initialisation."""
+        if self.params.points.epipole_radius_deg <= 0 or not self.initialized:
+            return None
+        st = self.estimator.state()
+        R_world_cam = st.T_world_imu[:3, :3] @ self.T_imu_cam[:3, :3]
+        v_cam = R_world_cam.T @ st.velocity_world_m_s
+        return epipole_cell_caps(self.camera.pinhole, v_cam, self.params.points)
+
     def _undistorted_gray(self, image: NDArray) -> NDArray[np.uint8]:
         """Grey image in the undistorted pinhole camera (the dense tracks' photometric check)."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
@@ -547,19 +556,10 @@ class Frontend:
             return pts
         pp = self.params.points
         image = self._history.newest_image()
-        for T_world_prev, prev, image_prev in reversed(self._recent_points):  # newest first
-            if image is None or len(prev) == 0:
-                continue
-            old = reproject_points(
-                prev,
-                se3_inverse(T_world_cam) @ T_world_prev,
-                self.camera.pinhole,
-                image_prev,
-                image,
-                radius_px=pp.patch_radius_px,
-                min_zncc=pp.reproject_min_zncc,
+        if image is not None:
+            pts = reobserved_points(
+                pts, self._recent_points, T_world_cam, self.camera.pinhole, image, pp
             )
-            pts = merge_points(pts, old, min_distance_px=pp.min_distance_px, params=pp)
         if len(pts) < pp.carry_min_points and self._last_points is not None:
             T_world_prev, prev = self._last_points
             T_cur_prev = se3_inverse(T_world_cam) @ T_world_prev

@@ -5,7 +5,9 @@ method and then refined by nonlinear least squares. Here every track of the dens
 alive in the keyframe is triangulated from the frames it was seen in, with the frontend's own
 poses:
 
-1. :func:`triangulate_dlt`: the homogeneous linear system of all views (DLT), solved by SVD.
+1. :func:`triangulate_on_ray` (round 13): the linear (DLT) equations of all views solved for the
+   depth along the keyframe's ray, in closed form (:func:`triangulate_dlt`: all three unknowns,
+   by SVD, before).
 2. :func:`refine_points`: Gauss-Newton on the reprojection error, in the keyframe's camera frame,
    parametrised by inverse depth along the keyframe ray (well conditioned for far points),
    vectorised over points. It returns the covariance from the Jacobian (poses held fixed).
@@ -14,19 +16,15 @@ poses:
 4. :func:`unsupported_depth_flags` (round 9; :func:`depth_edge_flags` before): points that no
    image-space neighbour agrees with in depth are dropped: a track straddling a depth edge
    triangulates between the two sides; a silhouette corner whose own side agrees is kept.
-5. :func:`carry_forward`: a keyframe with too few fresh points (standstill) takes the previous
-   keyframe's points moved into its camera frame.
-6. :func:`reproject_points` + :func:`merge_points`: while moving, the last keyframes' points
-   that the new keyframe still sees (their patch, moved by the relative pose and scaled by the
-   depth ratio, still matches: not occluded, not out of view) join the fresh ones (map points
-   re-observed, as a keyframe-based SLAM tracks its local map).
+5. :func:`epipole_cell_caps` (round 13, opt-in): fewer dense tracks around the focus of
+   expansion, where they seldom triangulate.
 
-:class:`TrackHistory` keeps the observations and poses of the last frames. No I/O, no bus.
+The previous keyframes' points (carried at standstill, re-observed while moving) are in
+:mod:`mogs_node.frontend.reobserve`. :class:`TrackHistory` keeps the observations and poses of the last frames. No I/O, no bus.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -43,6 +41,7 @@ from mogs_node.frontend.triangulation import (
     RefineParams,
     refine_points,
     triangulate_dlt,
+    triangulate_on_ray,
 )
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse, transform_points
 
@@ -52,16 +51,16 @@ __all__ = [
     "TrackHistory",
     "TrackPointsParams",
     "TrackViews",
-    "carry_forward",
     "depth_edge_flags",
+    "edge_flags",
+    "epipole_cell_caps",
     "unsupported_depth_flags",
     "gate_points",
     "keyframe_points",
-    "merge_points",
     "patch_zncc",
     "refine_points",
-    "reproject_points",
     "triangulate_dlt",
+    "triangulate_on_ray",
 ]
 
 
@@ -83,6 +82,11 @@ class TrackPointsParams:
     ransac_thresh_px: float = 1.0  # F-RANSAC threshold of the dense tracker (undistorted px)
     bucket_cols: int = 16  # bucketing grid: at most ~2x the even share of tracks per cell
     bucket_rows: int = 5
+    epipole_radius_deg: float = 0.0  # cells whose centre ray is within this angle of the
+    # direction of motion (the focus of expansion) hold at most epipole_cap_share of the cap:
+    # tracks there rarely get the parallax for a point (round 13; 0: off; the visual-inertial
+    # frontend only: the camera-only one's poses come from these tracks)
+    epipole_cap_share: float = 0.25
     history_frames: int = 10  # frames of observations (and poses) a track is triangulated from
     min_views: int = 3  # observations needed (the keyframe's included)
     min_parallax_deg: float = 1.0  # largest ray angle between the keyframe and another view
@@ -135,6 +139,8 @@ class TrackPointsParams:
             raise ConfigError(
                 f"points.edge_rule: 'both_sides' or 'unsupported', got {self.edge_rule!r}"
             )
+        if self.epipole_radius_deg < 0 or not 0 <= self.epipole_cap_share <= 1:
+            raise ConfigError("points: epipole_radius_deg >= 0, 0 <= epipole_cap_share <= 1")
         if not 0 < self.suspect_weight <= 1:
             raise ConfigError("points: 0 < suspect_weight <= 1")
         if (
@@ -145,13 +151,16 @@ class TrackPointsParams:
                 "points: bucket_cols, bucket_rows, gn_iterations, reproject_keyframes >= 0"
             )
 
+    def bucket_cap(self) -> int:
+        """Tracks a bucketing cell may hold (~2x its even share)."""
+        return int(np.ceil(2.0 * self.max_tracks / max(self.bucket_cols * self.bucket_rows, 1)))
+
     def refine(self) -> RefineParams:
         """Settings of the Gauss-Newton refinement (:func:`refine_points`)."""
         return RefineParams(iterations=self.gn_iterations, pixel_sigma_px=self.pixel_sigma_px)
 
     def tracker(self) -> TrackerParams:
         """Parameters of the dense :class:`~mogs_node.frontend.tracker.FeatureTracker`."""
-        n_cells = max(self.bucket_cols * self.bucket_rows, 1)
         return TrackerParams(
             max_features=self.max_tracks,
             min_distance_px=self.min_distance_px,
@@ -165,8 +174,36 @@ class TrackPointsParams:
             square_spacing=True,
             bucket_cols=self.bucket_cols,
             bucket_rows=self.bucket_rows,
-            bucket_cap=int(np.ceil(2.0 * self.max_tracks / n_cells)),
+            bucket_cap=self.bucket_cap(),
         )
+
+
+def epipole_cell_caps(
+    camera: PinholeCamera, v_cam: NDArray, params: TrackPointsParams
+) -> NDArray[np.int64] | None:
+    """Per-cell track caps [bucket_rows, bucket_cols] for the dense tracker: the cells whose
+    centre ray is within ``params.epipole_radius_deg`` of the direction of motion ``v_cam`` [3]
+    (camera frame, any scale) get ``epipole_cap_share`` of the cap. A track's parallax grows with
+    its angle from that direction, so near the focus of expansion tracks seldom pass the parallax
+    and depth-sigma gates (on the demo drive 0-1 % of them give a point, against 16 % overall):
+    their KLT and triangulation cost goes to tracks elsewhere. None: off, or no forward motion
+    (standing, reversing, or the direction not finite)."""
+    v = np.asarray(v_cam, np.float64).reshape(3)
+    p = params
+    if p.epipole_radius_deg <= 0 or p.bucket_cols <= 0 or p.bucket_rows <= 0:
+        return None
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(n) or n < 1e-9 or v[2] <= 0.5 * n:  # mostly forward, or nothing
+        return None
+    u = (np.arange(p.bucket_cols) + 0.5) * camera.width / p.bucket_cols
+    w = (np.arange(p.bucket_rows) + 0.5) * camera.height / p.bucket_rows
+    uu, ww = np.meshgrid(u, w)
+    rays = camera.rays(np.stack([uu.ravel(), ww.ravel()], 1))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    near = rays @ (v / n) >= np.cos(np.radians(p.epipole_radius_deg))
+    cap = p.bucket_cap()
+    caps = np.where(near, int(np.ceil(p.epipole_cap_share * cap)), cap)
+    return caps.reshape(p.bucket_rows, p.bucket_cols).astype(np.int64)
 
 
 @dataclass
@@ -270,7 +307,7 @@ def unsupported_depth_flags(
     return (near > 0) & (agreeing == 0)
 
 
-def _edge_flags(params: TrackPointsParams) -> Callable[..., NDArray[np.bool_]]:
+def edge_flags(params: TrackPointsParams) -> Callable[..., NDArray[np.bool_]]:
     """The depth-edge test that ``params.edge_rule`` names."""
     return unsupported_depth_flags if params.edge_rule == "unsupported" else depth_edge_flags
 
@@ -286,7 +323,8 @@ def patch_zncc(
     """Zero-mean normalised cross-correlation [N] of a ``(2r+1)^2`` patch around each point in
     the reference image with the patch around its observation in another view, sampled at
     ``scale`` [N] times the offsets (a fronto-parallel patch at the point's depth: ``z_ref /
-    z_view``). Images are [H, W] grey; pixels [N, 2]. A patch with no texture gives 0."""
+    z_view``). Images are [H, W] grey (float32 ones are sampled without a copy); pixels [N, 2].
+    A patch with no texture gives 0."""
     uv_r = check_array("uv_ref_px", uv_ref_px, shape=(None, 2)).astype(np.float32)
     uv_v = check_array("uv_view_px", uv_view_px, shape=(len(uv_r), 2)).astype(np.float32)
     s = check_array("scale", scale, shape=(len(uv_r),)).astype(np.float32)
@@ -300,7 +338,7 @@ def patch_zncc(
         mx = (uv[:, :1] + k[:, None] * ox).astype(np.float32)
         my = (uv[:, 1:] + k[:, None] * oy).astype(np.float32)
         return cv2.remap(
-            img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            np.asarray(img, np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         ).astype(np.float64)
 
     a = sample(image_ref, uv_r, np.ones_like(s))
@@ -309,93 +347,6 @@ def patch_zncc(
     b -= b.mean(axis=1, keepdims=True)
     den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
     return np.where(den > 1e-6, (a * b).sum(axis=1) / np.maximum(den, 1e-6), 0.0)
-
-
-def _moved(
-    prev: KeyframePoints, T_cur_prev: NDArray, camera: PinholeCamera
-) -> tuple[NDArray[np.bool_], KeyframePoints]:
-    """Every point of ``prev`` moved by ``T_cur_prev`` [4, 4] (covariances rotated), and which
-    of them [N] land in the image in front of the camera."""
-    T = check_array("T_cur_prev", T_cur_prev, shape=(4, 4), finite=True).astype(np.float64)
-    xyz = transform_points(T, prev.xyz_cam_m.astype(np.float64))
-    uv, front = camera.project(xyz)
-    R = T[:3, :3]
-    cov = R[None] @ prev.cov_cam_m2.astype(np.float64) @ R.T[None]
-    moved = KeyframePoints(
-        ids=prev.ids,
-        uv_px=uv.astype(np.float32),
-        xyz_cam_m=xyz.astype(np.float32),
-        cov_cam_m2=cov.astype(np.float32),
-        weight=prev.weight,
-    )
-    return front & camera.in_image(uv), moved
-
-
-def reproject_points(
-    prev: KeyframePoints,
-    T_cur_prev: NDArray,
-    camera: PinholeCamera,
-    image_prev: NDArray,
-    image_cur: NDArray,
-    *,
-    radius_px: int,
-    min_zncc: float,
-) -> KeyframePoints:
-    """The previous keyframe's points that the current keyframe still sees, in its camera.
-
-    ``T_cur_prev`` [4, 4] as in :func:`carry_forward`; ``image_prev``, ``image_cur`` [H, W] the
-    two keyframes' undistorted grey images. A point is kept when it lands in the image in front
-    of the camera and the patch around its new pixel matches the patch around its old one
-    (:func:`patch_zncc`, scaled by the depth ratio) with a ZNCC of at least ``min_zncc``: an
-    occluder that moved over it, or a point on a moving object, fails.
-    """
-    keep, moved = _moved(prev, T_cur_prev, camera)
-    idx = np.flatnonzero(keep)
-    z_prev = np.maximum(prev.xyz_cam_m[idx, 2].astype(np.float64), 1e-9)
-    scale = moved.xyz_cam_m[idx, 2] / z_prev
-    zncc = patch_zncc(image_cur, moved.uv_px[idx], image_prev, prev.uv_px[idx], scale, radius_px)
-    keep[idx] = zncc >= min_zncc
-    return moved.subset(keep)
-
-
-def merge_points(
-    fresh: KeyframePoints, old: KeyframePoints, *, min_distance_px: float, params: TrackPointsParams
-) -> KeyframePoints:
-    """``fresh`` with those of ``old`` (re-observed points) that add to it: not the same track,
-    not within ``min_distance_px`` of a fresh point, and not across a depth edge from their
-    neighbours in the union (:func:`depth_edge_flags`; fresh points are kept as they are)."""
-    if len(old) == 0:
-        return fresh
-    add = ~np.isin(old.ids, fresh.ids)
-    if len(fresh):
-        d, _ = cKDTree(fresh.uv_px).query(old.uv_px, k=1)
-        add &= d >= min_distance_px
-    uv = np.concatenate([fresh.uv_px, old.uv_px[add]])
-    z = np.concatenate([fresh.xyz_cam_m[:, 2], old.xyz_cam_m[add, 2]])
-    edge = _edge_flags(params)(
-        uv, z, radius_px=params.edge_radius_px, rel_jump=params.edge_rel_jump
-    )[len(fresh) :]
-    add[np.flatnonzero(add)[edge]] = False
-    new = old.subset(add)
-    return KeyframePoints(
-        *(
-            np.concatenate([getattr(fresh, k), getattr(new, k)])
-            for k in ("ids", "uv_px", "xyz_cam_m", "cov_cam_m2", "weight")
-        ),
-        carried=fresh.carried,
-    )
-
-
-def carry_forward(
-    prev: KeyframePoints, T_cur_prev: NDArray, camera: PinholeCamera
-) -> KeyframePoints:
-    """The previous keyframe's points moved into the current camera (standstill keyframes).
-
-    ``T_cur_prev`` [4, 4]: the previous camera's pose in the current camera frame. Points that
-    leave the image or fall behind the camera are dropped; covariances are rotated.
-    """
-    keep, moved = _moved(prev, T_cur_prev, camera)
-    return dataclasses.replace(moved.subset(keep), carried=True)
 
 
 @dataclass
@@ -494,6 +445,7 @@ def _patch_scores(
     img_ref = views.images[-1]
     if img_ref is None:
         return score
+    img_ref = np.asarray(img_ref, np.float32)  # converted once, not per view
     oldest = np.argmax(np.isfinite(uv[..., 0]), axis=1)  # first view that saw each point
     T_cam_ref = se3_inverse(T_ref_cams)
     for f in np.unique(oldest).tolist():  # over <= history_frames views
@@ -522,7 +474,7 @@ def keyframe_points(
     T_ref_cams = se3_inverse(views.T_world_cams[-1])[None] @ views.T_world_cams  # [F, 4, 4]
     enough = np.isfinite(views.uv_px[..., 0]).sum(axis=1) >= params.min_views
     ids, uv = views.ids[enough], views.uv_px[enough]
-    X0 = triangulate_dlt(uv, T_ref_cams, camera)
+    X0 = triangulate_on_ray(uv, T_ref_cams, camera)  # the DLT's points at ~1/10 of its cost
     pts = refine_points(uv, T_ref_cams, camera, X0, params.refine())
     keep, omega = gate_points(pts, params)
     idx = np.flatnonzero(keep)
@@ -536,7 +488,7 @@ def keyframe_points(
     omega = np.where(suspect, params.suspect_weight * omega, omega).astype(np.float32)
     idx = np.flatnonzero(keep)
     uv_k, z_k = uv[idx, -1], pts.xyz_ref_m[idx, 2]
-    edge = _edge_flags(params)(
+    edge = edge_flags(params)(
         uv_k, z_k, radius_px=params.edge_radius_px, rel_jump=params.edge_rel_jump
     )
     keep[idx] = ~edge

@@ -136,10 +136,21 @@ class FeatureTracker:
         pred = np.where(ok[:, None], pred, und)
         return self.camera.distort_px(pred).astype(np.float32)
 
-    def track(self, image: NDArray, R_cur_prev_cam: NDArray | None = None) -> TrackResult:
+    def track(
+        self,
+        image: NDArray,
+        R_cur_prev_cam: NDArray | None = None,
+        cell_caps: NDArray | None = None,
+    ) -> TrackResult:
         """Track the previous frame's features into ``image`` ([H, W] or [H, W, 3] uint8) and top up
-        with new Shi-Tomasi corners. ``R_cur_prev_cam`` [3, 3]: predicted rotation (IMU) or None."""
+        with new Shi-Tomasi corners. ``R_cur_prev_cam`` [3, 3]: predicted rotation (IMU) or None.
+        ``cell_caps`` [bucket_rows, bucket_cols]: per-cell caps for this frame instead of
+        ``bucket_cap`` (bucketing only); a cell above its cap keeps its longest tracks."""
         p = self.params
+        if cell_caps is not None:
+            cell_caps = check_array(
+                "cell_caps", cell_caps, shape=(p.bucket_rows, p.bucket_cols), dtype=np.number
+            ).astype(np.int64)
         img = self._prepare(image)
         H, W = img.shape
         n_prev = len(self._ids)
@@ -187,8 +198,10 @@ class FeatureTracker:
             ids, uv, tl = self._ids[keep], p1[keep].astype(np.float32), self._len[keep] + 1
         else:
             ids, uv, tl = np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.int32)
+        if cell_caps is not None and len(ids):
+            ids, uv, tl = self._prune(ids, uv, tl, cell_caps.ravel(), (H, W))
         n_tracked = len(ids)
-        ids, uv, tl = self._top_up(img, ids, uv, tl)
+        ids, uv, tl = self._top_up(img, ids, uv, tl, cell_caps)
         self._prev_img, self._ids, self._uv, self._len = img, ids, uv, tl
         return TrackResult(
             ids=ids.copy(),
@@ -201,7 +214,12 @@ class FeatureTracker:
         )
 
     def _top_up(
-        self, img: NDArray[np.uint8], ids: NDArray, uv: NDArray, tl: NDArray
+        self,
+        img: NDArray[np.uint8],
+        ids: NDArray,
+        uv: NDArray,
+        tl: NDArray,
+        cell_caps: NDArray | None = None,
     ) -> tuple[NDArray, NDArray, NDArray]:
         p = self.params
         H, W = img.shape
@@ -248,7 +266,7 @@ class FeatureTracker:
             return ids, uv, tl
         pts = pts.reshape(-1, 2).astype(np.float32)
         if bucketed:
-            pts = self._bucket(pts, uv, (H, W))[:need]
+            pts = self._bucket(pts, uv, (H, W), cell_caps)[:need]
         new_ids = np.arange(self._next_id, self._next_id + len(pts), dtype=np.int64)
         self._next_id += len(pts)
         return (
@@ -257,24 +275,45 @@ class FeatureTracker:
             np.concatenate([tl, np.ones(len(pts), np.int32)]),
         )
 
-    def _bucket(
-        self, cand_px: NDArray, tracked_px: NDArray, shape: tuple[int, int]
-    ) -> NDArray[np.float32]:
-        """New corners ``cand_px`` [M, 2] (strongest first) that a grid cell accepts while it
-        holds fewer than ``bucket_cap`` tracks (``tracked_px`` [K, 2] counted), in their order."""
+    def _cell(self, uv: NDArray, shape: tuple[int, int]) -> NDArray[np.int64]:
+        """Bucketing cell index [N] (row-major) of pixels ``uv`` [N, 2]."""
         p = self.params
         H, W = shape
-        n_cells = p.bucket_cols * p.bucket_rows
+        cx = np.clip((uv[:, 0] * p.bucket_cols / W).astype(np.int64), 0, p.bucket_cols - 1)
+        cy = np.clip((uv[:, 1] * p.bucket_rows / H).astype(np.int64), 0, p.bucket_rows - 1)
+        return cy * p.bucket_cols + cx
 
-        def cell(uv: NDArray) -> NDArray[np.int64]:
-            cx = np.clip((uv[:, 0] * p.bucket_cols / W).astype(np.int64), 0, p.bucket_cols - 1)
-            cy = np.clip((uv[:, 1] * p.bucket_rows / H).astype(np.int64), 0, p.bucket_rows - 1)
-            return cy * p.bucket_cols + cx
-
-        held = np.bincount(cell(tracked_px), minlength=n_cells)
-        c = cell(cand_px)
+    @staticmethod
+    def _rank_in_cell(c: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Each element's rank [N] among the elements of its cell ``c`` [N], in their order."""
         order = np.argsort(c, kind="stable")
-        first = np.searchsorted(c[order], c[order])  # start of each candidate's cell group
+        first = np.searchsorted(c[order], c[order])  # start of each element's cell group
         rank = np.empty(len(c), np.int64)
         rank[order] = np.arange(len(c)) - first
-        return cand_px[rank + held[c] < p.bucket_cap]
+        return rank
+
+    def _prune(
+        self, ids: NDArray, uv: NDArray, tl: NDArray, caps: NDArray, shape: tuple[int, int]
+    ) -> tuple[NDArray, NDArray, NDArray]:
+        """The tracks within their cell's cap ``caps`` [cells], the longest kept."""
+        order = np.argsort(-tl, kind="stable")
+        c = self._cell(uv[order], shape)
+        keep = np.sort(order[self._rank_in_cell(c) < caps[c]])
+        return ids[keep], uv[keep], tl[keep]
+
+    def _bucket(
+        self,
+        cand_px: NDArray,
+        tracked_px: NDArray,
+        shape: tuple[int, int],
+        cell_caps: NDArray | None = None,
+    ) -> NDArray[np.float32]:
+        """New corners ``cand_px`` [M, 2] (strongest first) that a grid cell accepts while it
+        holds fewer than its cap (``bucket_cap``, or ``cell_caps``) tracks (``tracked_px`` [K, 2]
+        counted), in their order."""
+        p = self.params
+        n_cells = p.bucket_cols * p.bucket_rows
+        caps = np.full(n_cells, p.bucket_cap) if cell_caps is None else cell_caps.ravel()
+        held = np.bincount(self._cell(tracked_px, shape), minlength=n_cells)
+        c = self._cell(cand_px, shape)
+        return cand_px[self._rank_in_cell(c) + held[c] < caps[c]]

@@ -13,19 +13,24 @@ from hypothesis import strategies as st
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.frontend.camera import CameraModel
 from mogs_node.frontend.frontend import Frontend, FrontendParams
+from mogs_node.frontend.reobserve import (
+    carry_forward,
+    merge_points,
+    reobserved_points,
+    reproject_points,
+)
 from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackHistory,
     TrackPointsParams,
-    carry_forward,
     depth_edge_flags,
+    epipole_cell_caps,
     gate_points,
     keyframe_points,
-    merge_points,
     patch_zncc,
     refine_points,
-    reproject_points,
     triangulate_dlt,
+    triangulate_on_ray,
     unsupported_depth_flags,
 )
 from mogs_node.frontend.tracker import FeatureTracker
@@ -377,3 +382,154 @@ def test_dense_tracker_options_are_validated_and_track_without_the_backward_pass
     assert second.ids.max() <= first.ids.max()
     third = tr.track(seq.render(2).rgb)
     assert third.ids.max() > first.ids.max()
+
+
+def test_linear_triangulation_along_the_keyframe_ray_matches_the_dlt():
+    """Round 13: the start of the refinement from the keyframe's ray (one unknown, closed form)
+    gives the DLT's exact points on exact tracks, and after the Gauss-Newton refinement the same
+    gated points on noisy ones."""
+    rng = np.random.default_rng(21)
+    X = _scene(300, rng, (4.0, 40.0))
+    T = _poses(7, rng=rng)
+    uv = _project(X, T)
+    np.testing.assert_allclose(triangulate_on_ray(uv, T, CAM), X, rtol=1e-7)
+    noisy = uv + rng.normal(0, 0.3, uv.shape)
+    params = RefineParams(iterations=1, pixel_sigma_px=0.5)
+    a = refine_points(noisy, T, CAM, triangulate_dlt(noisy, T, CAM), params)
+    b = refine_points(noisy, T, CAM, triangulate_on_ray(noisy, T, CAM), params)
+    keep_a, _ = gate_points(a, TrackPointsParams())
+    keep_b, _ = gate_points(b, TrackPointsParams())
+    assert keep_a.sum() > 150 and (keep_a != keep_b).sum() <= 2
+    both = keep_a & keep_b
+    np.testing.assert_allclose(b.xyz_ref_m[both], a.xyz_ref_m[both], rtol=2e-3)
+    # no keyframe observation, or no other view: NaN; a point behind the cameras: NaN
+    no_ref, alone = uv[:3].copy(), uv[3:6].copy()
+    no_ref[:, -1] = np.nan
+    alone[:, :-1] = np.nan
+    behind = uv[6:9].copy()
+    behind[:, :-1] = 2 * behind[:, -1:] - behind[:, :-1]  # the flow reversed: X behind
+    out = triangulate_on_ray(np.concatenate([no_ref, alone, behind]), T, CAM)
+    assert np.all(np.isnan(out))
+    with pytest.raises(ValueError, match="identity"):
+        triangulate_on_ray(uv, T[::-1], CAM)  # the last view is not the reference camera
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    depth_m=st.floats(1e-2, 1e3),
+    step_m=st.floats(0.0, 5.0),
+    nan_share=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**16),
+)
+def test_linear_triangulation_along_the_ray_is_finite_in_front_or_nan(
+    depth_m, step_m, nan_share, seed
+):
+    rng = np.random.default_rng(seed)
+    uv_kf = np.stack([rng.uniform(0, 621, 30), rng.uniform(0, 188, 30)], 1)
+    X = CAM.backproject(uv_kf, np.full(30, depth_m) * rng.uniform(0.5, 2.0, 30))
+    T = _poses(5, step_m=step_m, rng=rng)
+    uv = _project(X, T)
+    uv[rng.random(uv.shape[:2]) < nan_share] = np.nan
+    out = triangulate_on_ray(uv, T, CAM)
+    finite = np.all(np.isfinite(out), axis=1)
+    assert np.all(np.isnan(out[~finite]))
+    assert np.all(out[finite, 2] > 0)
+    if step_m == 0.0:
+        assert not finite.any()  # no baseline: no point
+
+
+@settings(max_examples=60, deadline=None)
+@given(scale=st.floats(1e-6, 1e6), seed=st.integers(0, 2**16))
+def test_inverse_of_3x3_stacks_matches_lapack(scale, seed):
+    from mogs_node.frontend.triangulation import _inv3
+
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(50, 3, 3))
+    A = scale * (A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3))  # well-conditioned, any scale
+    np.testing.assert_allclose(_inv3(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-6)
+    singular = np.zeros((1, 3, 3))
+    assert not np.all(np.isfinite(_inv3(singular)))
+
+
+def test_reobserved_points_in_one_pass_match_merging_keyframe_by_keyframe():
+    """Round 13: two recent keyframes' points joining the fresh ones in one pass give what
+    reproject_points + merge_points per keyframe give (newest first), where every track has
+    one copy; a track in both keyframes joins with the newest keyframe's copy."""
+    rng = np.random.default_rng(31)
+    img = rng.integers(0, 255, (188, 621)).astype(np.uint8)
+    p = TrackPointsParams(min_distance_px=4, reproject_min_zncc=0.9)
+    u, v = np.meshgrid(np.arange(20.0, 600, 10), np.arange(20.0, 170, 10))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    n = len(uv)
+    z = np.where(uv[:, 0] < 300, 12.0, 30.0)  # two walls: a depth edge at u = 300
+    fresh = _points(uv[::3], z[::3], np.arange(0, n, 3))
+    older = _points(uv[1::3], z[1::3], np.arange(1, n, 3))
+    newer = _points(uv[2::3], z[2::3], np.arange(2, n, 3))
+    T = np.eye(4)  # the camera did not move: every patch matches
+    recent = [(T, older, img), (T, newer, img)]
+    one = reobserved_points(fresh, recent, T, CAM, img, p)
+    seq = fresh
+    for T_prev, prev, image_prev in reversed(recent):
+        old = reproject_points(prev, T_prev, CAM, image_prev, img, radius_px=3, min_zncc=0.9)
+        seq = merge_points(seq, old, min_distance_px=p.min_distance_px, params=p)
+    assert len(one) > len(fresh)
+    np.testing.assert_array_equal(np.sort(one.ids), np.sort(seq.ids))
+    np.testing.assert_array_equal(one.ids[: len(fresh)], fresh.ids)
+    # the same track in both keyframes, 8 px apart: the newer keyframe's copy joins
+    dup_new = _points(np.array([[400.0, 100.0]]), np.array([30.0]), np.array([999]))
+    dup_old = _points(np.array([[408.0, 100.0]]), np.array([30.0]), np.array([999]))
+    out = reobserved_points(
+        KeyframePoints.empty(), [(T, dup_old, img), (T, dup_new, img)], T, CAM, img, p
+    )
+    np.testing.assert_array_equal(out.ids, [999])
+    np.testing.assert_allclose(out.uv_px, [[400.0, 100.0]])
+    assert reobserved_points(fresh, [], T, CAM, img, p) is fresh
+
+
+def test_epipole_cell_caps_thin_the_focus_of_expansion_only_when_driving_forward():
+    p = TrackPointsParams(max_tracks=1600, epipole_radius_deg=10.0, epipole_cap_share=0.25)
+    cap = p.bucket_cap()
+    caps = epipole_cell_caps(CAM, np.array([0.0, 0.0, 10.0]), p)
+    assert caps.shape == (p.bucket_rows, p.bucket_cols)
+    low = caps < cap
+    # straight ahead: the cells around the principal point (304, 86) and no others
+    rows, cols = np.nonzero(low)
+    assert set(cols.tolist()) <= {6, 7, 8, 9} and set(rows.tolist()) <= {1, 2, 3}
+    assert low[2, 7] and low[2, 8] and np.all(caps[low] == int(np.ceil(0.25 * cap)))
+    # turning right: the thinned cells move right; any speed gives the same caps
+    turned = epipole_cell_caps(CAM, np.array([np.tan(np.radians(20.0)), 0.0, 1.0]), p)
+    assert np.nonzero(turned < cap)[1].min() > cols.max()
+    np.testing.assert_array_equal(epipole_cell_caps(CAM, np.array([0.0, 0.0, 0.01]), p), caps)
+    # standing, reversing, sideways, NaN, or switched off: no caps
+    for v in ([0.0, 0.0, 0.0], [0.0, 0.0, -5.0], [5.0, 0.0, 1.0], [np.nan, 0.0, 1.0]):
+        assert epipole_cell_caps(CAM, np.array(v), p) is None
+    off = dataclasses.replace(p, epipole_radius_deg=0.0)
+    assert epipole_cell_caps(CAM, np.array([0.0, 0.0, 10.0]), off) is None
+    with pytest.raises(ConfigError):
+        TrackPointsParams(epipole_cap_share=1.5)
+
+
+def test_tracker_cell_caps_prune_to_the_longest_tracks_and_limit_new_corners():
+    from mogs_node.sim import SimConfig, make_sequence
+
+    seq = make_sequence(SimConfig(seed=0, n_frames=3, width=621, height=188))
+    p = TrackPointsParams(max_tracks=1600, min_distance_px=3)
+    tp = p.tracker()
+    caps = np.full((tp.bucket_rows, tp.bucket_cols), tp.bucket_cap)
+    caps[:, :8] = 3  # the left half: at most 3 tracks per cell
+    tr = FeatureTracker(tp, CameraModel(seq.camera))
+    first = tr.track(seq.render(0).rgb)
+    second = tr.track(seq.render(1).rgb, None, caps)
+
+    def cells(res):
+        cx = np.minimum((res.uv_raw_px[:, 0] * tp.bucket_cols / 621).astype(int), 15)
+        cy = np.minimum((res.uv_raw_px[:, 1] * tp.bucket_rows / 188).astype(int), 4)
+        return np.bincount(cy * tp.bucket_cols + cx, minlength=80).reshape(5, 16)
+
+    assert cells(first)[:, :8].max() > 3
+    assert cells(second)[:, :8].max() <= 3 and cells(second)[:, 8:].max() > 3
+    # the tracks kept in a capped cell are old ones (longest first), not new corners
+    left = second.uv_raw_px[:, 0] < 8 * 621 / 16
+    assert np.all(second.track_len[left] == 2)
+    with pytest.raises(ShapeError, match="cell_caps"):
+        tr.track(seq.render(2).rgb, None, caps[:, :4])
