@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_prior.edge_stereo import EdgeStereoParams, edge_stereo_depth
 from mogs_node.depth_prior.flow_prior import (
     FlowPrior,
     FlowPriorParams,
@@ -63,6 +64,7 @@ from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import check_array, pixel_grid_xy, se3_inverse
 
+EDGE_PARAMS = EdgeStereoParams(enabled=True)  # FusionParams.edge_stereo: the search's defaults
 AUTO_HEIGHT_MEASUREMENTS = 10  # road.auto_height: keyframes measured before the height is settled
 
 __all__ = [
@@ -83,7 +85,7 @@ F32 = NDArray[np.float32]
 _DepthErr = tuple[F32, F32]  # a source's (depth in m, predicted relative error), [H, W] each
 
 #: source codes of :attr:`DensePrior.source` (0 = none)
-SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4}
+SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4, "edge": 5}
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,11 @@ class FusionParams:
     # only how far a pixel lies behind its window's nearest depth (the background side of a jump,
     # where the wrong depths are: AbsRel 0.40-0.82 against 0.28-0.31 on the near side, demo)
     edge_far_only: bool = True
+    # edge stereo (issue 16, session 15; edge_stereo.py): edge pixels the flow measured with a
+    # confidence below edge_stereo_below are matched along their epipolar lines in the first two
+    # flow references (0 / false: off)
+    edge_stereo: bool = False
+    edge_stereo_below: float = 0.3
 
     def __post_init__(self) -> None:
         if min(self.rel_err_ref, self.warp_rel_err, self.agree_sigmas) <= 0:
@@ -552,6 +559,15 @@ def compute_dense_prior(
         names.append("road")
     if len(names) > 1:
         stats["road_disagreement"] = r_road
+    if params.edge_stereo and references:
+        edge_d, edge_e = edge_stereo_depth(
+            grey, K, Tk, references, EDGE_PARAMS, where=flow.confidence < params.edge_stereo_below
+        )
+        edge_d[flow.sky] = 0.0
+        cands_d.append(edge_d)
+        cands_e.append(edge_e)
+        names.append("edge")
+        stats["edge_pixels"] = float(np.count_nonzero(edge_d))
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
     warped = _warped(grey, Tk, K, past.earlier_depth, past.previous_prior, flow_params, params)
     T_r_k = [se3_inverse(np.asarray(T, np.float64)) @ Tk for _, T in references]
