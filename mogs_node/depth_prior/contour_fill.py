@@ -43,7 +43,7 @@ class ContourFillParams:
 
     flat_gradient: float = 2.0  # grey levels per pixel (0.7-px blur): untextured
     min_region_px: int = 100
-    side_px: float = 4.0
+    side_px: float = 6.0
     known_min_confidence: float = 0.1  # a side's depth counts from this prior confidence on
     side_agree: float = 0.10
     far_rel: float = 0.15
@@ -53,6 +53,9 @@ class ContourFillParams:
     known_agree: float = 0.25
     min_known_share: float = 0.05
     min_rel_err: float = 0.06
+    replace_below: float = (
+        0.3  # the region's pixels of a lower prior confidence too (0: holes only)
+    )
 
     def __post_init__(self) -> None:
         if min(self.flat_gradient, self.side_px, self.inlier_rel, self.min_rel_err) <= 0:
@@ -174,7 +177,10 @@ def contour_fill(
     checked = n_known >= np.maximum(10, params.min_known_share * size)
     agree = ~checked | (np.abs(known_med - med) <= np.log1p(params.known_agree))
     ok &= agree & np.isfinite(med)
-    target = (flat >= 0) & (depth.ravel() <= 0)
+    weak = depth.ravel() <= 0
+    if params.replace_below > 0:
+        weak |= confidence.ravel() < params.replace_below
+    target = (flat >= 0) & weak
     target &= ok[np.where(flat >= 0, flat, 0)]
     t = np.flatnonzero(target)
     fill.ravel()[t] = np.exp(med[flat[t]]).astype(np.float32)
