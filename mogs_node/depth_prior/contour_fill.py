@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from mogs_node.errors import ConfigError
 
-__all__ = ["ContourFillParams", "assign_to_regions", "contour_fill", "flat_regions"]
+__all__ = ["ContourFillParams", "assign_to_regions", "contour_fill", "flat_regions", "near_flat"]
 
 F32 = NDArray[np.float32]
 
@@ -86,6 +86,15 @@ def flat_regions(
     big = np.bincount(cc.ravel(), minlength=n) >= min_pixels
     big[0] = False  # label 0: the non-flat pixels
     return np.where(flat.astype(bool) & big[cc], cc, -1).astype(np.int32), n
+
+
+def near_flat(grey: NDArray[np.uint8], params: ContourFillParams) -> NDArray[np.bool_]:
+    """Pixels within ``side_px + 1`` of an untextured region ``[H, W]``: the only edges whose
+    depth the fill can use (the edge search need not look at the others)."""
+    labels, _ = flat_regions(*_gradient(grey), params.flat_gradient, params.min_region_px)
+    r = int(np.ceil(params.side_px)) + 1
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate((labels >= 0).astype(np.uint8), k) > 0
 
 
 def assign_to_regions(

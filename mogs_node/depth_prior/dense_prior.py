@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.depth_prior.contour_fill import ContourFillParams, contour_fill
+from mogs_node.depth_prior.contour_fill import ContourFillParams, contour_fill, near_flat
 from mogs_node.depth_prior.edge_stereo import EdgeStereoParams, edge_stereo_depth
 from mogs_node.depth_prior.flow_prior import (
     FlowPrior,
@@ -566,7 +566,10 @@ def compute_dense_prior(
         stats["road_disagreement"] = r_road
     edge_all = None
     if (params.edge_stereo or params.contour_fill) and references:
-        where = None if params.contour_fill else flow.confidence < params.edge_stereo_below
+        where = flow.confidence < params.edge_stereo_below
+        if params.contour_fill:  # the edges around untextured regions (and the above)
+            near = near_flat(grey, CONTOUR_PARAMS)
+            where = near | where if params.edge_stereo else near
         edge_all, edge_e = edge_stereo_depth(grey, K, Tk, references, EDGE_PARAMS, where=where)
         edge_all[flow.sky] = 0.0
         stats["edge_pixels"] = float(np.count_nonzero(edge_all))

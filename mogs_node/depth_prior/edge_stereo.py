@@ -147,15 +147,14 @@ def match_edges(
     ).astype(np.float32)
     vk = cv2.remap(Ik, pk[..., 0], pk[..., 1], cv2.INTER_LINEAR)  # [P, 5]
     n = int(params.max_disparity_px) + 1
-    s = np.arange(n, dtype=np.float64)
-    pos = (
-        x0[:, None, None, :]
-        + (s[None, :, None, None] + ks[None, None, :, None]) * e_r[:, None, None, :]
-    )  # [P, n, 5, 2]
-    mx = pos[..., 0].reshape(P, -1).astype(np.float32)
-    my = pos[..., 1].reshape(P, -1).astype(np.float32)
-    vr = cv2.remap(Ir, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1e4)
-    vr = vr.reshape(P, n, 5)
+    # the line sampled once at 1-px steps from 2 px before the point at infinity; the 5-sample
+    # patches at each step are windows of it (they overlap)
+    m = np.arange(-2, n + 2, dtype=np.float32)
+    x0f, erf = x0.astype(np.float32), e_r.astype(np.float32)
+    mx = x0f[:, :1] + m * erf[:, :1]
+    my = x0f[:, 1:] + m * erf[:, 1:]
+    line = cv2.remap(Ir, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1e4)
+    vr = np.lib.stride_tricks.sliding_window_view(line, 5, axis=1)  # [P, n, 5], no copy
     a = vk - vk.mean(1, keepdims=True)
     b = vr - vr.mean(2, keepdims=True)
     cost = ((a[:, None, :] - b) ** 2).sum(2)
