@@ -47,9 +47,9 @@ class ContourFillParams:
     known_min_confidence: float = 0.1  # a side's depth counts from this prior confidence on
     side_agree: float = 0.10
     far_rel: float = 0.15
-    min_samples: int = 40
+    min_samples: int = 10
     inlier_rel: float = 0.05
-    min_inlier_share: float = 0.8
+    min_inlier_share: float = 0.9
     known_agree: float = 0.25
     min_known_share: float = 0.05
     min_rel_err: float = 0.06
