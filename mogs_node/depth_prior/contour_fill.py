@@ -7,7 +7,7 @@ by occlusion: an edge moves with the nearer of the two surfaces it separates. So
 sample is given to the region on one side of it (looked up ``side_px`` along the image
 gradient) when that side has no depth of its own or agrees with it (within ``side_agree``), and
 the other side is farther by more than ``far_rel`` (the background behind an occluding
-contour) or has no depth either (a crease between two untextured faces). The regions are the
+contour) or is another untextured region without depth (a crease between two faces). The regions are the
 connected areas of near-zero image gradient (``flat_gradient``): the untextured surfaces
 themselves, found without the segmentation.
 
@@ -115,11 +115,13 @@ def assign_to_regions(
         su = np.clip(np.round(u + sgn * params.side_px * normal[:, 0]).astype(np.intp), 0, W - 1)
         sv = np.clip(np.round(v + sgn * params.side_px * normal[:, 1]).astype(np.intp), 0, H - 1)
         sides.append((labels[sv, su], known[sv, su]))
-    for (lx, dx), (_, dy) in ((sides[0], sides[1]), (sides[1], sides[0])):
+    for (lx, dx), (ly, dy) in ((sides[0], sides[1]), (sides[1], sides[0])):
         ok_x = (dx <= 0) | (np.abs(dx - z) <= params.side_agree * z)
         behind = (dy > 0) & (dy > (1.0 + params.far_rel) * z)
-        crease = (dx <= 0) & (dy <= 0)
-        take = np.flatnonzero(ok_x & (behind | crease) & (lx >= 0))
+        # a crease separates two untextured faces: two regions (both sides in one region is a
+        # gradient along the outline, e.g. a textured occluder's texture blurred over it)
+        crease = (dx <= 0) & (dy <= 0) & (ly >= 0)
+        take = np.flatnonzero(ok_x & (behind | crease) & (lx >= 0) & (lx != ly))
         out_i.append(take)
         out_l.append(lx[take])
     return np.concatenate(out_i), np.concatenate(out_l)
@@ -160,7 +162,9 @@ def contour_fill(
     stats = {"contour_regions": 0.0, "contour_pixels": 0.0}
     gx, gy = _gradient(grey)
     labels, n = flat_regions(gx, gy, params.flat_gradient, params.min_region_px)
-    v, u = np.nonzero(edge_depth > 0)
+    # samples on an edge only (the side is looked up along the gradient, which a pixel without
+    # one does not have)
+    v, u = np.nonzero((edge_depth > 0) & (np.hypot(gx, gy) >= params.flat_gradient))
     if len(v) == 0 or n <= 1:
         return fill, err, stats
     z = edge_depth[v, u].astype(np.float64)
