@@ -31,7 +31,7 @@ from mogs_node.depth_prior.dense_prior import SOURCES  # noqa: E402
 from mogs_node.eval.depth_prior_eval import prior_params, run_priors  # noqa: E402
 from mogs_node.eval.pipeline_stages import demo_params, graph_masks, prepare_keyframes  # noqa: E402
 
-CATS = ("flow", "road", "warp", "carry", "edge", "contour", "fill", "dropped", "sky", "none")
+CATS = ("flow", "road", "warp", "carry", "contour", "fill", "dropped", "sky", "none")
 
 
 def categories(src: np.ndarray, sky: np.ndarray, has_prior: np.ndarray, out: np.ndarray) -> dict:

@@ -24,15 +24,24 @@ arrays in, arrays out.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_prior.edge_stereo import EdgeStereoParams, edge_stereo_depth
 from mogs_node.errors import ConfigError
 
-__all__ = ["ContourFillParams", "assign_to_regions", "contour_fill", "flat_regions", "near_flat"]
+__all__ = [
+    "ContourFillParams",
+    "assign_to_regions",
+    "contour_fill",
+    "flat_regions",
+    "near_flat",
+    "outline_fill",
+]
 
 F32 = NDArray[np.float32]
 
@@ -53,9 +62,7 @@ class ContourFillParams:
     known_agree: float = 0.25
     min_known_share: float = 0.05
     min_rel_err: float = 0.06
-    replace_below: float = (
-        0.3  # the region's pixels of a lower prior confidence too (0: holes only)
-    )
+    replace_below: float = 0.3  # also the region's pixels below this confidence (0: holes)
 
     def __post_init__(self) -> None:
         if min(self.flat_gradient, self.side_px, self.inlier_rel, self.min_rel_err) <= 0:
@@ -200,4 +207,27 @@ def contour_fill(
     e = np.maximum(params.min_rel_err, 1.4826 * np.nan_to_num(mad, nan=np.inf))
     err.ravel()[t] = e[flat[t]].astype(np.float32)
     stats.update(contour_regions=float(ok.sum()), contour_pixels=float(len(t)))
+    return fill, err, stats
+
+
+def outline_fill(
+    grey: NDArray[np.uint8],
+    K: NDArray[np.float64],
+    T_world_cam: NDArray[np.float64],
+    references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
+    depth: F32,
+    confidence: F32,
+    sky: NDArray[np.bool_],
+    edge_params: EdgeStereoParams,
+    params: ContourFillParams,
+) -> tuple[F32, F32, dict[str, float]]:
+    """The dense prior's ``contour`` source: the edges around untextured regions matched in the
+    flow ``references`` (:func:`~mogs_node.depth_prior.edge_stereo.edge_stereo_depth`, sky
+    excluded), then :func:`contour_fill` with them."""
+    where = near_flat(grey, params) & ~sky
+    edge, _ = edge_stereo_depth(grey, K, T_world_cam, references, edge_params, where=where)
+    fill, err, stats = contour_fill(grey, edge, depth, confidence, params)
+    fill[sky] = 0.0
+    err[sky] = np.inf
+    stats["edge_pixels"] = float(np.count_nonzero(edge))
     return fill, err, stats

@@ -46,8 +46,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mogs_node.depth_prior.contour_fill import ContourFillParams, contour_fill, near_flat
-from mogs_node.depth_prior.edge_stereo import EdgeStereoParams, edge_stereo_depth
+from mogs_node.depth_prior.contour_fill import ContourFillParams, outline_fill
+from mogs_node.depth_prior.edge_stereo import EdgeStereoParams
 from mogs_node.depth_prior.flow_prior import (
     FlowPrior,
     FlowPriorParams,
@@ -65,7 +65,7 @@ from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import check_array, pixel_grid_xy, se3_inverse
 
-EDGE_PARAMS = EdgeStereoParams(enabled=True)  # FusionParams.edge_stereo: the search's defaults
+EDGE_PARAMS = EdgeStereoParams(enabled=True)  # FusionParams.contour_fill: the edge search's
 CONTOUR_PARAMS = ContourFillParams()  # FusionParams.contour_fill: the fill's defaults
 AUTO_HEIGHT_MEASUREMENTS = 10  # road.auto_height: keyframes measured before the height is settled
 
@@ -87,7 +87,7 @@ F32 = NDArray[np.float32]
 _DepthErr = tuple[F32, F32]  # a source's (depth in m, predicted relative error), [H, W] each
 
 #: source codes of :attr:`DensePrior.source` (0 = none)
-SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4, "edge": 5, "contour": 6}
+SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4, "contour": 5}
 
 
 @dataclass(frozen=True)
@@ -123,11 +123,6 @@ class FusionParams:
     # only how far a pixel lies behind its window's nearest depth (the background side of a jump,
     # where the wrong depths are: AbsRel 0.40-0.82 against 0.28-0.31 on the near side, demo)
     edge_far_only: bool = True
-    # edge stereo (issue 16, session 15; edge_stereo.py): edge pixels the flow measured with a
-    # confidence below edge_stereo_below are matched along their epipolar lines in the first two
-    # flow references (0 / false: off)
-    edge_stereo: bool = False
-    edge_stereo_below: float = 0.3
     # untextured regions filled from their outline's edge-stereo depth (contour_fill.py; issue 16,
     # session 15; docs/depth_prior.md "Outlines of textureless objects")
     contour_fill: bool = False
@@ -564,20 +559,6 @@ def compute_dense_prior(
         names.append("road")
     if len(names) > 1:
         stats["road_disagreement"] = r_road
-    edge_all = None
-    if (params.edge_stereo or params.contour_fill) and references:
-        where = flow.confidence < params.edge_stereo_below
-        if params.contour_fill:  # the edges around untextured regions (and the above)
-            near = near_flat(grey, CONTOUR_PARAMS)
-            where = near | where if params.edge_stereo else near
-        edge_all, edge_e = edge_stereo_depth(grey, K, Tk, references, EDGE_PARAMS, where=where)
-        edge_all[flow.sky] = 0.0
-        stats["edge_pixels"] = float(np.count_nonzero(edge_all))
-    if params.edge_stereo and edge_all is not None:
-        low = flow.confidence < params.edge_stereo_below
-        cands_d.append(np.where(low, edge_all, 0.0).astype(np.float32))
-        cands_e.append(np.where(low, edge_e, np.inf).astype(np.float32))
-        names.append("edge")
     d_meas, e_meas, _ = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
     warped = _warped(grey, Tk, K, past.earlier_depth, past.previous_prior, flow_params, params)
     T_r_k = [se3_inverse(np.asarray(T, np.float64)) @ Tk for _, T in references]
@@ -591,10 +572,12 @@ def compute_dense_prior(
     depth, err, lead = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
     depth[flow.sky] = 0.0
     err[flow.sky] = np.inf
-    if params.contour_fill and edge_all is not None:  # holes of untextured regions
+    if params.contour_fill and references:  # untextured regions from their outline
         conf0 = confidence_from_error(err, params.rel_err_ref)
-        fd, fe, st = contour_fill(grey, edge_all, depth, conf0, CONTOUR_PARAMS)
-        put = (fd > 0) & ~flow.sky
+        fd, fe, st = outline_fill(
+            grey, K, Tk, references, depth, conf0, flow.sky, EDGE_PARAMS, CONTOUR_PARAMS
+        )
+        put = fd > 0
         depth[put] = fd[put]
         err[put] = fe[put]
         lead[put] = len(names)

@@ -110,20 +110,31 @@ def test_finite_at_any_scale_and_motion(
     assert np.all((v >= 0) & (v < H) & (u >= 0) & (u < W))
 
 
-def test_dense_prior_with_edge_stereo() -> None:
-    """Off (default): no edge source; on: edge pixels the flow did not measure are led by it
-    and have the plane's depth."""
-    z = 4.0
-    k = _plane_view(0.0, z)
-    past = PriorHistory(
-        references=[(_plane_view(-0.3, z), _pose(-0.3)), (_plane_view(-0.6, z), _pose(-0.6))]
-    )
+def _pillar_view(cam_x: float, z_far: float, z_near: float) -> np.ndarray:
+    """``_plane_view``'s banded plane at ``z_far`` (faint: its band edges are not edges) with a
+    uniform dark pillar (X in [-0.2, 0.2] m, rows 20-99) at ``z_near`` in front of it."""
+    back = 115.0 + (_plane_view(cam_x, z_far).astype(np.float64) - 128.0) / 20.0  # faint bands
+    u = np.arange(W)[:, None] - 0.5 + (np.arange(16) + 0.5) / 16
+    X = (u - W / 2) / 150.0 * z_near + cam_x
+    hit = (np.abs(X) <= 0.2).mean(1)  # the pillar's share of each column's pixel
+    img = back.copy()
+    img[20:100] = hit * 20.0 + (1 - hit) * back[20:100]
+    return np.round(img).astype(np.uint8)
+
+
+def test_dense_prior_contour_source() -> None:
+    """Off (default): no contour source; on: the pillar, which the flow cannot match inside,
+    gets its outline's depth."""
+    z_far, z_near = 8.0, 2.0
+    k = _pillar_view(0.0, z_far, z_near)
+    refs = [(_pillar_view(-d, z_far, z_near), _pose(-d)) for d in (0.15, 0.3)]
+    past = PriorHistory(references=refs)
     off = compute_dense_prior(k, K, _pose(0.0), past)
-    assert not (off.source == SOURCES["edge"]).any()
-    on = compute_dense_prior(
-        k, K, _pose(0.0), past, params=FusionParams(edge_stereo=True, edge_stereo_below=1.01)
-    )
-    assert on.stats["edge_pixels"] > 0
-    led = on.source == SOURCES["edge"]
-    assert led.sum() > 100
-    assert np.median(np.abs(on.depth_m[led] - z) / z) < 0.02
+    assert not (off.source == SOURCES["contour"]).any()
+    on = compute_dense_prior(k, K, _pose(0.0), past, params=FusionParams(contour_fill=True))
+    led = on.source == SOURCES["contour"]
+    pillar = np.zeros((H, W), bool)
+    pillar[24:96, 88:113] = True  # its interior (columns 85-115 at 2 m)
+    assert (led & pillar).sum() > 0.8 * pillar.sum()
+    np.testing.assert_allclose(on.depth_m[led & pillar], z_near, rtol=0.03)
+    assert np.all(on.confidence[led] <= 0.5)  # error >= 6 %
