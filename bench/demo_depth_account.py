@@ -31,7 +31,7 @@ from mogs_node.depth_prior.dense_prior import SOURCES  # noqa: E402
 from mogs_node.eval.depth_prior_eval import prior_params, run_priors  # noqa: E402
 from mogs_node.eval.pipeline_stages import demo_params, graph_masks, prepare_keyframes  # noqa: E402
 
-CATS = ("flow", "road", "warp", "carry", "fill", "dropped", "sky", "none")
+CATS = ("flow", "road", "warp", "carry", "contour", "fill", "dropped", "sky", "none")
 
 
 def categories(src: np.ndarray, sky: np.ndarray, has_prior: np.ndarray, out: np.ndarray) -> dict:
@@ -98,7 +98,14 @@ def account(launch: str | None) -> dict:
         o["err_share"] = o["err"] / total_err if total_err else 0.0
         o["absrel"] = o["err"] / o["covered"] if o["covered"] else float("nan")
         o["hole_share"] = (o["pixels"] - o["covered"]) / n_gt_all
-    return {"per_keyframe": rows, "pooled": pool, "objects": objs}
+    covs = [r["coverage"] for r in rows]
+    n_out = sum(pooled[n][0] for n in CATS if n not in ("dropped", "sky", "none"))
+    overall = {
+        "absrel": total_err / max(n_out, 1),
+        "coverage": float(np.mean(covs)) if covs else 0.0,
+        "min_keyframe_coverage": float(min(covs)) if covs else 0.0,
+    }
+    return {"per_keyframe": rows, "pooled": pool, "objects": objs, "overall": overall}
 
 
 def markdown(acc: dict) -> str:
@@ -130,6 +137,11 @@ def markdown(acc: dict) -> str:
             for n in CATS
         )
         + " |"
+    )
+    o = acc["overall"]
+    lines.append(
+        f"\nAbsRel {o['absrel']:.4f}, coverage {o['coverage']:.3f}, "
+        f"lowest keyframe {o['min_keyframe_coverage']:.3f}"
     )
     by_err = sorted(acc["objects"].items(), key=lambda kv: -kv[1]["err_share"])[:8]
     by_hole = sorted(acc["objects"].items(), key=lambda kv: -kv[1]["hole_share"])[:8]

@@ -46,6 +46,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.depth_prior.contour_fill import ContourFillParams, outline_fill
+from mogs_node.depth_prior.edge_stereo import EdgeStereoParams
 from mogs_node.depth_prior.flow_prior import (
     FlowPrior,
     FlowPriorParams,
@@ -63,6 +65,8 @@ from mogs_node.depth_prior.warp import forward_warp_depth
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import check_array, pixel_grid_xy, se3_inverse
 
+EDGE_PARAMS = EdgeStereoParams(enabled=True)  # FusionParams.contour_fill: the edge search's
+CONTOUR_PARAMS = ContourFillParams()  # FusionParams.contour_fill: the fill's defaults
 AUTO_HEIGHT_MEASUREMENTS = 10  # road.auto_height: keyframes measured before the height is settled
 
 __all__ = [
@@ -83,7 +87,7 @@ F32 = NDArray[np.float32]
 _DepthErr = tuple[F32, F32]  # a source's (depth in m, predicted relative error), [H, W] each
 
 #: source codes of :attr:`DensePrior.source` (0 = none)
-SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4}
+SOURCES = {"flow": 1, "road": 2, "warp": 3, "carry": 4, "contour": 5}
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,9 @@ class FusionParams:
     # only how far a pixel lies behind its window's nearest depth (the background side of a jump,
     # where the wrong depths are: AbsRel 0.40-0.82 against 0.28-0.31 on the near side, demo)
     edge_far_only: bool = True
+    # untextured regions filled from their outline's edge-stereo depth (contour_fill.py; issue 16,
+    # session 15; docs/depth_prior.md "Outlines of textureless objects")
+    contour_fill: bool = False
 
     def __post_init__(self) -> None:
         if min(self.rel_err_ref, self.warp_rel_err, self.agree_sigmas) <= 0:
@@ -565,6 +572,17 @@ def compute_dense_prior(
     depth, err, lead = fuse_candidates(np.stack(cands_d), np.stack(cands_e), params)
     depth[flow.sky] = 0.0
     err[flow.sky] = np.inf
+    if params.contour_fill and references:  # untextured regions from their outline
+        conf0 = confidence_from_error(err, params.rel_err_ref)
+        fd, fe, st = outline_fill(
+            grey, K, Tk, references, depth, conf0, flow.sky, EDGE_PARAMS, CONTOUR_PARAMS
+        )
+        put = fd > 0
+        depth[put] = fd[put]
+        err[put] = fe[put]
+        lead[put] = len(names)
+        names.append("contour")
+        stats.update(st)
     carry_conf = None
     if params.edge_window_px > 0 and not params.edge_carried:
         carry_conf = confidence_from_error(err, params.rel_err_ref)
