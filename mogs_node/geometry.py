@@ -520,9 +520,10 @@ def road_plane_depth(
     x, y = rays_xy
     down = -(up_cam[0] * x + up_cam[1] * y + up_cam[2])  # -up . r with r = [x, y, 1]
     norm = np.sqrt(x * x + y * y + 1.0)
-    sin_a = (down / norm).astype(np.float32)
+    meets = down > 1e-9  # a ray within 1e-9 of the horizon counts as on it (sine 0, depth inf)
+    sin_a = np.where(meets, down / norm, np.minimum(down / norm, 0.0)).astype(np.float32)
     with np.errstate(divide="ignore"):
-        z = np.where(down > 1e-9, np.float32(height_m) / np.maximum(down, 1e-9), np.inf)
+        z = np.where(meets, np.float32(height_m) / np.maximum(down, 1e-9), np.inf)
     return z.astype(np.float32), sin_a
 
 

@@ -482,3 +482,14 @@ def test_carry_min_confidence_drops_weak_carried_depth(views) -> None:
     assert (strong.confidence[right] > 0).mean() > 0.9
     m = strong.confidence > 0
     np.testing.assert_allclose(strong.depth_m[m], d0[m], rtol=1e-4)
+
+
+def test_plane_depth_at_the_horizon_is_inf_with_sine_zero() -> None:
+    # hypothesis found it: a ray 5.5e-10 below the horizon had a positive sine but no depth
+    up = so3_exp(np.array([0.22609198612092135, 0.0, 0.06319843562286392])) @ np.array(
+        [0.0, -1.0, 0.0]
+    )
+    _, _, rays = pixel_grid_xy(K, *HW)
+    z, sin_a = road_plane_depth(rays, up, 1.0)
+    assert np.array_equal(np.isfinite(z), sin_a > 0)
+    assert np.all(sin_a[~np.isfinite(z)] <= 0)
