@@ -7,9 +7,11 @@ metrizer -> mapper -> report) runs three times, with the same mapper policy and 
 - ``mogs``: the metrizer's depth (``mode: full``, MSC + CDR);
 - ``prior_global``: the globally aligned prior (metrizer ``mode: no_msc_cdr``);
 - ``random``: uniform random depth in [1, 50] m with confidence 0
-  (:func:`mogs_node.mapper.insertion.random_depth`, as ``mogs eval map``), published per keyframe
-  by :class:`RandomDepthNode` in place of the metrizer's output (which still runs, so that every
-  run costs the same upstream).
+  (:func:`mogs_node.mapper.insertion.random_depth`, as ``mogs eval map``) on the pixels where the
+  metrizer's depth has a value (``same_pixels``: the comparison is about the depth values; where
+  no source has depth, the sky, the mapper's far sphere takes the pixel for every init alike),
+  published per keyframe by :class:`RandomDepthNode` in place of the metrizer's output (which
+  still runs, so that every run costs the same upstream).
 
 **Table II's figures** (``inits.<init>.iters_to_target``, ``gaussians_at_target``): how fast a
 map initialised from each depth converges, per keyframe, iteration by iteration: each run keeps
@@ -79,6 +81,8 @@ class RandomDepthParams:
     d_min_m: float = 1.0  # random depth range
     d_max_m: float = 50.0
     seed: int = 0  # depth of keyframe k: random_depth(..., seed * 1000 + k)
+    same_pixels: bool = True  # random values only where the metrizer's depth has one (False:
+    # on every pixel, the sky included: session 13's table)
     in_topic: str = "/metrizer/depth"
     out_topic: str = RANDOM_TOPIC
 
@@ -100,6 +104,8 @@ def random_depth_msg(m: msgs.DepthMap, p: RandomDepthParams | None = None) -> ms
     """Keyframe ``m``'s random depth (what :class:`RandomDepthNode` publishes for it)."""
     p = p or RandomDepthParams()
     d = random_depth(m.depth.shape, p.d_min_m, p.d_max_m, p.seed * 1000 + m.keyframe_id)
+    if p.same_pixels:
+        d = np.where(np.isfinite(m.depth) & (m.depth > 0), d, np.float32(0.0))
     return msgs.DepthMap(
         stamp_ns=m.stamp_ns,
         frame_id=m.frame_id,
@@ -119,7 +125,9 @@ def launch_dict(
     launch = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
     launch["name"] = f"table2-{uuid.uuid4().hex[:8]}"
     nodes = {n["name"]: n for n in launch["nodes"]}
-    for node, params in (overrides or {}).items():
+    overrides = dict(overrides or {})
+    randomizer = overrides.pop("randomizer", {})  # RandomDepthParams (the random run's node)
+    for node, params in overrides.items():
         nodes[node].setdefault("params", {}).update(params)
     nodes["player"]["params"]["sim"]["n_frames"] = frames
     nodes["report"]["params"]["out_dir"] = str(out)
@@ -135,6 +143,7 @@ def launch_dict(
                 "name": "randomizer",
                 "class": "bench.pipeline_table2:RandomDepthNode",
                 "env": {"PYTHONPATH": path},  # bench/ is importable from the repository root
+                "params": dict(randomizer),
             }
         )
         nodes["player"]["params"]["wait_for_nodes"].append("randomizer")

@@ -34,10 +34,11 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+import yaml
 
 if (
     not __package__
@@ -47,6 +48,10 @@ from bench.mapper_replay import _camera_rgb, mapper_params, read_journal, replay
 from mogs_node.eval.bench_docs import write_json
 from mogs_node.mapper.image_metrics import psnr_db
 from mogs_node.mapper.mapper import GaussianMapper
+from mogs_node.params import parse_params
+
+if TYPE_CHECKING:
+    from bench.pipeline_table2 import RandomDepthParams
 
 STOP_DB = 20.0  # issue 17's target: the copy stops once the view reaches it
 CAP = 40  # iterations at most per keyframe (~7x the demo's 6 per keyframe; CPU time)
@@ -81,6 +86,16 @@ def heldout_views(
             if move >= min_move_m:
                 out[kf.keyframe_id] = near[0]
     return out
+
+
+def random_params(launch: Path) -> RandomDepthParams:
+    """The random run's :class:`RandomDepthParams` (its launch file's ``randomizer`` node; the
+    defaults where it has none, e.g. the launch file of another init's run)."""
+    from bench.pipeline_table2 import RandomDepthParams  # (it imports this module)
+
+    spec = yaml.safe_load(Path(launch).read_text())
+    node = next((n for n in spec.get("nodes", []) if n.get("name") == "randomizer"), {})
+    return parse_params(RandomDepthParams, node.get("params") or {}, where="randomizer")
 
 
 def converge(
@@ -122,9 +137,10 @@ def measure(
     torch.set_num_threads(1)  # as the live mapper (launch/demo.yaml threads: 1): the same map
     data = read_journal(journal)
     if init == "random":
-        from bench.pipeline_table2 import random_depth_msg
+        from bench.pipeline_table2 import random_depth_msg  # (it imports this module)
 
-        data["/metrizer/depth"] = [random_depth_msg(d) for d in data["/metrizer/depth"]]
+        rp = random_params(launch)
+        data["/metrizer/depth"] = [random_depth_msg(d, rp) for d in data["/metrizer/depth"]]
     p = mapper_params(str(launch), {})
     views = heldout_views(data, min_move_m)
     images = {m.stamp_ns: m for m in data["/camera/image"]}

@@ -32,6 +32,7 @@ __all__ = [
     "InsertionParams",
     "background_mask",
     "flat_image_mask",
+    "insertion_confidence",
     "insertion_mask",
     "planar_mask",
     "random_depth",
@@ -66,6 +67,9 @@ class InsertionParams:
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
     background_depth_m: float = 0.0  # pixels without depth that the map leaves transparent get
     # Gaussians on a far sphere at this distance (sky, far background; 0: off)
+    fixed_confidence: float = -1.0  # the confidence the insertion rules read for every pixel
+    # with depth, whatever the source says (-1: the source's own): one treatment for every depth
+    # source (Table II); the optimisation's depth loss still weights by the source's confidence
 
     def __post_init__(self) -> None:
         if self.stride_px < 1 or self.max_stride_px < self.stride_px:
@@ -82,6 +86,21 @@ class InsertionParams:
             raise ConfigError("InsertionParams.planar_max_grad: must be >= 0")
         if not (self.background_depth_m == 0 or self.background_depth_m > self.min_depth_m):
             raise ConfigError("InsertionParams.background_depth_m: 0 (off) or > min_depth_m")
+        if not (self.fixed_confidence == -1.0 or 0 <= self.fixed_confidence <= 1):
+            raise ConfigError("InsertionParams.fixed_confidence: -1 (the source's) or in [0, 1]")
+
+
+def insertion_confidence(
+    depth_m: np.ndarray, confidence: np.ndarray, params: InsertionParams
+) -> np.ndarray:
+    """The confidence ``[H, W]`` the insertion rules read: the source's ``confidence`` [H, W], or
+    with ``fixed_confidence >= 0`` that value wherever ``depth_m`` [H, W] is usable (0 elsewhere).
+    A fixed value gives every depth source the same treatment (docs/mapper.md "Live Table II: one
+    confidence for every source"): the rules then differ between sources only by the depth."""
+    if params.fixed_confidence < 0:
+        return confidence
+    usable = np.isfinite(depth_m) & (depth_m >= params.min_depth_m)
+    return np.where(usable, np.float32(params.fixed_confidence), np.float32(0.0))
 
 
 def random_depth(shape: tuple[int, int], d_min_m: float, d_max_m: float, seed: int) -> np.ndarray:
@@ -112,6 +131,7 @@ def insertion_mask(
     """
     d = check_array("depth_m", depth_m, shape=(None, None), dtype=np.floating)
     c = check_array("confidence", confidence, shape=d.shape, dtype=np.floating)
+    c = insertion_confidence(d, c, params)
     usable = np.isfinite(d) & (d >= params.min_depth_m)
     if rendered_alpha is None:
         return usable
@@ -270,6 +290,7 @@ def sample_gaussians(
     T = check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True)
     if not np.all(np.isfinite(d[m])):
         raise ShapeError("depth_m: non-finite depth inside mask")
+    c = insertion_confidence(d, c, params)
     s = _stride_map(d, c, params, img)  # planarity from the whole depth map, not only the mask
     f = math.sqrt(K[0, 0] * K[1, 1])
     s = np.minimum(s, max(params.stride_px, int(params.max_footprint_rad * f)))

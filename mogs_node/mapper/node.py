@@ -80,6 +80,8 @@ class MapperNodeParams:
     refine_poses: bool = False  # optimise window keyframe poses
     densify: bool = False  # gradient-based cloning
     background_depth_m: float = 0.0  # far-sphere Gaussians where the depth has none (0: off)
+    insertion_confidence: float = -1.0  # the confidence insertion reads wherever there is depth
+    # (-1: the source's own; InsertionParams.fixed_confidence)
     final_refine_iters: int = 0  # at the end of the drive: iterations over every keyframe
     final_refine_downsample: int = 1  # ... at 1/n of the resolution (GaussianMapper.refine)
     final_refine_chunk: int = 5  # refinement iterations per timer tick (heartbeats go on)
@@ -155,7 +157,10 @@ class MapperNodeParams:
             refine_lr_final=self.refine_lr_final,
             refine_poses=self.refine_poses,
             densify=self.densify,
-            insertion=InsertionParams(background_depth_m=self.background_depth_m),
+            insertion=InsertionParams(
+                background_depth_m=self.background_depth_m,
+                fixed_confidence=self.insertion_confidence,
+            ),
         )
 
 

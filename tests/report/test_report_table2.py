@@ -9,19 +9,24 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import yaml
 
 from bench.pipeline_table2 import (
     RANDOM_TOPIC,
     HeldOutViews,
+    RandomDepthParams,
     assemble,
     choose_view,
     common_target,
     depth_statistics,
     launch_dict,
+    random_depth_msg,
     ratios,
     reached,
     runs_from_json,
 )
+from bench.table2_convergence import random_params
+from mogs_node import msgs
 from mogs_node.geometry import make_T, so3_exp
 from mogs_node.mapper.rasterizer import RasterParams
 
@@ -48,6 +53,43 @@ def test_launch_files_differ_only_in_the_depth_the_mapper_gets(tmp_path: Path) -
     for k in ("mogs", "random"):
         n = {x["name"]: x for x in launch_dict(k, 30, tmp_path / k, over)["nodes"]}
         assert n["mapper"]["params"]["final_refine_iters"] == 0
+
+
+def test_random_depth_takes_the_metrizers_pixels_and_only_its_values_are_random(
+    tmp_path: Path,
+) -> None:
+    """Random depth on the pixels where the metrizer has depth (the sky keeps none: the far
+    sphere takes it for every init alike), confidence 0; ``same_pixels: false`` (set on the
+    randomizer node, read back by the convergence replay) puts it on every pixel."""
+    d = np.full((6, 8), 4.0, np.float32)
+    d[:2] = 0.0  # sky
+    d[3, 3] = np.nan
+    m = msgs.DepthMap(
+        stamp_ns=5,
+        frame_id="cam",
+        keyframe_id=3,
+        kind="metric",
+        depth=d,
+        confidence=np.ones_like(d),
+        source="metrizer",
+    )
+    r = random_depth_msg(m)
+    has = np.isfinite(d) & (d > 0)
+    assert (r.depth[~has] == 0).all() and (r.depth[has] >= 1.0).all() and (r.depth <= 50).all()
+    assert not (r.confidence != 0).any() and r.source == "random"
+    assert random_depth_msg(m).depth.tobytes() == r.depth.tobytes()  # seeded by the keyframe
+    every = random_depth_msg(m, RandomDepthParams(same_pixels=False))
+    assert (every.depth >= 1.0).all()
+    np.testing.assert_array_equal(every.depth[has], r.depth[has])
+    over = {"mapper": {"final_refine_iters": 0}, "randomizer": {"same_pixels": False}}
+    launch = launch_dict("random", 30, tmp_path, over)
+    node = next(n for n in launch["nodes"] if n["name"] == "randomizer")
+    assert node["params"] == {"same_pixels": False}
+    path = tmp_path / "launch.yaml"
+    path.write_text(yaml.safe_dump(launch))
+    assert random_params(path) == RandomDepthParams(same_pixels=False)
+    path.write_text(yaml.safe_dump(launch_dict("mogs", 30, tmp_path)))
+    assert random_params(path) == RandomDepthParams()  # another init's run: the defaults
 
 
 def _gaussians(rgb: np.ndarray, depth: float, K: np.ndarray, T: np.ndarray, keyframe_id: int):
