@@ -8,6 +8,11 @@ then times them interleaved call by call (process CPU time, one thread: fair on 
 
     git show main:mogs_node/mapper/csrc/composite_cpu.cpp > /tmp/old.cpp
     .venv/bin/python bench/composite_ab.py --old /tmp/old.cpp
+
+``--journal J --at-keyframe N`` captures the inputs of a real training render instead: the demo
+journal ``J`` replayed through the mapper core (``bench/mapper_replay.py``, ``launch/demo.yaml``'s
+mapper) for ``N`` keyframes, then one training iteration of the newest keyframe at the training
+resolution, with that iteration's loss gradient as the upstream gradient.
 """
 
 from __future__ import annotations
@@ -45,6 +50,39 @@ def build(name: str, src: Path, root: Path, flags: list[str]):
         build_directory=str(build_dir),
         verbose=False,
     )
+
+
+class _Recorder:
+    """Stands in for the extension module: records the last forward and backward arguments."""
+
+    def __init__(self, real) -> None:
+        self.real, self.cap = real, {}
+
+    def forward(self, *a):
+        self.cap["f"] = a
+        return self.real.forward(*a)
+
+    def backward(self, *a):
+        self.cap["b"] = a
+        return self.real.backward(*a)
+
+
+def capture_journal(journal: Path, n_keyframes: int) -> tuple[tuple, list, str]:
+    """The (forward, backward) arguments of one real training iteration: the newest keyframe after
+    replaying ``n_keyframes`` of ``journal`` through the mapper core."""
+    from bench.mapper_replay import mapper_params, read_journal, replay
+
+    p = mapper_params(str(Path(comp.__file__).parents[2] / "launch" / "demo.yaml"), {})
+    mapper, _ = replay(read_journal(journal), p, n_keyframes)
+    rec = _Recorder(comp.load_cpp_extension())
+    saved = comp.load_cpp_extension
+    comp.load_cpp_extension = lambda: rec
+    try:
+        mapper._train_step(mapper.window[0], -1, mapper._lrs())
+    finally:
+        comp.load_cpp_extension = saved
+    w, h = mapper.train_size
+    return rec.cap["f"], list(rec.cap["b"]), f"journal kf {n_keyframes} {w}x{h}"
 
 
 def capture_args(n: int, width: int, height: int) -> tuple[tuple, list]:
@@ -86,30 +124,50 @@ def main() -> int:
     ap.add_argument("--new-flags", default="", help="extra compiler flags for --new")
     ap.add_argument("--gaussians", type=int, default=40_000)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--journal", type=Path, default=None, help="a demo run's journal.log")
+    ap.add_argument("--at-keyframe", type=int, default=8, help="with --journal: replay this many")
+    ap.add_argument("--threads", type=int, default=1, help="the kernels' thread count")
     args = ap.parse_args()
     torch.set_num_threads(1)
     root = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or tempfile.gettempdir()) / "composite_ab"
     old = build("composite_ab_old", args.old, root, [])
     new = build("composite_ab_new", args.new, root, args.new_flags.split())
-    for width, height in SIZES:
-        fa, ba = capture_args(args.gaussians, width, height)
+    cases = []
+    if args.journal is not None:
+        cases.append(capture_journal(args.journal, args.at_keyframe))
+    else:
+        for width, height in SIZES:
+            cases.append((*capture_args(args.gaussians, width, height), f"{width}x{height}"))
+    for fa, ba, label in cases:
+        fa, ba = list(fa), list(ba)
+        fa[-1] = ba[-1] = args.threads
         same_f = all(torch.equal(x, y) for x, y in zip(old.forward(*fa), new.forward(*fa)))
         same_b = torch.equal(old.backward(*ba), new.backward(*ba))
+        if args.threads > 1:  # and against the old kernel on one thread (thread-count free?)
+            one_f, one_b = list(fa), list(ba)
+            one_f[-1] = one_b[-1] = 1
+            same_f = same_f and all(
+                torch.equal(x, y) for x, y in zip(old.forward(*one_f), new.forward(*fa))
+            )
+            same_one_b = torch.equal(old.backward(*one_b), new.backward(*ba))
+            print(f"{label}: new on {args.threads} threads == old on 1 thread: {same_one_b}")
         times: dict[str, list[float]] = {k: [] for k in ("of", "nf", "ob", "nb")}
+        walls: dict[str, list[float]] = {k: [] for k in times}
         for _ in range(args.repeats):
             for tag, ext in (("o", old), ("n", new)):
-                c = time.process_time()
-                ext.forward(*fa)
-                times[tag + "f"].append(time.process_time() - c)
-                c = time.process_time()
-                ext.backward(*ba)
-                times[tag + "b"].append(time.process_time() - c)
+                for pas, call, a in (("f", ext.forward, fa), ("b", ext.backward, ba)):
+                    c, w = time.process_time(), time.perf_counter()
+                    call(*a)
+                    times[tag + pas].append(time.process_time() - c)
+                    walls[tag + pas].append(time.perf_counter() - w)
         m = {k: median(v) * 1e3 for k, v in times.items()}
+        mw = {k: median(v) * 1e3 for k, v in walls.items()}
         print(
-            f"{width}x{height} entries={len(fa[1])} bit-identical forward={same_f} "
+            f"{label} entries={len(fa[1])} bit-identical forward={same_f} "
             f"backward={same_b} | forward old {m['of']:.1f} ms new {m['nf']:.1f} ms "
             f"(old/new {m['of'] / m['nf']:.2f}) | backward old {m['ob']:.1f} ms new "
-            f"{m['nb']:.1f} ms (old/new {m['ob'] / m['nb']:.2f})"
+            f"{m['nb']:.1f} ms (old/new {m['ob'] / m['nb']:.2f}) | wall ms fwd old/new "
+            f"{mw['of']:.1f}/{mw['nf']:.1f} bwd {mw['ob']:.1f}/{mw['nb']:.1f}"
         )
     return 0
 

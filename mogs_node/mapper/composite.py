@@ -147,7 +147,8 @@ class CompositeJob:
     """What one compositing pass needs: screen-space Gaussians ``means2d`` [N, 2] px,
     ``conics`` [N, 3], ``opacity`` [N], their features ``feats`` [N, C] (C <= 8) and the
     background ``bg`` [C], all one float dtype; their depth-sorted tile lists ``bins``, the image
-    size and ``thresholds = (alpha_min, alpha_max, t_min)``."""
+    size and ``thresholds = (alpha_min, alpha_max, t_min)``; ``threads`` of the C++ passes (0:
+    ``torch.get_num_threads()``; the result does not depend on it)."""
 
     means2d: torch.Tensor
     conics: torch.Tensor
@@ -158,6 +159,7 @@ class CompositeJob:
     width: int
     height: int
     thresholds: tuple[float, float, float]
+    threads: int = 0
 
     def tensors(
         self,
@@ -168,10 +170,10 @@ class CompositeJob:
 
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds):
+    def forward(ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds, threads):
         ext = load_cpp_extension()
         alpha_min, alpha_max, t_min = thresholds
-        nthreads = torch.get_num_threads()
+        nthreads = threads or torch.get_num_threads()
         args = (
             bins.tile_offsets,
             bins.gauss_ids,
@@ -187,7 +189,7 @@ class _CompositeCpp(torch.autograd.Function):
         )
         weights = _entry_weights_per_gaussian(bins.gauss_ids, entry_w, means2d.shape[0])
         ctx.save_for_backward(*args[2:], final_T, n_contrib)
-        ctx.bins, ctx.size, ctx.thr = bins, (width, height), thresholds
+        ctx.bins, ctx.size, ctx.thr, ctx.nthreads = bins, (width, height), thresholds, nthreads
         ctx.mark_non_differentiable(final_T, counts, weights)
         return out, final_T, counts, weights
 
@@ -214,10 +216,10 @@ class _CompositeCpp(torch.autograd.Function):
             bins.tiles_x,
             alpha_min,
             alpha_max,
-            torch.get_num_threads(),
+            ctx.nthreads,
         )
         grad_bg = (final_T[..., None] * grad_out).sum((0, 1))
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None, None
 
 
 def composite_torch(
@@ -307,7 +309,9 @@ def composite(
     ``"torch"``.
     """
     if backend in ("auto", "cpp") and load_cpp_extension() is not None:
-        return _CompositeCpp.apply(*job.tensors(), job.bins, job.width, job.height, job.thresholds)
+        return _CompositeCpp.apply(
+            *job.tensors(), job.bins, job.width, job.height, job.thresholds, job.threads
+        )
     if backend == "cpp":
         log.warning("composite: C++ backend requested but unavailable; using pure PyTorch")
     return composite_torch(job)

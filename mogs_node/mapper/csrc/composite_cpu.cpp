@@ -8,29 +8,20 @@
 // The backward pass walks each pixel's list back to front (3DGS backward), recovering T by division.
 // The forward also returns each list entry's summed blending weight sum_p alpha T over the tile's
 // pixels (entry_w, one slot per entry, so no float atomics); the caller sums them per Gaussian.
-// Gradients are accumulated in per-thread buffers and summed at the end (no atomics on floats);
-// the backward hands tiles to threads in a fixed round-robin order (schedule(static, 1)), so a
-// given thread count gives bitwise the same gradients on every run (dynamic scheduling did not).
+// The backward writes each list entry's gradient (the sums over its tile's pixels) into its own
+// slot, then one serial pass adds the slots into each Gaussian's gradient in list order (tile by
+// tile, the order a single thread visits them): no float atomics, and bitwise the same gradients
+// for ANY thread count and schedule, the same as one thread's. So the thread count is a speed
+// setting only: two threads give the map of one (and the forward is thread-count free too).
 #include <torch/extension.h>
 
 #include <algorithm>
 #include <cmath>
 #include <vector>
-#ifdef _OPENMP
-#include <omp.h>
-#endif
 
 namespace {
 
 constexpr int kMaxC = 8;
-
-inline int thread_id() {
-#ifdef _OPENMP
-  return omp_get_thread_num();
-#else
-  return 0;
-#endif
-}
 
 template <typename scalar_t>
 struct Packed {
@@ -228,19 +219,21 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
                      const torch::Tensor& ext, const torch::Tensor& final_T,
                      const torch::Tensor& n_contrib, const torch::Tensor& grad_out, int64_t W,
                      int64_t H, int64_t tile, int64_t tiles_x, double alpha_min, double alpha_max,
-                     int nthreads, torch::Tensor& gbuf) {
-  // gbuf: [nthreads, N, 6 + C]: d means2d (2), d conic (3), d opacity (1), d feats (C)
+                     int nthreads, torch::Tensor& grad) {
+  // grad: [N, 6 + C] zeros: d means2d (2), d conic (3), d opacity (1), d feats (C)
   const TileInputs<scalar_t> in(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext,
                                 alpha_min, alpha_max);
   const int64_t C = in.C;
-  const int64_t N = means2d.size(0);
   const int64_t S = 6 + C;
   const scalar_t* fe = in.fe;
   const scalar_t* bgp = in.bgp;
   const scalar_t* Tp = final_T.data_ptr<scalar_t>();
   const int32_t* ncp = n_contrib.data_ptr<int32_t>();
   const scalar_t* go = grad_out.data_ptr<scalar_t>();
-  scalar_t* gb = gbuf.data_ptr<scalar_t>();
+  const int64_t M = gauss_ids.size(0);
+  // per list entry: its gradient sums (written only where `used`), reduced serially below
+  std::vector<scalar_t> slots(static_cast<size_t>(M) * S);
+  std::vector<char> used(M, 0);
   const scalar_t amax = in.amax, amin = in.amin;
   const int64_t P = tile * tile;
 
@@ -250,8 +243,7 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
     std::vector<scalar_t> T(P), Tfin(P), accum(P * C), last_f(P * C), last_alpha(P), dout(P * C),
         bg_dot(P);
     std::vector<int32_t> nc(P);
-    scalar_t* g_thread = gb + static_cast<int64_t>(thread_id()) * N * S;
-#pragma omp for schedule(static, 1)
+#pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < in.n_tiles; ++t) {
       const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
       const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
@@ -325,11 +317,21 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
           }
         }
         if (any) {
-          scalar_t* g = g_thread + p.id * S;
-          for (int64_t j = 0; j < S; ++j) g[j] += gl[j];
+          const int64_t e = in.offs[t] + k;
+          std::copy(gl, gl + S, slots.data() + e * S);
+          used[e] = 1;
         }
       }
     }
+  }
+  // each Gaussian's entries in list order (tiles ascending): the order one thread adds them in
+  scalar_t* g = grad.data_ptr<scalar_t>();
+  const int64_t* ids = in.ids;
+  for (int64_t e = 0; e < M; ++e) {
+    if (!used[e]) continue;
+    scalar_t* gi = g + ids[e] * S;
+    const scalar_t* se = slots.data() + e * S;
+    for (int64_t j = 0; j < S; ++j) gi[j] += se[j];
   }
 }
 
@@ -377,13 +379,13 @@ torch::Tensor composite_backward(torch::Tensor tile_offsets, torch::Tensor gauss
   check_inputs(means2d, conics, opac, feats, bg);
   TORCH_CHECK(grad_out.is_contiguous(), "composite_backward: grad_out must be contiguous");
   const int64_t C = feats.size(1);
-  auto gbuf = torch::zeros({nthreads, means2d.size(0), 6 + C}, feats.options());
+  auto grad = torch::zeros({means2d.size(0), 6 + C}, feats.options());
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "composite_backward", [&] {
     backward_kernel<scalar_t>(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext, final_T,
                               n_contrib, grad_out, W, H, tile, tiles_x, alpha_min, alpha_max,
-                              static_cast<int>(nthreads), gbuf);
+                              static_cast<int>(nthreads), grad);
   });
-  return gbuf.sum(0);
+  return grad;
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
