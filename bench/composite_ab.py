@@ -109,8 +109,27 @@ def capture_args(n: int, width: int, height: int) -> tuple[tuple, list]:
     finally:
         comp.load_cpp_extension = saved
     back = list(cap["b"])
-    back[10] = torch.randn(back[10].shape, generator=torch.Generator().manual_seed(1))
+    back[-8] = torch.randn(back[-8].shape, generator=torch.Generator().manual_seed(1))  # grad_out
     return cap["f"], back
+
+
+def run_forward(ext, fa: list, threads: int) -> list:
+    """``ext``'s forward on the captured arguments (this tree's signature: ..., nthreads,
+    record) at ``threads``; an older kernel without the record flag gets the arguments without it."""
+    a = [*fa[:-2], threads, True]
+    try:
+        return list(ext.forward(*a))
+    except TypeError:  # an older kernel: no record flag
+        return list(ext.forward(*a[:-1]))
+
+
+def run_backward(ext, ba: list, fwd: list, threads: int):
+    """``ext``'s backward on the captured arguments, with what its own forward ``fwd`` returned
+    (the record of this tree's kernel, or ``n_contrib`` for an older one) at ``threads``."""
+    head, tail = ba[:9], [*ba[-8:-1], threads]  # ... final_T | grad_out, W, ..., nthreads
+    if len(fwd) > 5:
+        return ext.backward(*head, *fwd[5:9], *tail)
+    return ext.backward(*head, fwd[2], *tail)
 
 
 def median(v: list[float]) -> float:
@@ -140,26 +159,27 @@ def main() -> int:
             cases.append((*capture_args(args.gaussians, width, height), f"{width}x{height}"))
     for fa, ba, label in cases:
         fa, ba = list(fa), list(ba)
-        fa[-1] = ba[-1] = args.threads
-        same_f = all(torch.equal(x, y) for x, y in zip(old.forward(*fa), new.forward(*fa)))
-        same_b = torch.equal(old.backward(*ba), new.backward(*ba))
-        if args.threads > 1:  # and against the old kernel on one thread (thread-count free?)
-            one_f, one_b = list(fa), list(ba)
-            one_f[-1] = one_b[-1] = 1
-            same_f = same_f and all(
-                torch.equal(x, y) for x, y in zip(old.forward(*one_f), new.forward(*fa))
-            )
-            same_one_b = torch.equal(old.backward(*one_b), new.backward(*ba))
-            print(f"{label}: new on {args.threads} threads == old on 1 thread: {same_one_b}")
+        th = args.threads
+        fo, fn = run_forward(old, fa, th), run_forward(new, fa, th)
+        same_f = all(torch.equal(x, y) for x, y in zip(fo[:5], fn[:5]))
+        same_b = torch.equal(run_backward(old, ba, fo, th), run_backward(new, ba, fn, th))
+        if th > 1:  # and against the old kernel on one thread (thread-count free?)
+            f1 = run_forward(old, fa, 1)
+            same_f = same_f and all(torch.equal(x, y) for x, y in zip(f1[:5], fn[:5]))
+            same_one_b = torch.equal(run_backward(old, ba, f1, 1), run_backward(new, ba, fn, th))
+            print(f"{label}: new on {th} threads == old on 1 thread: {same_one_b}")
         times: dict[str, list[float]] = {k: [] for k in ("of", "nf", "ob", "nb")}
         walls: dict[str, list[float]] = {k: [] for k in times}
         for _ in range(args.repeats):
             for tag, ext in (("o", old), ("n", new)):
-                for pas, call, a in (("f", ext.forward, fa), ("b", ext.backward, ba)):
-                    c, w = time.process_time(), time.perf_counter()
-                    call(*a)
-                    times[tag + pas].append(time.process_time() - c)
-                    walls[tag + pas].append(time.perf_counter() - w)
+                c, w = time.process_time(), time.perf_counter()
+                fwd = run_forward(ext, fa, th)
+                times[tag + "f"].append(time.process_time() - c)
+                walls[tag + "f"].append(time.perf_counter() - w)
+                c, w = time.process_time(), time.perf_counter()
+                run_backward(ext, ba, fwd, th)
+                times[tag + "b"].append(time.process_time() - c)
+                walls[tag + "b"].append(time.perf_counter() - w)
         m = {k: median(v) * 1e3 for k, v in times.items()}
         mw = {k: median(v) * 1e3 for k, v in walls.items()}
         print(

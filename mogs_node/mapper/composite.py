@@ -170,7 +170,9 @@ class CompositeJob:
 
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds, threads):
+    def forward(
+        ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds, threads, record
+    ):
         ext = load_cpp_extension()
         alpha_min, alpha_max, t_min = thresholds
         nthreads = threads or torch.get_num_threads()
@@ -184,18 +186,28 @@ class _CompositeCpp(torch.autograd.Function):
             bg.contiguous(),
             bins.extent_px.to(feats.dtype).contiguous(),
         )
-        out, final_T, n_contrib, counts, entry_w = ext.forward(
-            *args, width, height, bins.tile_px, bins.tiles_x, alpha_min, alpha_max, t_min, nthreads
+        # record: the forward keeps its contributions for the backward (only when one can follow)
+        out, final_T, _, counts, entry_w, *rec = ext.forward(
+            *args,
+            width,
+            height,
+            bins.tile_px,
+            bins.tiles_x,
+            alpha_min,
+            alpha_max,
+            t_min,
+            nthreads,
+            record,
         )
         weights = _entry_weights_per_gaussian(bins.gauss_ids, entry_w, means2d.shape[0])
-        ctx.save_for_backward(*args[2:], final_T, n_contrib)
+        ctx.save_for_backward(*args[2:], final_T, *rec)
         ctx.bins, ctx.size, ctx.thr, ctx.nthreads = bins, (width, height), thresholds, nthreads
         ctx.mark_non_differentiable(final_T, counts, weights)
         return out, final_T, counts, weights
 
     @staticmethod
     def backward(ctx, grad_out, _grad_T, _grad_counts, _grad_weights):
-        means2d, conics, opacity, feats, bg, ext, final_T, n_contrib = ctx.saved_tensors
+        means2d, conics, opacity, feats, bg, ext, final_T, *rec = ctx.saved_tensors
         bins, (width, height) = ctx.bins, ctx.size
         alpha_min, alpha_max, _ = ctx.thr
         g = load_cpp_extension().backward(
@@ -208,7 +220,7 @@ class _CompositeCpp(torch.autograd.Function):
             bg,
             ext,
             final_T,
-            n_contrib,
+            *rec,
             grad_out.contiguous(),
             width,
             height,
@@ -219,7 +231,7 @@ class _CompositeCpp(torch.autograd.Function):
             ctx.nthreads,
         )
         grad_bg = (final_T[..., None] * grad_out).sum((0, 1))
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None, None
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None, None, None
 
 
 def composite_torch(
@@ -309,8 +321,9 @@ def composite(
     ``"torch"``.
     """
     if backend in ("auto", "cpp") and load_cpp_extension() is not None:
+        record = torch.is_grad_enabled() and any(t.requires_grad for t in job.tensors())
         return _CompositeCpp.apply(
-            *job.tensors(), job.bins, job.width, job.height, job.thresholds, job.threads
+            *job.tensors(), job.bins, job.width, job.height, job.thresholds, job.threads, record
         )
     if backend == "cpp":
         log.warning("composite: C++ backend requested but unavailable; using pure PyTorch")

@@ -14,11 +14,11 @@ from hypothesis import strategies as st
 import mogs_node.mapper.mapper as mapper_mod
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T, rotmat_from_rpy
+from mogs_node.mapper.composite import cpp_extension_available
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap
 from mogs_node.mapper.keyframe import KeyframeState
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply, resolve_device
 from mogs_node.mapper.node import MapperNodeParams
-from mogs_node.mapper.composite import cpp_extension_available
 from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, render
 
 W, H = 64, 32
