@@ -489,7 +489,70 @@ torch::Tensor composite_backward(torch::Tensor tile_offsets, torch::Tensor gauss
   return grad;
 }
 
+// Tile binning (mogs_node/mapper/projection.py:bin_tiles, the same result exactly): the valid
+// Gaussians stably sorted by their float32 depth key, each appended to every tile its support box
+// [ceil(u - ex), floor(u + ex)] x [ceil(v - ey), floor(v + ey)] (clamped to the image) overlaps, in
+// that depth order: a counting sort by tile instead of torch's sort of the expanded list. Returns
+// {tile_offsets [n_tiles + 1], gauss_ids [M]}, or {} when a valid Gaussian has a NaN centre or
+// extent (the caller's torch path handles those).
+std::vector<torch::Tensor> bin_tiles(torch::Tensor depth_key, torch::Tensor valid,
+                                     torch::Tensor means2d, torch::Tensor ext, int64_t W, int64_t H,
+                                     int64_t tile) {
+  TORCH_CHECK(depth_key.scalar_type() == torch::kFloat32 && valid.scalar_type() == torch::kBool,
+              "bin_tiles: float32 depth keys and a bool valid mask");
+  TORCH_CHECK(depth_key.is_contiguous() && valid.is_contiguous() && tile > 0 && W > 0 && H > 0,
+              "bin_tiles: contiguous inputs, positive sizes");
+  auto m2 = means2d.to(torch::kFloat64).contiguous();
+  auto ex = ext.to(torch::kFloat64).contiguous();
+  const int64_t N = depth_key.size(0);
+  const float* key = depth_key.data_ptr<float>();
+  const bool* ok = valid.data_ptr<bool>();
+  const double* uv = m2.data_ptr<double>();
+  const double* e = ex.data_ptr<double>();
+  std::vector<int64_t> order;
+  order.reserve(N);
+  for (int64_t i = 0; i < N; ++i) {
+    if (!ok[i]) continue;
+    if (std::isnan(uv[2 * i]) || std::isnan(uv[2 * i + 1]) || std::isnan(e[2 * i]) ||
+        std::isnan(e[2 * i + 1]) || std::isnan(key[i]))
+      return {};
+    order.push_back(i);
+  }
+  std::stable_sort(order.begin(), order.end(),
+                   [key](int64_t a, int64_t b) { return key[a] < key[b]; });
+  const int64_t tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
+  const int64_t n_tiles = tiles_x * tiles_y;
+  const int64_t n = static_cast<int64_t>(order.size());
+  std::vector<int64_t> box(4 * n);  // x0, x1, y0, y1 in tiles (empty when x0 > x1 or y0 > y1)
+  auto cell = [tile](double v, double hi) {  // clamp(v, 0, hi).long() // tile, as torch does
+    return static_cast<int64_t>(std::min(std::max(v, 0.0), hi)) / tile;
+  };
+  auto offsets = torch::zeros({n_tiles + 1}, torch::kInt64);
+  int64_t* off = offsets.data_ptr<int64_t>();
+  for (int64_t j = 0; j < n; ++j) {
+    const int64_t g = order[j];
+    int64_t* b = box.data() + 4 * j;
+    b[0] = cell(std::ceil(uv[2 * g] - e[2 * g]), double(W - 1));
+    b[1] = cell(std::floor(uv[2 * g] + e[2 * g]), double(W - 1));
+    b[2] = cell(std::ceil(uv[2 * g + 1] - e[2 * g + 1]), double(H - 1));
+    b[3] = cell(std::floor(uv[2 * g + 1] + e[2 * g + 1]), double(H - 1));
+    for (int64_t ty = b[2]; ty <= b[3]; ++ty)
+      for (int64_t tx = b[0]; tx <= b[1]; ++tx) ++off[ty * tiles_x + tx + 1];
+  }
+  for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
+  auto ids = torch::empty({off[n_tiles]}, torch::kInt64);
+  int64_t* idp = ids.data_ptr<int64_t>();
+  std::vector<int64_t> pos(off, off + n_tiles);
+  for (int64_t j = 0; j < n; ++j) {
+    const int64_t* b = box.data() + 4 * j;
+    for (int64_t ty = b[2]; ty <= b[3]; ++ty)
+      for (int64_t tx = b[0]; tx <= b[1]; ++tx) idp[pos[ty * tiles_x + tx]++] = order[j];
+  }
+  return {offsets, ids};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("bin_tiles", &bin_tiles, "tile binning (CPU), exactly projection.bin_tiles's result");
   m.def("forward", &composite_forward, "tile compositing forward (CPU)");
   m.def("backward", &composite_backward, "tile compositing backward (CPU)");
 }
