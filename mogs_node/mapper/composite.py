@@ -147,7 +147,8 @@ class CompositeJob:
     """What one compositing pass needs: screen-space Gaussians ``means2d`` [N, 2] px,
     ``conics`` [N, 3], ``opacity`` [N], their features ``feats`` [N, C] (C <= 8) and the
     background ``bg`` [C], all one float dtype; their depth-sorted tile lists ``bins``, the image
-    size and ``thresholds = (alpha_min, alpha_max, t_min)``."""
+    size and ``thresholds = (alpha_min, alpha_max, t_min)``; ``threads`` of the C++ passes (0:
+    ``torch.get_num_threads()``; the result does not depend on it)."""
 
     means2d: torch.Tensor
     conics: torch.Tensor
@@ -158,6 +159,7 @@ class CompositeJob:
     width: int
     height: int
     thresholds: tuple[float, float, float]
+    threads: int = 0
 
     def tensors(
         self,
@@ -168,10 +170,12 @@ class CompositeJob:
 
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds):
+    def forward(
+        ctx, means2d, conics, opacity, feats, bg, bins, width, height, thresholds, threads, record
+    ):
         ext = load_cpp_extension()
         alpha_min, alpha_max, t_min = thresholds
-        nthreads = torch.get_num_threads()
+        nthreads = threads or torch.get_num_threads()
         args = (
             bins.tile_offsets,
             bins.gauss_ids,
@@ -182,18 +186,28 @@ class _CompositeCpp(torch.autograd.Function):
             bg.contiguous(),
             bins.extent_px.to(feats.dtype).contiguous(),
         )
-        out, final_T, n_contrib, counts, entry_w = ext.forward(
-            *args, width, height, bins.tile_px, bins.tiles_x, alpha_min, alpha_max, t_min, nthreads
+        # record: the forward keeps its contributions for the backward (only when one can follow)
+        out, final_T, _, counts, entry_w, *rec = ext.forward(
+            *args,
+            width,
+            height,
+            bins.tile_px,
+            bins.tiles_x,
+            alpha_min,
+            alpha_max,
+            t_min,
+            nthreads,
+            record,
         )
         weights = _entry_weights_per_gaussian(bins.gauss_ids, entry_w, means2d.shape[0])
-        ctx.save_for_backward(*args[2:], final_T, n_contrib)
-        ctx.bins, ctx.size, ctx.thr = bins, (width, height), thresholds
+        ctx.save_for_backward(*args[2:], final_T, *rec)
+        ctx.bins, ctx.size, ctx.thr, ctx.nthreads = bins, (width, height), thresholds, nthreads
         ctx.mark_non_differentiable(final_T, counts, weights)
         return out, final_T, counts, weights
 
     @staticmethod
     def backward(ctx, grad_out, _grad_T, _grad_counts, _grad_weights):
-        means2d, conics, opacity, feats, bg, ext, final_T, n_contrib = ctx.saved_tensors
+        means2d, conics, opacity, feats, bg, ext, final_T, *rec = ctx.saved_tensors
         bins, (width, height) = ctx.bins, ctx.size
         alpha_min, alpha_max, _ = ctx.thr
         g = load_cpp_extension().backward(
@@ -206,7 +220,7 @@ class _CompositeCpp(torch.autograd.Function):
             bg,
             ext,
             final_T,
-            n_contrib,
+            *rec,
             grad_out.contiguous(),
             width,
             height,
@@ -214,10 +228,10 @@ class _CompositeCpp(torch.autograd.Function):
             bins.tiles_x,
             alpha_min,
             alpha_max,
-            torch.get_num_threads(),
+            ctx.nthreads,
         )
         grad_bg = (final_T[..., None] * grad_out).sum((0, 1))
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], grad_bg, None, None, None, None, None, None
 
 
 def composite_torch(
@@ -307,7 +321,10 @@ def composite(
     ``"torch"``.
     """
     if backend in ("auto", "cpp") and load_cpp_extension() is not None:
-        return _CompositeCpp.apply(*job.tensors(), job.bins, job.width, job.height, job.thresholds)
+        record = torch.is_grad_enabled() and any(t.requires_grad for t in job.tensors())
+        return _CompositeCpp.apply(
+            *job.tensors(), job.bins, job.width, job.height, job.thresholds, job.threads, record
+        )
     if backend == "cpp":
         log.warning("composite: C++ backend requested but unavailable; using pure PyTorch")
     return composite_torch(job)

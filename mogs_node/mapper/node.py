@@ -90,6 +90,8 @@ class MapperNodeParams:
     source_node: str = "player"  # its "stopped" diagnostics mark the end of the drive
     backend: str = "auto"  # rasterizer backend: auto | cpp | torch | gsplat
     threads: int = 0  # torch threads (0: torch's default)
+    composite_threads: int = 0  # threads of the C++ compositing passes only (0: `threads`);
+    # the map is bitwise the same for any count (docs/mapper.md "Speed, session 15")
     max_pending: int = 16  # keyframes waiting for their depth (or depth for its keyframe)
     publish_render: bool = True  # publish /mapper/render after each keyframe
     render_at_train_size: bool = False  # ... at the training resolution (train_downsample):
@@ -112,8 +114,15 @@ class MapperNodeParams:
     gaussians_topic: str = "/mapper/gaussians"  # output incremental map updates
 
     def __post_init__(self) -> None:
-        if self.iters_per_keyframe < 0 or self.max_pending < 1 or self.threads < 0:
-            raise ConfigError("mapper: iters_per_keyframe >= 0, max_pending >= 1, threads >= 0")
+        if (
+            self.iters_per_keyframe < 0
+            or self.max_pending < 1
+            or self.threads < 0
+            or self.composite_threads < 0
+        ):
+            raise ConfigError(
+                "mapper: iters_per_keyframe >= 0, max_pending >= 1, threads, composite_threads >= 0"
+            )
         if self.final_refine_threads < 0:
             raise ConfigError("mapper.final_refine_threads: must be >= 0")
         if self.iters_when_behind < -1 or self.idle_iters_per_tick < 0:
@@ -139,7 +148,7 @@ class MapperNodeParams:
 
     def mapper_params(self) -> MapperParams:
         return MapperParams(
-            raster=RasterParams(backend=self.backend),
+            raster=RasterParams(backend=self.backend, threads=self.composite_threads),
             window_size=self.window_size,
             n_random_past=self.n_random_past,
             train_downsample=self.train_downsample,

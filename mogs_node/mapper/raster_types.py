@@ -26,6 +26,9 @@ class RasterParams:
     t_min: float = 1e-4  # a pixel stops when its transmittance would fall below this
     log_scale_min: float = -12.0  # log-scales are clamped into [min, max] before exp
     log_scale_max: float = 8.0
+    # threads of the C++ compositing passes (0: torch.get_num_threads()); a speed setting only:
+    # their results are bitwise the same for any thread count (csrc/composite_cpu.cpp)
+    threads: int = 0
 
     def __post_init__(self) -> None:
         if self.backend not in ("auto", "cpp", "torch", "gsplat", "reference"):
@@ -34,6 +37,8 @@ class RasterParams:
             raise ConfigError(
                 "RasterParams: tile_px, near_m must be > 0; 0 < alpha_min < alpha_max < 1"
             )
+        if self.threads < 0:
+            raise ConfigError(f"RasterParams.threads: must be >= 0, got {self.threads}")
 
 
 @dataclass

@@ -115,6 +115,7 @@ def render(
         width,
         height,
         (params.alpha_min, params.alpha_max, params.t_min),
+        params.threads,
     )
     out, _, counts, weights = composite(job, backend="torch" if backend == "torch" else "auto")
     return RenderOutput(out[..., :3], out[..., 3], out[..., 4], counts, weights)

@@ -14,11 +14,12 @@ from hypothesis import strategies as st
 import mogs_node.mapper.mapper as mapper_mod
 from mogs_node.errors import ConfigError
 from mogs_node.geometry import make_T, rotmat_from_rpy
+from mogs_node.mapper.composite import cpp_extension_available
 from mogs_node.mapper.gaussians import PARAM_NAMES, GaussianMap
 from mogs_node.mapper.keyframe import KeyframeState
 from mogs_node.mapper.mapper import GaussianMapper, MapperParams, export_ply, resolve_device
 from mogs_node.mapper.node import MapperNodeParams
-from mogs_node.mapper.rasterizer import GaussianTensors, render
+from mogs_node.mapper.rasterizer import GaussianTensors, RasterParams, render
 
 W, H = 64, 32
 K = np.array([[40.0, 0, 31.5], [0, 40.0, 15.5], [0, 0, 1]])
@@ -187,6 +188,26 @@ def test_cpu_map_is_bitwise_repeatable(tmp_path) -> None:
     export_ply(b, str(tmp_path / "b.ply"))
     assert len(a.map) > 0
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
+@pytest.mark.skipif(not cpp_extension_available(), reason="C++ extension could not be compiled")
+def test_the_map_is_the_same_with_one_or_two_compositing_threads(tmp_path) -> None:
+    """``composite_threads`` is a speed setting: 1 and 2 compositing threads (torch itself on one)
+    give byte-identical maps, so the demo's map does not depend on the cores it was given."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        kw = {"window_size": 2, "n_random_past": 1, "prune_contrib_px": 1.0}
+        maps = [build(4, 3, raster=RasterParams(threads=t), **kw) for t in (1, 2)]
+    finally:
+        torch.set_num_threads(n)
+    for m, name in zip(maps, ("a", "b"), strict=True):
+        export_ply(m, str(tmp_path / f"{name}.ply"))
+    assert len(maps[0].map) > 0
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    assert MapperNodeParams(composite_threads=2).mapper_params().raster.threads == 2
+    with pytest.raises(ConfigError, match="composite_threads"):
+        MapperNodeParams(composite_threads=-1)
 
 
 # ------------------------------------------------------------------------------ device plumbing

@@ -8,12 +8,15 @@
 // The backward pass walks each pixel's list back to front (3DGS backward), recovering T by division.
 // The forward also returns each list entry's summed blending weight sum_p alpha T over the tile's
 // pixels (entry_w, one slot per entry, so no float atomics); the caller sums them per Gaussian.
-// Gradients are accumulated in per-thread buffers and summed at the end (no atomics on floats);
-// the backward hands tiles to threads in a fixed round-robin order (schedule(static, 1)), so a
-// given thread count gives bitwise the same gradients on every run (dynamic scheduling did not).
+// The backward writes each list entry's gradient (the sums over its tile's pixels) into its own
+// slot, then one serial pass adds the slots into each Gaussian's gradient in list order (tile by
+// tile, the order a single thread visits them): no float atomics, and bitwise the same gradients
+// for ANY thread count and schedule, the same as one thread's. So the thread count is a speed
+// setting only: two threads give the map of one (and the forward is thread-count free too).
 #include <torch/extension.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <vector>
 #ifdef _OPENMP
@@ -23,14 +26,6 @@
 namespace {
 
 constexpr int kMaxC = 8;
-
-inline int thread_id() {
-#ifdef _OPENMP
-  return omp_get_thread_num();
-#else
-  return 0;
-#endif
-}
 
 template <typename scalar_t>
 struct Packed {
@@ -131,6 +126,41 @@ inline bool col_range(const Packed<scalar_t>& p, int64_t y, int64_t px0, int64_t
   return true;
 }
 
+// The forward's contributions, for the backward: per tile, in the order the forward visits them
+// (entries front to back, each entry's pixels row by row), exp(power) and the pixel (index in the
+// tile); per list entry, how many contributions it made. The backward replays exactly these
+// (the set of pixel-entry pairs it must visit is the forward's contributions: the entries before
+// a pixel's last contributor that pass the alpha tests), so it needs no chord geometry, no power
+// tests and no exp, and its arithmetic is the same as recomputing them (bitwise the same G).
+template <typename scalar_t>
+struct RecordBuffer {  // one thread's contributions, tile after tile: (tile, start, length)
+  std::vector<scalar_t> G;
+  std::vector<int16_t> px;
+  std::vector<std::array<int64_t, 3>> segments;
+};
+
+// Each thread's buffer lives as long as the thread (OpenMP keeps its pool): its capacity stays,
+// so a forward neither reallocates nor faults fresh pages for the record once warmed up.
+template <typename scalar_t>
+RecordBuffer<scalar_t>& thread_record_buffer() {
+  static thread_local RecordBuffer<scalar_t> buf;
+  return buf;
+}
+
+template <typename scalar_t>
+struct Record {
+  std::vector<RecordBuffer<scalar_t>*> buffers;  // by thread number
+  int32_t* entry_n;                              // [M], zero where the forward stopped before it
+};
+
+inline int thread_num() {
+#ifdef _OPENMP
+  return omp_get_thread_num();
+#else
+  return 0;
+#endif
+}
+
 template <typename scalar_t>
 void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gauss_ids,
                     const torch::Tensor& means2d, const torch::Tensor& conics,
@@ -138,7 +168,7 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
                     const torch::Tensor& ext, int64_t W, int64_t H, int64_t tile, int64_t tiles_x,
                     double alpha_min, double alpha_max, double t_min, int nthreads,
                     torch::Tensor& out, torch::Tensor& final_T, torch::Tensor& n_contrib,
-                    torch::Tensor& counts, torch::Tensor& entry_w) {
+                    torch::Tensor& counts, torch::Tensor& entry_w, Record<scalar_t>* rec) {
   const TileInputs<scalar_t> in(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext,
                                 alpha_min, alpha_max);
   const int64_t C = in.C;
@@ -159,6 +189,14 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
     std::vector<scalar_t> T(P), acc(P * C);
     std::vector<int32_t> last(P);
     std::vector<char> done(P);
+    RecordBuffer<scalar_t>* rb = nullptr;
+    if (rec) {
+      rb = &thread_record_buffer<scalar_t>();
+      rb->G.clear();
+      rb->px.clear();
+      rb->segments.clear();
+      rec->buffers[thread_num()] = rb;
+    }
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < in.n_tiles; ++t) {
       const int64_t n = offs[t + 1] - offs[t];
@@ -170,6 +208,8 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
       std::fill(acc.begin(), acc.end(), scalar_t(0));
       std::fill(last.begin(), last.end(), 0);
       std::fill(done.begin(), done.end(), 0);
+      const int64_t rec_start = rb ? static_cast<int64_t>(rb->G.size()) : 0;
+      int32_t* rec_n = rec ? rec->entry_n + offs[t] : nullptr;
       int64_t n_done = 0;
       for (int64_t k = 0; k < n && n_done < n_pix; ++k) {
         const Packed<scalar_t>& p = buf[k];
@@ -188,7 +228,8 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
             const scalar_t power = -static_cast<scalar_t>(0.5) * (p.a * dx * dx + p.c * dy * dy) -
                                    p.b * dx * dy;
             if (power > 0 || power < p.thr) continue;
-            const scalar_t alpha = std::min(amax, p.o * std::exp(power));
+            const scalar_t G = std::exp(power);
+            const scalar_t alpha = std::min(amax, p.o * G);
             if (alpha < amin) continue;
             const scalar_t test_T = T[i] * (1 - alpha);
             if (test_T < tmin) {
@@ -203,8 +244,13 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
             last[i] = static_cast<int32_t>(k + 1);
             ++used;
             w_sum += w;
+            if (rb) {  // what the backward needs of this contribution, in visiting order
+              rb->G.push_back(G);
+              rb->px.push_back(static_cast<int16_t>(i));
+            }
           }
         }
+        if (rb) rec_n[k] = used;
         if (used) __atomic_fetch_add(cnt + p.id, used, __ATOMIC_RELAXED);
         ewp[offs[t] + k] = w_sum;  // one slot per list entry: no float atomics, deterministic
       }
@@ -217,6 +263,7 @@ void forward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gaus
           ncp[pix] = last[i];
         }
       }
+      if (rb) rb->segments.push_back({t, rec_start, static_cast<int64_t>(rb->G.size()) - rec_start});
     }
   }
 }
@@ -226,43 +273,45 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
                      const torch::Tensor& means2d, const torch::Tensor& conics,
                      const torch::Tensor& opac, const torch::Tensor& feats, const torch::Tensor& bg,
                      const torch::Tensor& ext, const torch::Tensor& final_T,
-                     const torch::Tensor& n_contrib, const torch::Tensor& grad_out, int64_t W,
-                     int64_t H, int64_t tile, int64_t tiles_x, double alpha_min, double alpha_max,
-                     int nthreads, torch::Tensor& gbuf) {
-  // gbuf: [nthreads, N, 6 + C]: d means2d (2), d conic (3), d opacity (1), d feats (C)
+                     const torch::Tensor& rec_off, const torch::Tensor& rec_G,
+                     const torch::Tensor& rec_px, const torch::Tensor& entry_n,
+                     const torch::Tensor& grad_out, int64_t W, int64_t H, int64_t tile,
+                     int64_t tiles_x, double alpha_min, double alpha_max, int nthreads,
+                     torch::Tensor& grad) {
+  // grad: [N, 6 + C] zeros: d means2d (2), d conic (3), d opacity (1), d feats (C)
   const TileInputs<scalar_t> in(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext,
                                 alpha_min, alpha_max);
   const int64_t C = in.C;
-  const int64_t N = means2d.size(0);
   const int64_t S = 6 + C;
   const scalar_t* fe = in.fe;
   const scalar_t* bgp = in.bgp;
   const scalar_t* Tp = final_T.data_ptr<scalar_t>();
-  const int32_t* ncp = n_contrib.data_ptr<int32_t>();
+  const int64_t* roff = rec_off.data_ptr<int64_t>();
+  const scalar_t* rG = rec_G.data_ptr<scalar_t>();
+  const int16_t* rpx = rec_px.data_ptr<int16_t>();
+  const int32_t* en = entry_n.data_ptr<int32_t>();
   const scalar_t* go = grad_out.data_ptr<scalar_t>();
-  scalar_t* gb = gbuf.data_ptr<scalar_t>();
-  const scalar_t amax = in.amax, amin = in.amin;
+  const int64_t M = gauss_ids.size(0);
+  // per list entry: its gradient sums (written only where `used`), reduced serially below
+  std::vector<scalar_t> slots(static_cast<size_t>(M) * S);
+  std::vector<char> used(M, 0);
+  const scalar_t amax = in.amax;
   const int64_t P = tile * tile;
 
 #pragma omp parallel num_threads(nthreads)
   {
-    std::vector<Packed<scalar_t>> buf;
     std::vector<scalar_t> T(P), Tfin(P), accum(P * C), last_f(P * C), last_alpha(P), dout(P * C),
         bg_dot(P);
-    std::vector<int32_t> nc(P);
-    scalar_t* g_thread = gb + static_cast<int64_t>(thread_id()) * N * S;
-#pragma omp for schedule(static, 1)
+#pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < in.n_tiles; ++t) {
+      if (roff[t + 1] == roff[t]) continue;  // nothing drawn in this tile
       const int64_t px0 = (t % tiles_x) * tile, py0 = (t / tiles_x) * tile;
       const int64_t px1 = std::min(px0 + tile, W), py1 = std::min(py0 + tile, H);
-      int32_t max_nc = 0;
       for (int64_t y = py0; y < py1; ++y) {
         for (int64_t x = px0; x < px1; ++x) {
           const int64_t i = (y - py0) * tile + (x - px0);
           const int64_t pix = y * W + x;
           T[i] = Tfin[i] = Tp[pix];
-          nc[i] = ncp[pix];
-          max_nc = std::max(max_nc, nc[i]);
           scalar_t bd = 0;
           for (int64_t ch = 0; ch < C; ++ch) {
             dout[i * C + ch] = go[pix * C + ch];
@@ -274,61 +323,94 @@ void backward_kernel(const torch::Tensor& tile_offsets, const torch::Tensor& gau
           last_alpha[i] = 0;
         }
       }
-      if (max_nc == 0) continue;
-      in.pack(t, max_nc, alpha_min, buf);
-      for (int64_t k = max_nc - 1; k >= 0; --k) {
-        const Packed<scalar_t>& p = buf[k];
-        const scalar_t* f = fe + p.id * C;
+      // entries back to front; each entry's contributions in the forward's order
+      int64_t r_end = roff[t + 1];
+      for (int64_t k = in.offs[t + 1] - in.offs[t] - 1; k >= 0; --k) {
+        const int32_t n_rec = en[in.offs[t] + k];
+        if (n_rec == 0) continue;
+        const int64_t r0 = r_end - n_rec;
+        r_end = r0;
+        const int64_t id = in.ids[in.offs[t] + k];
+        const scalar_t mx = in.m2[2 * id], my = in.m2[2 * id + 1];
+        const scalar_t a = in.co[3 * id], b = in.co[3 * id + 1], c = in.co[3 * id + 2];
+        const scalar_t o = in.op[id];
+        const scalar_t* f = fe + id * C;
         scalar_t gl[6 + kMaxC] = {0};
-        bool any = false;
-        int64_t y0, y1, x0, x1;
-        row_range(p, py0, py1, y0, y1);
-        for (int64_t y = y0; y <= y1; ++y) {
-          if (!col_range(p, y, px0, px1, x0, x1)) continue;
-          const scalar_t dy = p.my - static_cast<scalar_t>(y);
-          for (int64_t x = x0; x <= x1; ++x) {
-            const int64_t i = (y - py0) * tile + (x - px0);
-            if (k >= nc[i]) continue;
-            const scalar_t dx = p.mx - static_cast<scalar_t>(x);
-            const scalar_t power = -static_cast<scalar_t>(0.5) * (p.a * dx * dx + p.c * dy * dy) -
-                                   p.b * dx * dy;
-            if (power > 0 || power < p.thr) continue;
-            const scalar_t G = std::exp(power);
-            const scalar_t raw = p.o * G;
-            const scalar_t alpha = std::min(amax, raw);
-            if (alpha < amin) continue;
-            any = true;
-            T[i] = T[i] / (1 - alpha);
-            const scalar_t w = alpha * T[i];
-            const scalar_t la = last_alpha[i];
-            scalar_t* acc_i = accum.data() + i * C;
-            scalar_t* lf_i = last_f.data() + i * C;
-            const scalar_t* d_i = dout.data() + i * C;
-            scalar_t dL_dalpha = 0;
-            for (int64_t ch = 0; ch < C; ++ch) {
-              acc_i[ch] = la * lf_i[ch] + (1 - la) * acc_i[ch];
-              lf_i[ch] = f[ch];
-              dL_dalpha += (f[ch] - acc_i[ch]) * d_i[ch];
-              gl[6 + ch] += w * d_i[ch];
-            }
-            dL_dalpha *= T[i];
-            dL_dalpha -= Tfin[i] / (1 - alpha) * bg_dot[i];
-            last_alpha[i] = alpha;
-            if (raw > amax) continue;  // clamped: alpha does not depend on the parameters
-            const scalar_t dL_dpower = alpha * dL_dalpha;
-            gl[0] += -dL_dpower * (p.a * dx + p.b * dy);
-            gl[1] += -dL_dpower * (p.b * dx + p.c * dy);
-            gl[2] += -static_cast<scalar_t>(0.5) * dx * dx * dL_dpower;
-            gl[3] += -dx * dy * dL_dpower;
-            gl[4] += -static_cast<scalar_t>(0.5) * dy * dy * dL_dpower;
-            gl[5] += G * dL_dalpha;
+        for (int64_t r = r0; r < r0 + n_rec; ++r) {
+          const int64_t i = rpx[r];
+          const scalar_t dx = mx - static_cast<scalar_t>(px0 + i % tile);
+          const scalar_t dy = my - static_cast<scalar_t>(py0 + i / tile);
+          const scalar_t G = rG[r];
+          const scalar_t raw = o * G;
+          const scalar_t alpha = std::min(amax, raw);
+          T[i] = T[i] / (1 - alpha);
+          const scalar_t w = alpha * T[i];
+          const scalar_t la = last_alpha[i];
+          scalar_t* acc_i = accum.data() + i * C;
+          scalar_t* lf_i = last_f.data() + i * C;
+          const scalar_t* d_i = dout.data() + i * C;
+          scalar_t dL_dalpha = 0;
+          for (int64_t ch = 0; ch < C; ++ch) {
+            acc_i[ch] = la * lf_i[ch] + (1 - la) * acc_i[ch];
+            lf_i[ch] = f[ch];
+            dL_dalpha += (f[ch] - acc_i[ch]) * d_i[ch];
+            gl[6 + ch] += w * d_i[ch];
           }
+          dL_dalpha *= T[i];
+          dL_dalpha -= Tfin[i] / (1 - alpha) * bg_dot[i];
+          last_alpha[i] = alpha;
+          if (raw > amax) continue;  // clamped: alpha does not depend on the parameters
+          const scalar_t dL_dpower = alpha * dL_dalpha;
+          gl[0] += -dL_dpower * (a * dx + b * dy);
+          gl[1] += -dL_dpower * (b * dx + c * dy);
+          gl[2] += -static_cast<scalar_t>(0.5) * dx * dx * dL_dpower;
+          gl[3] += -dx * dy * dL_dpower;
+          gl[4] += -static_cast<scalar_t>(0.5) * dy * dy * dL_dpower;
+          gl[5] += G * dL_dalpha;
         }
-        if (any) {
-          scalar_t* g = g_thread + p.id * S;
-          for (int64_t j = 0; j < S; ++j) g[j] += gl[j];
-        }
+        const int64_t e = in.offs[t] + k;
+        std::copy(gl, gl + S, slots.data() + e * S);
+        used[e] = 1;
       }
+    }
+  }
+  // each Gaussian's entries in list order (tiles ascending): the order one thread adds them in
+  scalar_t* g = grad.data_ptr<scalar_t>();
+  const int64_t* ids = in.ids;
+  for (int64_t e = 0; e < M; ++e) {
+    if (!used[e]) continue;
+    scalar_t* gi = g + ids[e] * S;
+    const scalar_t* se = slots.data() + e * S;
+    for (int64_t j = 0; j < S; ++j) gi[j] += se[j];
+  }
+}
+
+// The threads' records as flat tensors in tile order: rec_off [n_tiles + 1] (filled here),
+// rec_G, rec_px [R].
+template <typename scalar_t>
+void pack_record(const Record<scalar_t>& rec, int64_t n_tiles, torch::Tensor& rec_off,
+                 torch::Tensor& rec_G, torch::Tensor& rec_px) {
+  int64_t* ro = rec_off.data_ptr<int64_t>();
+  std::vector<int64_t> len(n_tiles, 0);
+  for (const RecordBuffer<scalar_t>* b : rec.buffers) {
+    if (b == nullptr) continue;
+    for (const auto& sg : b->segments) len[sg[0]] = sg[2];
+  }
+  int64_t total = 0;
+  for (int64_t t = 0; t < n_tiles; ++t) {
+    ro[t] = total;
+    total += len[t];
+  }
+  ro[n_tiles] = total;
+  rec_G = torch::empty({total}, rec_off.options().dtype(c10::CppTypeToScalarType<scalar_t>::value));
+  rec_px = torch::empty({total}, rec_off.options().dtype(torch::kInt16));
+  scalar_t* gp = rec_G.data_ptr<scalar_t>();
+  int16_t* pp = rec_px.data_ptr<int16_t>();
+  for (const RecordBuffer<scalar_t>* b : rec.buffers) {
+    if (b == nullptr) continue;
+    for (const auto& sg : b->segments) {
+      std::copy_n(b->G.data() + sg[1], sg[2], gp + ro[sg[0]]);
+      std::copy_n(b->px.data() + sg[1], sg[2], pp + ro[sg[0]]);
     }
   }
 }
@@ -349,44 +431,128 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor tile_offsets, torch::
                                              torch::Tensor bg, torch::Tensor ext, int64_t W,
                                              int64_t H, int64_t tile,
                                              int64_t tiles_x, double alpha_min, double alpha_max,
-                                             double t_min, int64_t nthreads) {
+                                             double t_min, int64_t nthreads, bool record) {
   check_inputs(means2d, conics, opac, feats, bg);
   TORCH_CHECK(ext.is_contiguous() && ext.scalar_type() == feats.scalar_type(),
               "composite_forward: ext must be contiguous and of the feature dtype");
+  TORCH_CHECK(tile > 0 && tile * tile <= 32768, "composite_forward: tile must be 1..181 pixels");
   const int64_t C = feats.size(1);
   auto out = torch::empty({H, W, C}, feats.options());
   auto final_T = torch::empty({H, W}, feats.options());
   auto n_contrib = torch::empty({H, W}, feats.options().dtype(torch::kInt32));
   auto counts = torch::zeros({means2d.size(0)}, feats.options().dtype(torch::kInt32));
   auto entry_w = torch::zeros({gauss_ids.size(0)}, feats.options());
+  const int64_t n_tiles = tile_offsets.size(0) - 1;
+  // the record for the backward (empty when no backward follows): rec_off [n_tiles + 1] into
+  // rec_G / rec_px [R], entry_n [M] (see Record)
+  auto rec_off = torch::zeros({record ? n_tiles + 1 : 0}, feats.options().dtype(torch::kInt64));
+  auto entry_n = torch::zeros({record ? gauss_ids.size(0) : 0}, feats.options().dtype(torch::kInt32));
+  torch::Tensor rec_G, rec_px;
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "composite_forward", [&] {
+    Record<scalar_t> rec;
+    if (record) {
+      rec.buffers.assign(std::max<int64_t>(nthreads, 1), nullptr);
+      rec.entry_n = entry_n.data_ptr<int32_t>();
+    }
     forward_kernel<scalar_t>(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext, W, H, tile,
                              tiles_x, alpha_min, alpha_max, t_min, static_cast<int>(nthreads), out,
-                             final_T, n_contrib, counts, entry_w);
+                             final_T, n_contrib, counts, entry_w, record ? &rec : nullptr);
+    if (record) {
+      pack_record<scalar_t>(rec, n_tiles, rec_off, rec_G, rec_px);
+    } else {
+      rec_G = torch::empty({0}, feats.options());
+      rec_px = torch::empty({0}, feats.options().dtype(torch::kInt16));
+    }
   });
-  return {out, final_T, n_contrib, counts, entry_w};
+  return {out, final_T, n_contrib, counts, entry_w, rec_off, rec_G, rec_px, entry_n};
 }
 
 torch::Tensor composite_backward(torch::Tensor tile_offsets, torch::Tensor gauss_ids,
                                  torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                  torch::Tensor feats, torch::Tensor bg, torch::Tensor ext,
-                                 torch::Tensor final_T,
-                                 torch::Tensor n_contrib, torch::Tensor grad_out, int64_t W,
-                                 int64_t H, int64_t tile, int64_t tiles_x, double alpha_min,
-                                 double alpha_max, int64_t nthreads) {
+                                 torch::Tensor final_T, torch::Tensor rec_off,
+                                 torch::Tensor rec_G, torch::Tensor rec_px, torch::Tensor entry_n,
+                                 torch::Tensor grad_out, int64_t W, int64_t H, int64_t tile,
+                                 int64_t tiles_x, double alpha_min, double alpha_max,
+                                 int64_t nthreads) {
   check_inputs(means2d, conics, opac, feats, bg);
   TORCH_CHECK(grad_out.is_contiguous(), "composite_backward: grad_out must be contiguous");
+  TORCH_CHECK(rec_off.size(0) == tile_offsets.size(0) && entry_n.size(0) == gauss_ids.size(0),
+              "composite_backward: needs the forward's record (forward with record=true)");
   const int64_t C = feats.size(1);
-  auto gbuf = torch::zeros({nthreads, means2d.size(0), 6 + C}, feats.options());
+  auto grad = torch::zeros({means2d.size(0), 6 + C}, feats.options());
   AT_DISPATCH_FLOATING_TYPES(feats.scalar_type(), "composite_backward", [&] {
     backward_kernel<scalar_t>(tile_offsets, gauss_ids, means2d, conics, opac, feats, bg, ext, final_T,
-                              n_contrib, grad_out, W, H, tile, tiles_x, alpha_min, alpha_max,
-                              static_cast<int>(nthreads), gbuf);
+                              rec_off, rec_G, rec_px, entry_n, grad_out, W, H, tile, tiles_x,
+                              alpha_min, alpha_max, static_cast<int>(nthreads), grad);
   });
-  return gbuf.sum(0);
+  return grad;
+}
+
+// Tile binning (mogs_node/mapper/projection.py:bin_tiles, the same result exactly): the valid
+// Gaussians stably sorted by their float32 depth key, each appended to every tile its support box
+// [ceil(u - ex), floor(u + ex)] x [ceil(v - ey), floor(v + ey)] (clamped to the image) overlaps, in
+// that depth order: a counting sort by tile instead of torch's sort of the expanded list. Returns
+// {tile_offsets [n_tiles + 1], gauss_ids [M]}, or {} when a valid Gaussian has a NaN centre or
+// extent (the caller's torch path handles those).
+std::vector<torch::Tensor> bin_tiles(torch::Tensor depth_key, torch::Tensor valid,
+                                     torch::Tensor means2d, torch::Tensor ext, int64_t W, int64_t H,
+                                     int64_t tile) {
+  TORCH_CHECK(depth_key.scalar_type() == torch::kFloat32 && valid.scalar_type() == torch::kBool,
+              "bin_tiles: float32 depth keys and a bool valid mask");
+  TORCH_CHECK(depth_key.is_contiguous() && valid.is_contiguous() && tile > 0 && W > 0 && H > 0,
+              "bin_tiles: contiguous inputs, positive sizes");
+  auto m2 = means2d.to(torch::kFloat64).contiguous();
+  auto ex = ext.to(torch::kFloat64).contiguous();
+  const int64_t N = depth_key.size(0);
+  const float* key = depth_key.data_ptr<float>();
+  const bool* ok = valid.data_ptr<bool>();
+  const double* uv = m2.data_ptr<double>();
+  const double* e = ex.data_ptr<double>();
+  std::vector<int64_t> order;
+  order.reserve(N);
+  for (int64_t i = 0; i < N; ++i) {
+    if (!ok[i]) continue;
+    if (std::isnan(uv[2 * i]) || std::isnan(uv[2 * i + 1]) || std::isnan(e[2 * i]) ||
+        std::isnan(e[2 * i + 1]) || std::isnan(key[i]))
+      return {};
+    order.push_back(i);
+  }
+  std::stable_sort(order.begin(), order.end(),
+                   [key](int64_t a, int64_t b) { return key[a] < key[b]; });
+  const int64_t tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
+  const int64_t n_tiles = tiles_x * tiles_y;
+  const int64_t n = static_cast<int64_t>(order.size());
+  std::vector<int64_t> box(4 * n);  // x0, x1, y0, y1 in tiles (empty when x0 > x1 or y0 > y1)
+  auto cell = [tile](double v, double hi) {  // clamp(v, 0, hi).long() // tile, as torch does
+    return static_cast<int64_t>(std::min(std::max(v, 0.0), hi)) / tile;
+  };
+  auto offsets = torch::zeros({n_tiles + 1}, torch::kInt64);
+  int64_t* off = offsets.data_ptr<int64_t>();
+  for (int64_t j = 0; j < n; ++j) {
+    const int64_t g = order[j];
+    int64_t* b = box.data() + 4 * j;
+    b[0] = cell(std::ceil(uv[2 * g] - e[2 * g]), double(W - 1));
+    b[1] = cell(std::floor(uv[2 * g] + e[2 * g]), double(W - 1));
+    b[2] = cell(std::ceil(uv[2 * g + 1] - e[2 * g + 1]), double(H - 1));
+    b[3] = cell(std::floor(uv[2 * g + 1] + e[2 * g + 1]), double(H - 1));
+    for (int64_t ty = b[2]; ty <= b[3]; ++ty)
+      for (int64_t tx = b[0]; tx <= b[1]; ++tx) ++off[ty * tiles_x + tx + 1];
+  }
+  for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
+  auto ids = torch::empty({off[n_tiles]}, torch::kInt64);
+  int64_t* idp = ids.data_ptr<int64_t>();
+  std::vector<int64_t> pos(off, off + n_tiles);
+  for (int64_t j = 0; j < n; ++j) {
+    const int64_t* b = box.data() + 4 * j;
+    for (int64_t ty = b[2]; ty <= b[3]; ++ty)
+      for (int64_t tx = b[0]; tx <= b[1]; ++tx) idp[pos[ty * tiles_x + tx]++] = order[j];
+  }
+  return {offsets, ids};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("bin_tiles", &bin_tiles, "tile binning (CPU), exactly projection.bin_tiles's result");
   m.def("forward", &composite_forward, "tile compositing forward (CPU)");
   m.def("backward", &composite_backward, "tile compositing backward (CPU)");
 }
