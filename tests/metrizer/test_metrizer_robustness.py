@@ -130,8 +130,13 @@ def test_never_worse_than_global_affine(
     kw, params, gt = _case(frame, n_points, coverage, outliers, 10.0**log_scale, masks, seed)
     d, b = _metrize_within_baseline(kw, params, gt, mode)
     hole = (gt > 0) & (b == 0) & (d > 0)
-    if hole.sum() >= 50:  # pixels without prior: only near, confirmed sparse evidence
-        assert _absrel(d, gt, hole) <= 0.6
+    if hole.sum() >= 50:  # pixels without prior: filled from the frame's own metric evidence
+        # (nearby features, an object's plane), so never much worse than the depth it extends;
+        # where the sparse points mis-scale the whole frame (5 points, one an outlier: the
+        # global affine 3x off), the whole-mask plane carries that scale into the holes
+        shared = (gt > 0) & (b > 0) & (d > 0)
+        frame_err = _absrel(d, gt, shared) if shared.sum() >= 50 else 0.0
+        assert _absrel(d, gt, hole) <= max(0.6, 1.5 * frame_err)
 
 
 def test_no_prior_and_no_points_gives_nothing_but_sky_free_zeros():
