@@ -344,6 +344,8 @@ class MapperNode(Node):
             else m.stats()
         )
         self.refine_left -= n
+        # on the heartbeat: a run report waiting for the final map sees the refinement advance
+        self.counters["refine_left"] = max(self.refine_left, 0)
         if self.refine_left > 0:
             return
         self.refine_left = -2

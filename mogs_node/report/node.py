@@ -129,6 +129,7 @@ class RunReportNode(Node):
         self.view_jobs: list[tuple[str, int, int]] | None = None  # (kind, stamp, kf id) to render
         self.source_stopped_at: float | None = None
         self.last_input = time.monotonic()
+        self.refine_left: dict[str, float] = {}  # per node: its final refinement's iterations left
         self.subscribe("/frontend/odometry", self.on_odometry, msg_type=msgs.Odometry)
         self.subscribe("/frontend/keyframe", self.on_keyframe, msg_type=msgs.Keyframe)
         self.subscribe("/metrizer/depth", self.on_depth, msg_type=msgs.DepthMap)
@@ -228,6 +229,12 @@ class RunReportNode(Node):
         self.c.add_gt_depth(m.stamp_ns, np.array(m.depth))
 
     def on_diagnostics(self, m: msgs.Diagnostics) -> None:
+        left = m.counters.get("refine_left")
+        if left is not None:  # the mapper's final refinement: while it advances the run is
+            # not idle (a slow machine's refinement may outlast idle_timeout_s); a stuck one is
+            if left < self.refine_left.get(m.node, float("inf")):
+                self._touch()
+            self.refine_left[m.node] = float(left)
         self.c.node_counters[m.node] = {
             k: float(v)
             for k, v in m.counters.items()

@@ -205,6 +205,7 @@ def test_after_the_drive_the_map_is_refined_once_and_marked_final(inproc_bus, wi
     (final,) = w.collect(1, timeout_s=60)
     assert final.extra.get("final") == 1.0 and final.iterations == 4 + 7
     assert final.keyframe_id == 1
+    assert node.counters["refine_left"] == 0  # on the heartbeat: the run report sees it advance
     node._final_refine()  # once only
     assert node.mapper.iterations == 11
 
