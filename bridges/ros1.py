@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 #: what installs ROS 1 on Debian 12 (bookworm), as root
 APT_INSTALL = (
     "apt-get install -y ros-core python3-rospy python3-rosbag python3-sensor-msgs "
-    "python3-nav-msgs python3-tf2-msgs"
+    "python3-nav-msgs python3-tf2-msgs python3-diagnostic-msgs"
 )
 DEBIAN_DIST_PACKAGES = Path("/usr/lib/python3/dist-packages")
 

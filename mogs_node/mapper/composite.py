@@ -28,7 +28,7 @@ from types import ModuleType
 
 import torch
 
-from mogs_node.mapper.projection import TileBins
+from mogs_node.mapper.raster_types import TileBins
 
 __all__ = [
     "CompositeJob",

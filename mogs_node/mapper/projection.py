@@ -24,7 +24,7 @@ from typing import NamedTuple
 import torch
 
 from mogs_node.geometry import view_tan_limits
-from mogs_node.mapper.raster_types import RasterParams
+from mogs_node.mapper.raster_types import RasterParams, TileBins
 
 __all__ = [
     "CameraPoints",
@@ -254,23 +254,6 @@ def cull_gaussians(
         & (v + by >= 0)
         & (v - by <= height - 1)
     )
-
-
-@dataclass
-class TileBins:
-    """Per-tile depth-sorted Gaussian lists: ``gauss_ids[tile_offsets[t]:tile_offsets[t+1]]``.
-
-    ``tile_offsets`` [n_tiles + 1] int64, ``gauss_ids`` [M] int64; tiles are row-major,
-    ``tiles_x * tiles_y`` of ``tile_px`` square pixels. ``extent_px`` [N, 2] the support half
-    widths (:attr:`Projected.extent_px`), which the C++ kernel uses to visit only covered pixels.
-    """
-
-    tile_offsets: torch.Tensor
-    gauss_ids: torch.Tensor
-    tiles_x: int
-    tiles_y: int
-    tile_px: int
-    extent_px: torch.Tensor
 
 
 @torch.no_grad()

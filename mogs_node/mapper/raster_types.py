@@ -76,3 +76,20 @@ class RenderOutput:
     alpha: torch.Tensor
     counts: torch.Tensor
     weights: torch.Tensor | None = None
+
+
+@dataclass
+class TileBins:
+    """Per-tile depth-sorted Gaussian lists: ``gauss_ids[tile_offsets[t]:tile_offsets[t+1]]``.
+
+    ``tile_offsets`` [n_tiles + 1] int64, ``gauss_ids`` [M] int64; tiles are row-major,
+    ``tiles_x * tiles_y`` of ``tile_px`` square pixels. ``extent_px`` [N, 2] the support half
+    widths (:attr:`Projected.extent_px`), which the C++ kernel uses to visit only covered pixels.
+    """
+
+    tile_offsets: torch.Tensor
+    gauss_ids: torch.Tensor
+    tiles_x: int
+    tiles_y: int
+    tile_px: int
+    extent_px: torch.Tensor
