@@ -22,23 +22,11 @@ from numpy.typing import NDArray
 from mogs_node.depth_kind import DepthKind
 from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.frame import Frame, ShapeModels, model_depth
+from mogs_node.metrizer.merging import group_medians
 
-__all__ = ["drop_unsupported_shapes", "group_medians", "shapes_explain_prior"]
+__all__ = ["drop_unsupported_shapes", "shapes_explain_prior"]
 
 F64 = NDArray[np.float64]
-
-
-def group_medians(groups: NDArray[np.intp], values: F64, n_groups: int) -> F64:
-    """Median of ``values`` per group ``[n_groups]`` (NaN for an empty group), vectorised."""
-    out = np.full(n_groups, np.nan)
-    if not len(values):
-        return out
-    order = np.lexsort((values, groups))
-    g, v = groups[order], values[order]
-    start = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    cnt = np.diff(np.r_[start, len(g)])
-    out[g[start]] = 0.5 * (v[start + (cnt - 1) // 2] + v[start + cnt // 2])
-    return out
 
 
 def shapes_explain_prior(
@@ -70,7 +58,7 @@ def shapes_explain_prior(
     with np.errstate(divide="ignore", invalid="ignore"):
         lf = np.log(fz / fd)
     okf = np.isfinite(lf) & has[fg]
-    offset = group_medians(fg[okf], lf[okf], G)  # the features' local scale of the prior
+    _, offset = group_medians(fg[okf], lf[okf], G)  # the features' local scale of the prior
     pick = np.flatnonzero(has[sg] & np.isfinite(offset[sg]) & (sc > 0))
     if not len(pick):
         return fail
