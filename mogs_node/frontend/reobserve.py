@@ -24,6 +24,7 @@ from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackPointsParams,
     edge_flags,
+    patch_match,
     patch_zncc,
 )
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse, transform_points
@@ -122,8 +123,9 @@ def reobserved_points(
     (its id) and no newer keyframe's point (only the newest keyframe's copy of a track is
     tested: one patch test per track, where merging keyframe by keyframe tested every copy), lies at
     least ``params.min_distance_px`` from every fresh point and from every joining point of a
-    newer keyframe, its patch still matches (:func:`patch_zncc` against its own keyframe's image,
-    at least ``params.reproject_min_zncc``), and no close neighbour in the union contradicts
+    newer keyframe, its patch still matches (:func:`patch_match` against its own keyframe's image:
+    a ZNCC of at least ``params.reproject_min_zncc`` and at least ``params.reproject_min_contrast``
+    of the grey-level spread it had there: a flat occluder hides it; round 14), and no close neighbour in the union contradicts
     its depth (the edge rule of ``params``; fresh points are kept as they are)."""
     T_cam_world = se3_inverse(check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True))
     image = np.asarray(image, np.float32)  # converted once, not per patch test
@@ -151,7 +153,7 @@ def reobserved_points(
     for k, (prev, _, image_prev, idx, g_uv, g_xyz) in enumerate(groups):  # per keyframe image
         loc = np.flatnonzero(ok[offset[k] : offset[k + 1]])
         z_prev = np.maximum(prev.xyz_cam_m[idx[loc], 2].astype(np.float64), 1e-9)
-        zncc = patch_zncc(
+        zncc, contrast = patch_match(
             image,
             g_uv[loc],
             image_prev,
@@ -159,7 +161,9 @@ def reobserved_points(
             g_xyz[loc, 2] / z_prev,
             params.patch_radius_px,
         )
-        ok[offset[k] + loc] = zncc >= params.reproject_min_zncc
+        ok[offset[k] + loc] = (zncc >= params.reproject_min_zncc) & (
+            contrast >= params.reproject_min_contrast
+        )
     # a joining point close to one of a newer keyframe's (earlier in the order) gives way
     cand = np.flatnonzero(ok)
     if len(cand) > 1:
