@@ -25,7 +25,6 @@ from mogs_node.frontend.track_points import (
     TrackPointsParams,
     edge_flags,
     patch_match,
-    patch_zncc,
 )
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse, transform_points
 
@@ -67,14 +66,16 @@ def reproject_points(
     ``T_cur_prev`` [4, 4] as in :func:`carry_forward`; ``image_prev``, ``image_cur`` [H, W] the
     two keyframes' undistorted grey images. A point is kept when it lands in the image in front
     of the camera and the patch around its new pixel matches the patch around its old one
-    (:func:`patch_zncc`, scaled by the depth ratio) with a ZNCC of at least ``min_zncc``: an
+    (:func:`patch_match`, scaled by the depth ratio) with a ZNCC of at least ``min_zncc``: an
     occluder that moved over it, or a point on a moving object, fails.
     """
     keep, moved = _moved(prev, T_cur_prev, camera)
     idx = np.flatnonzero(keep)
     z_prev = np.maximum(prev.xyz_cam_m[idx, 2].astype(np.float64), 1e-9)
     scale = moved.xyz_cam_m[idx, 2] / z_prev
-    zncc = patch_zncc(image_cur, moved.uv_px[idx], image_prev, prev.uv_px[idx], scale, radius_px)
+    zncc = patch_match(image_cur, moved.uv_px[idx], image_prev, prev.uv_px[idx], scale, radius_px)[
+        0
+    ]
     keep[idx] = zncc >= min_zncc
     return moved.subset(keep)
 

@@ -58,7 +58,6 @@ __all__ = [
     "gate_points",
     "keyframe_points",
     "patch_match",
-    "patch_zncc",
     "refine_points",
     "triangulate_dlt",
     "triangulate_on_ray",
@@ -366,18 +365,6 @@ def patch_match(
     return zncc, contrast
 
 
-def patch_zncc(
-    image_ref: NDArray,
-    uv_ref_px: NDArray,
-    image_view: NDArray,
-    uv_view_px: NDArray,
-    scale: NDArray,
-    radius_px: int,
-) -> NDArray[np.float64]:
-    """The ZNCC [N] of :func:`patch_match` (same arguments)."""
-    return patch_match(image_ref, uv_ref_px, image_view, uv_view_px, scale, radius_px)[0]
-
-
 @dataclass
 class TrackViews:
     """The newest frame's tracks over the kept frames with a pose (the newest frame last)."""
@@ -468,7 +455,7 @@ def _patch_scores(
     T_ref_cams: NDArray,
     params: TrackPointsParams,
 ) -> NDArray[np.float64]:
-    """ZNCC [N] of each point's keyframe patch with its oldest view's (:func:`patch_zncc`);
+    """ZNCC [N] of each point's keyframe patch with its oldest view's (:func:`patch_match`);
     1 where there is no image to compare."""
     score = np.ones(len(uv))
     img_ref = views.images[-1]
@@ -484,9 +471,9 @@ def _patch_scores(
             continue
         z_view = transform_points(T_cam_ref[f], xyz_ref_m[sel])[:, 2]
         scale = xyz_ref_m[sel, 2] / np.maximum(z_view, 1e-9)
-        score[sel] = patch_zncc(
+        score[sel] = patch_match(
             img_ref, uv[sel, -1], img, uv[sel, f], scale, params.patch_radius_px
-        )
+        )[0]
     return score
 
 
