@@ -20,7 +20,9 @@ poses:
    expansion, where they seldom triangulate.
 
 The previous keyframes' points (carried at standstill, re-observed while moving) are in
-:mod:`mogs_node.frontend.reobserve`. :class:`TrackHistory` keeps the observations and poses of the last frames. No I/O, no bus.
+:mod:`mogs_node.frontend.reobserve`; :func:`patch_match` (ZNCC and contrast ratio of two
+patches) serves both. :class:`TrackHistory` keeps the observations and poses of the last frames.
+No I/O, no bus.
 """
 
 from __future__ import annotations
@@ -335,8 +337,8 @@ def patch_match(
 
     Why the contrast: a textured point hidden behind a flat occluder leaves a near-flat patch
     whose few grey levels of shading can still correlate with the old texture (round 14: the
-    demo's re-observed points behind the gate's columns, 4-8x their true depth, at ZNCC 0.7-0.8
-    and a contrast ratio of 0.03-0.35)."""
+    demo's re-observed points behind the gate's columns, 4-8x their true depth, at ZNCC
+    0.70-0.96 and a contrast ratio of 0.03-0.35)."""
     uv_r = check_array("uv_ref_px", uv_ref_px, shape=(None, 2)).astype(np.float32)
     uv_v = check_array("uv_view_px", uv_view_px, shape=(len(uv_r), 2)).astype(np.float32)
     s = check_array("scale", scale, shape=(len(uv_r),)).astype(np.float32)
