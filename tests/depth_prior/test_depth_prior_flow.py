@@ -298,3 +298,28 @@ def test_far_field_reference_fills_only_where_the_nearest_pair_was_below_the_gat
     assert both.stats["far_field_fraction"] == pytest.approx(new.mean())
     assert near.stats["far_field_fraction"] == 0.0
     assert np.median(_absrel(both.depth_m, d2, new)) < 0.03
+
+
+def test_sequence_takes_the_far_field_reference_from_its_history(views) -> None:
+    """``PriorSequence`` hands the keyframe farther back to the flow prior as the far-field
+    reference: with it, pixels below the nearest pair's gate get depth (stat
+    ``far_field_fraction``); without it (the default), none."""
+    from mogs_node.depth_prior.sequence import PriorSequence
+
+    (i0, _), (i2, d2) = views["0"], views["2"]
+    T_near = make_T(so3_exp(np.array([0.0, 0.03, 0.0])), np.array([0.15, 0.0, 1.0]))
+    i_near, _ = render(T_near)
+    p = FlowPriorParams(
+        sky_mask=False, min_parallax_deg=1.0, min_baseline_m=0.1, far_baseline_m=0.0
+    )
+    fractions = []
+    for far in (0.0, 1.4):
+        seq = PriorSequence(replace(p, far_field_baseline_m=far))
+        seq.next(0, i0, CAM.K, T0)
+        seq.next(1, i_near, CAM.K, T_near)
+        prior, refs = seq.next(2, i2, CAM.K, T2)
+        assert refs == [1]  # the nearest keyframe only: the far one is not a flow reference
+        fractions.append(prior.stats["far_field_fraction"])
+        m = prior.source == 1  # flow
+        assert np.median(_absrel(prior.depth_m, d2, m)) < 0.03
+    assert fractions[0] == 0.0 and fractions[1] > 0.1
