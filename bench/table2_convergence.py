@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import math
 import sys
 from dataclasses import replace
@@ -131,9 +132,12 @@ def measure(
     stop_db: float = STOP_DB,
     cap: int = CAP,
     min_move_m: float = 0.1,
+    core: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Replay one run's journal (``launch``: its launch file) with the convergence scoring after
-    each keyframe's insertion; per-keyframe curves and the replayed map's held-out figures."""
+    each keyframe's insertion; per-keyframe curves and the replayed map's held-out figures.
+    ``core``: mapper core overrides (``bench/mapper_replay.py``'s ``--core``, e.g.
+    ``insertion.patch_px``), for every init alike: a policy measured on recorded runs."""
     torch.set_num_threads(1)  # as the live mapper (launch/demo.yaml threads: 1): the same map
     data = read_journal(journal)
     if init == "random":
@@ -162,7 +166,7 @@ def measure(
             flush=True,
         )
 
-    mapper, per = replay(data, p, after_insert=after_insert)
+    mapper, per = replay(data, p, core=core, after_insert=after_insert)
     q = score(mapper, data)
     return {
         "keyframes": per_kf,
@@ -356,10 +360,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stop-db", type=float, default=STOP_DB)
     ap.add_argument("--cap", type=int, default=CAP)
     ap.add_argument("--json", default=None)
+    ap.add_argument(
+        "--core",
+        action="append",
+        default=[],
+        help="MapperParams field=JSON value (insertion.FIELD for InsertionParams)",
+    )
     args = ap.parse_args(argv)
     run = Path(args.run_dir)
+    core = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.core)}
     conv = measure(
-        run / "journal" / "journal.log", run / "launch.yaml", args.init, args.stop_db, args.cap
+        run / "journal" / "journal.log",
+        run / "launch.yaml",
+        args.init,
+        args.stop_db,
+        args.cap,
+        core=core,
     )
     for k, v in figures(conv, args.stop_db).items():
         print(f"{k}: {v}")

@@ -27,6 +27,7 @@ import torch
 
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, pixel_to_normalized
+from mogs_node.mapper.insertion_patches import surface_patches
 
 __all__ = [
     "InsertionParams",
@@ -67,6 +68,15 @@ class InsertionParams:
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
     background_depth_m: float = 0.0  # pixels without depth that the map leaves transparent get
     # Gaussians on a far sphere at this distance (sky, far background; 0: off)
+    patch_px: int = 0  # object-guided insertion (insertion_patches.py): the largest square
+    # patch (px) that one flat, surface-aligned Gaussian may cover where the depth is a plane
+    # over it; halved down to patch_min_px (0: off, pixel-grid sampling only)
+    patch_min_px: int = 8  # the smallest such patch
+    patch_rel_tol: float = 0.01  # planar: RMS residual of the plane fit in 1/z below this x 1/z
+    patch_max_color_std: float = 0.0  # ... and grey-level std over the patch (0-255) at most
+    # this (0: no colour test): a textured patch needs fine Gaussians for its colour
+    patch_sigma_frac: float = 0.5  # in-plane sigma = this x the patch's back-projected edge
+    patch_thickness: float = 0.1  # sigma along the normal = this x the in-plane sigma
     fixed_confidence: float = -1.0  # the confidence the insertion rules read for every pixel
     # with depth, whatever the source says (-1: the source's own): one treatment for every depth
     # source (Table II); the optimisation's depth loss still weights by the source's confidence
@@ -86,6 +96,12 @@ class InsertionParams:
             raise ConfigError("InsertionParams.planar_max_grad: must be >= 0")
         if not (self.background_depth_m == 0 or self.background_depth_m > self.min_depth_m):
             raise ConfigError("InsertionParams.background_depth_m: 0 (off) or > min_depth_m")
+        if self.patch_px < 0 or (self.patch_px and self.patch_min_px < 2):
+            raise ConfigError("InsertionParams: need patch_px >= 0 and patch_min_px >= 2")
+        if not (self.patch_rel_tol >= 0 and self.patch_max_color_std >= 0):
+            raise ConfigError("InsertionParams: need patch_rel_tol, patch_max_color_std >= 0")
+        if not (self.patch_sigma_frac > 0 and self.patch_thickness > 0):
+            raise ConfigError("InsertionParams: need patch_sigma_frac, patch_thickness > 0")
         if not (self.fixed_confidence == -1.0 or 0 <= self.fixed_confidence <= 1):
             raise ConfigError("InsertionParams.fixed_confidence: -1 (the source's) or in [0, 1]")
 
@@ -291,6 +307,23 @@ def sample_gaussians(
     if not np.all(np.isfinite(d[m])):
         raise ShapeError("depth_m: non-finite depth inside mask")
     c = insertion_confidence(d, c, params)
+    patches = None
+    if params.patch_px > 0:  # flat Gaussians on planar patches; the grid samples the rest
+        patches = surface_patches(
+            img,
+            d,
+            m,
+            K,
+            T,
+            patch_px=params.patch_px,
+            min_patch_px=params.patch_min_px,
+            rel_tol=params.patch_rel_tol,
+            max_color_std=params.patch_max_color_std,
+            sigma_frac=params.patch_sigma_frac,
+            thickness=params.patch_thickness,
+            max_footprint_rad=params.max_footprint_rad,
+        )
+        m = m & ~patches.covered
     s = _stride_map(d, c, params, img)  # planarity from the whole depth map, not only the mask
     f = math.sqrt(K[0, 0] * K[1, 1])
     s = np.minimum(s, max(params.stride_px, int(params.max_footprint_rad * f)))
@@ -303,14 +336,20 @@ def sample_gaussians(
     p_cam = np.stack([x_n * z, y_n * z, z], -1)
     p_world = p_cam @ T[:3, :3].T + T[:3, 3]
     sigma = params.scale_factor * s[v, u] * z / math.sqrt(fx * fy)
-    n = len(z)
-    logit = math.log(params.opacity_init / (1 - params.opacity_init))
-    quats = np.zeros((n, 4), np.float32)
+    quats = np.zeros((len(z), 4))
     quats[:, 0] = 1
+    scales = np.log(sigma)[:, None].repeat(3, 1)
+    colors = img[v, u].astype(np.float32) / 255.0
+    if patches is not None:
+        p_world = np.concatenate([patches.means_world, p_world])
+        quats = np.concatenate([patches.quats_wxyz, quats])
+        scales = np.concatenate([np.log(patches.scales_m), scales])
+        colors = np.concatenate([patches.colors_rgb, colors])
+    logit = math.log(params.opacity_init / (1 - params.opacity_init))
     return {
         "means": torch.as_tensor(p_world, dtype=torch.float32),
-        "quats_wxyz": torch.as_tensor(quats),
-        "log_scales": torch.as_tensor(np.log(sigma)[:, None].repeat(3, 1), dtype=torch.float32),
-        "opacity_logit": torch.full((n,), logit, dtype=torch.float32),
-        "colors": torch.as_tensor(img[v, u].astype(np.float32) / 255.0),
+        "quats_wxyz": torch.as_tensor(quats, dtype=torch.float32),
+        "log_scales": torch.as_tensor(scales, dtype=torch.float32),
+        "opacity_logit": torch.full((len(p_world),), logit, dtype=torch.float32),
+        "colors": torch.as_tensor(colors),
     }
