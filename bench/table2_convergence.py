@@ -266,6 +266,55 @@ def apply(res: dict[str, Any], convs: dict[str, dict[str, Any]], auto: bool) -> 
     }
 
 
+def policy_table(
+    root: Path, core: dict[str, Any], stop_db: float = STOP_DB, cap: int = CAP
+) -> dict[str, Any]:
+    """Table II's figures under one mapper policy (``core`` overrides, every init alike) from a
+    ``bench/pipeline_table2.py`` run folder ``root`` (its ``mogs/`` and ``prior_global/`` runs;
+    random depth regenerated from the mogs run as :class:`RandomDepthNode` publishes it): the
+    target is ``stop_db`` if every init's median reaches it, else the highest common one."""
+    runs = {"mogs": root / "mogs", "prior_global": root / "prior_global", "random": root / "mogs"}
+    convs = {
+        init: measure(
+            r / "journal" / "journal.log", r / "launch.yaml", init, stop_db, cap, 0.1, core
+        )
+        for init, r in runs.items()
+    }
+    target = stop_db
+    if any(figures(c, target)["iters_to_target"] is None for c in convs.values()):
+        target = common_target(convs, stop_db) or stop_db
+    inits = {
+        init: {
+            **figures(c, target),
+            "replay_heldout_psnr_db": c["replay_report_heldout_psnr_db"],
+            "replay_gaussians": c["replay_gaussians"],
+            "replay_inserted_pruned": c["replay_inserted_pruned"],
+            "convergence": c,
+        }
+        for init, c in convs.items()
+    }
+    m, r, g = inits["mogs"], inits["random"], inits["prior_global"]
+
+    def div(a: float | None, b: float | None) -> float | None:
+        return None if a is None or not b else round(a / b, 3)
+
+    return {
+        "core": core,
+        "target_psnr_db": target,
+        "inits": inits,
+        "ratios": {
+            "iters_to_target_mogs_over_random": div(m["iters_to_target"], r["iters_to_target"]),
+            "gaussians_at_target_mogs_over_random": div(
+                m["gaussians_at_target"], r["gaussians_at_target"]
+            ),
+            "replay_heldout_mogs_minus_prior_global_db": round(
+                m["replay_heldout_psnr_db"] - g["replay_heldout_psnr_db"], 3
+            ),
+            **paired_ratios(convs, target),
+        },
+    }
+
+
 def _f(v: Any, spec: str = ".2f") -> str:
     return "-" if v is None else format(v, spec)
 
@@ -356,7 +405,14 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("run_dir", help="a bench/pipeline_table2.py run folder (launch.yaml, journal/)")
-    ap.add_argument("--init", required=True, choices=("mogs", "prior_global", "random"))
+    ap.add_argument("--init", choices=("mogs", "prior_global", "random"))
+    ap.add_argument(
+        "--all-inits",
+        action="store_true",
+        help="run_dir is the bench's folder of runs (mogs/, prior_global/): the three inits' "
+        "Table II figures under the --core policy (random from the mogs run)",
+    )
+    ap.add_argument("--plot", default=None, help="with --all-inits: the curves as a PNG")
     ap.add_argument("--stop-db", type=float, default=STOP_DB)
     ap.add_argument("--cap", type=int, default=CAP)
     ap.add_argument("--json", default=None)
@@ -369,6 +425,18 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     run = Path(args.run_dir)
     core = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.core)}
+    if args.all_inits:
+        res = policy_table(run, core, args.stop_db, args.cap)
+        summary = {k: v for k, v in res.items() if k != "inits"}
+        for init, r in res["inits"].items():
+            summary[init] = {k: v for k, v in r.items() if k != "convergence"}
+        print(json.dumps(summary, indent=1))
+        write_json(args.json, res)
+        if args.plot:
+            plot(res, Path(args.plot))
+        return 0
+    if args.init is None:
+        ap.error("--init (or --all-inits)")
     conv = measure(
         run / "journal" / "journal.log",
         run / "launch.yaml",

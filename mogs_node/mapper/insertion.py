@@ -71,11 +71,13 @@ class InsertionParams:
     patch_px: int = 0  # object-guided insertion (insertion_patches.py): the largest square
     # patch (px) that one flat, surface-aligned Gaussian may cover where the depth is a plane
     # over it; halved down to patch_min_px (0: off, pixel-grid sampling only)
-    patch_min_px: int = 8  # the smallest such patch
-    patch_rel_tol: float = 0.01  # planar: RMS residual of the plane fit in 1/z below this x 1/z
-    patch_max_color_std: float = 0.0  # ... and grey-level std over the patch (0-255) at most
+    patch_min_px: int = 4  # the smallest such patch
+    patch_rel_tol: float = 0.02  # planar: RMS residual of the plane fit in 1/z below this x 1/z
+    patch_max_color_std: float = 3.0  # ... and grey-level std over the patch (0-255) at most
     # this (0: no colour test): a textured patch needs fine Gaussians for its colour
-    patch_sigma_frac: float = 0.5  # in-plane sigma = this x the patch's back-projected edge
+    patch_sigma_frac: float = 1.0  # in-plane sigma = this x the patch's back-projected edge
+    # (1: the grid's rule, sigma = the sample spacing; 0.5 leaves alpha < alpha_explained between
+    # patches at opacity_init 0.5, and the next keyframe inserts there again)
     patch_thickness: float = 0.1  # sigma along the normal = this x the in-plane sigma
     fixed_confidence: float = -1.0  # the confidence the insertion rules read for every pixel
     # with depth, whatever the source says (-1: the source's own): one treatment for every depth

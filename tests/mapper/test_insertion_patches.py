@@ -213,3 +213,10 @@ def test_any_plane_at_any_scale_gives_finite_gaussians_on_it(
     np.testing.assert_allclose(g.means_world @ n, offset_m, rtol=1e-6)
     bad = ~(np.isfinite(d) & (d > 0))
     assert not (g.covered & bad).any()
+
+
+def test_the_mapper_node_param_switches_the_policy_on_for_the_core() -> None:
+    from mogs_node.mapper.node import MapperNodeParams
+
+    assert MapperNodeParams().mapper_params().insertion.patch_px == 0  # the demo: off
+    assert MapperNodeParams(insertion_patch_px=32).mapper_params().insertion.patch_px == 32
