@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -92,11 +93,7 @@ def test_random_depth_gets_no_patch_and_the_same_gaussians_as_without_the_policy
     a = sample_gaussians(GREY, d, c, mask, K, np.eye(4), InsertionParams(patch_px=16))
     b = sample_gaussians(GREY, d, c, mask, K, np.eye(4), InsertionParams())
     for k in a:
-        assert torch_equal(a[k], b[k]), k
-
-
-def torch_equal(a, b) -> bool:  # noqa: ANN001 (torch tensors)
-    return a.shape == b.shape and bool((a == b).all())
+        assert torch.equal(a[k], b[k]), k
 
 
 def test_a_depth_step_keeps_its_tiles_fine_and_patches_the_planes_on_either_side() -> None:
@@ -166,11 +163,7 @@ def test_sample_gaussians_joins_patches_and_the_grid_without_double_cover() -> N
     )
     assert len(out["means"]) == patches + len(grid["means"])
     assert all(len(v) == len(out["means"]) for v in out.values())
-    assert bool(torch_isfinite(out["log_scales"]))
-
-
-def torch_isfinite(t) -> bool:  # noqa: ANN001
-    return bool(t.isfinite().all())
+    assert bool(torch.isfinite(out["log_scales"]).all())
 
 
 @pytest.mark.parametrize(
