@@ -12,7 +12,10 @@ and disagreements with the map count at a tight tolerance; confident depth that 
 planar (the MOGS shape consensus fits planes per object) is coarsened once more, since a plane
 needs the fewest Gaussians (paper section III-D: accurate metric geometry, fewer Gaussians);
 unconfident depth is sampled finely (more depth hypotheses for the optimisation to keep or prune)
-and its disagreements count only at a loose tolerance, not at all at confidence 0. Depth sources for the paper's Table II comparison:
+and its disagreements count only at a loose tolerance, not at all at confidence 0. With
+``patch_px > 0`` (object-guided insertion, :mod:`insertion_patches`) square patches of the mask
+whose depth is a plane and whose colour is flat first become one flat, surface-aligned Gaussian
+each, read from the depth map alone. Depth sources for the paper's Table II comparison:
 the MOGS metrized depth, the globally aligned prior (``no_msc_cdr``) and random depth
 (:func:`random_depth`, which carries no information: confidence 0).
 """
