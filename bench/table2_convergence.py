@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import math
 import sys
 from dataclasses import replace
@@ -131,9 +132,12 @@ def measure(
     stop_db: float = STOP_DB,
     cap: int = CAP,
     min_move_m: float = 0.1,
+    core: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Replay one run's journal (``launch``: its launch file) with the convergence scoring after
-    each keyframe's insertion; per-keyframe curves and the replayed map's held-out figures."""
+    each keyframe's insertion; per-keyframe curves and the replayed map's held-out figures.
+    ``core``: mapper core overrides (``bench/mapper_replay.py``'s ``--core``, e.g.
+    ``insertion.patch_px``), for every init alike: a policy measured on recorded runs."""
     torch.set_num_threads(1)  # as the live mapper (launch/demo.yaml threads: 1): the same map
     data = read_journal(journal)
     if init == "random":
@@ -162,7 +166,7 @@ def measure(
             flush=True,
         )
 
-    mapper, per = replay(data, p, after_insert=after_insert)
+    mapper, per = replay(data, p, core=core, after_insert=after_insert)
     q = score(mapper, data)
     return {
         "keyframes": per_kf,
@@ -262,6 +266,55 @@ def apply(res: dict[str, Any], convs: dict[str, dict[str, Any]], auto: bool) -> 
     }
 
 
+def policy_table(
+    root: Path, core: dict[str, Any], stop_db: float = STOP_DB, cap: int = CAP
+) -> dict[str, Any]:
+    """Table II's figures under one mapper policy (``core`` overrides, every init alike) from a
+    ``bench/pipeline_table2.py`` run folder ``root`` (its ``mogs/`` and ``prior_global/`` runs;
+    random depth regenerated from the mogs run as :class:`RandomDepthNode` publishes it): the
+    target is ``stop_db`` if every init's median reaches it, else the highest common one."""
+    runs = {"mogs": root / "mogs", "prior_global": root / "prior_global", "random": root / "mogs"}
+    convs = {
+        init: measure(
+            r / "journal" / "journal.log", r / "launch.yaml", init, stop_db, cap, 0.1, core
+        )
+        for init, r in runs.items()
+    }
+    target = stop_db
+    if any(figures(c, target)["iters_to_target"] is None for c in convs.values()):
+        target = common_target(convs, stop_db) or stop_db
+    inits = {
+        init: {
+            **figures(c, target),
+            "replay_heldout_psnr_db": c["replay_report_heldout_psnr_db"],
+            "replay_gaussians": c["replay_gaussians"],
+            "replay_inserted_pruned": c["replay_inserted_pruned"],
+            "convergence": c,
+        }
+        for init, c in convs.items()
+    }
+    m, r, g = inits["mogs"], inits["random"], inits["prior_global"]
+
+    def div(a: float | None, b: float | None) -> float | None:
+        return None if a is None or not b else round(a / b, 3)
+
+    return {
+        "core": core,
+        "target_psnr_db": target,
+        "inits": inits,
+        "ratios": {
+            "iters_to_target_mogs_over_random": div(m["iters_to_target"], r["iters_to_target"]),
+            "gaussians_at_target_mogs_over_random": div(
+                m["gaussians_at_target"], r["gaussians_at_target"]
+            ),
+            "replay_heldout_mogs_minus_prior_global_db": round(
+                m["replay_heldout_psnr_db"] - g["replay_heldout_psnr_db"], 3
+            ),
+            **paired_ratios(convs, target),
+        },
+    }
+
+
 def _f(v: Any, spec: str = ".2f") -> str:
     return "-" if v is None else format(v, spec)
 
@@ -352,14 +405,45 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("run_dir", help="a bench/pipeline_table2.py run folder (launch.yaml, journal/)")
-    ap.add_argument("--init", required=True, choices=("mogs", "prior_global", "random"))
+    ap.add_argument("--init", choices=("mogs", "prior_global", "random"))
+    ap.add_argument(
+        "--all-inits",
+        action="store_true",
+        help="run_dir is the bench's folder of runs (mogs/, prior_global/): the three inits' "
+        "Table II figures under the --core policy (random from the mogs run)",
+    )
+    ap.add_argument("--plot", default=None, help="with --all-inits: the curves as a PNG")
     ap.add_argument("--stop-db", type=float, default=STOP_DB)
     ap.add_argument("--cap", type=int, default=CAP)
     ap.add_argument("--json", default=None)
+    ap.add_argument(
+        "--core",
+        action="append",
+        default=[],
+        help="MapperParams field=JSON value (insertion.FIELD for InsertionParams)",
+    )
     args = ap.parse_args(argv)
     run = Path(args.run_dir)
+    core = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.core)}
+    if args.all_inits:
+        res = policy_table(run, core, args.stop_db, args.cap)
+        summary = {k: v for k, v in res.items() if k != "inits"}
+        for init, r in res["inits"].items():
+            summary[init] = {k: v for k, v in r.items() if k != "convergence"}
+        print(json.dumps(summary, indent=1))
+        write_json(args.json, res)
+        if args.plot:
+            plot(res, Path(args.plot))
+        return 0
+    if args.init is None:
+        ap.error("--init (or --all-inits)")
     conv = measure(
-        run / "journal" / "journal.log", run / "launch.yaml", args.init, args.stop_db, args.cap
+        run / "journal" / "journal.log",
+        run / "launch.yaml",
+        args.init,
+        args.stop_db,
+        args.cap,
+        core=core,
     )
     for k, v in figures(conv, args.stop_db).items():
         print(f"{k}: {v}")

@@ -12,7 +12,10 @@ and disagreements with the map count at a tight tolerance; confident depth that 
 planar (the MOGS shape consensus fits planes per object) is coarsened once more, since a plane
 needs the fewest Gaussians (paper section III-D: accurate metric geometry, fewer Gaussians);
 unconfident depth is sampled finely (more depth hypotheses for the optimisation to keep or prune)
-and its disagreements count only at a loose tolerance, not at all at confidence 0. Depth sources for the paper's Table II comparison:
+and its disagreements count only at a loose tolerance, not at all at confidence 0. With
+``patch_px > 0`` (object-guided insertion, :mod:`insertion_patches`) square patches of the mask
+whose depth is a plane and whose colour is flat first become one flat, surface-aligned Gaussian
+each, read from the depth map alone. Depth sources for the paper's Table II comparison:
 the MOGS metrized depth, the globally aligned prior (``no_msc_cdr``) and random depth
 (:func:`random_depth`, which carries no information: confidence 0).
 """
@@ -27,6 +30,7 @@ import torch
 
 from mogs_node.errors import ConfigError, ShapeError
 from mogs_node.geometry import check_array, pixel_to_normalized
+from mogs_node.mapper.insertion_patches import surface_patches
 
 __all__ = [
     "InsertionParams",
@@ -67,6 +71,17 @@ class InsertionParams:
     min_depth_m: float = 0.1  # pixels with depth below this (or 0 = no value) are not used
     background_depth_m: float = 0.0  # pixels without depth that the map leaves transparent get
     # Gaussians on a far sphere at this distance (sky, far background; 0: off)
+    patch_px: int = 0  # object-guided insertion (insertion_patches.py): the largest square
+    # patch (px) that one flat, surface-aligned Gaussian may cover where the depth is a plane
+    # over it; halved down to patch_min_px (0: off, pixel-grid sampling only)
+    patch_min_px: int = 4  # the smallest such patch
+    patch_rel_tol: float = 0.02  # planar: RMS residual of the plane fit in 1/z below this x 1/z
+    patch_max_color_std: float = 3.0  # ... and grey-level std over the patch (0-255) at most
+    # this (0: no colour test): a textured patch needs fine Gaussians for its colour
+    patch_sigma_frac: float = 1.0  # in-plane sigma = this x the patch's back-projected edge
+    # (1: the grid's rule, sigma = the sample spacing; 0.5 leaves alpha < alpha_explained between
+    # patches at opacity_init 0.5, and the next keyframe inserts there again)
+    patch_thickness: float = 0.1  # sigma along the normal = this x the in-plane sigma
     fixed_confidence: float = -1.0  # the confidence the insertion rules read for every pixel
     # with depth, whatever the source says (-1: the source's own): one treatment for every depth
     # source (Table II); the optimisation's depth loss still weights by the source's confidence
@@ -86,6 +101,12 @@ class InsertionParams:
             raise ConfigError("InsertionParams.planar_max_grad: must be >= 0")
         if not (self.background_depth_m == 0 or self.background_depth_m > self.min_depth_m):
             raise ConfigError("InsertionParams.background_depth_m: 0 (off) or > min_depth_m")
+        if self.patch_px < 0 or (self.patch_px and self.patch_min_px < 2):
+            raise ConfigError("InsertionParams: need patch_px >= 0 and patch_min_px >= 2")
+        if not (self.patch_rel_tol >= 0 and self.patch_max_color_std >= 0):
+            raise ConfigError("InsertionParams: need patch_rel_tol, patch_max_color_std >= 0")
+        if not (self.patch_sigma_frac > 0 and self.patch_thickness > 0):
+            raise ConfigError("InsertionParams: need patch_sigma_frac, patch_thickness > 0")
         if not (self.fixed_confidence == -1.0 or 0 <= self.fixed_confidence <= 1):
             raise ConfigError("InsertionParams.fixed_confidence: -1 (the source's) or in [0, 1]")
 
@@ -291,6 +312,23 @@ def sample_gaussians(
     if not np.all(np.isfinite(d[m])):
         raise ShapeError("depth_m: non-finite depth inside mask")
     c = insertion_confidence(d, c, params)
+    patches = None
+    if params.patch_px > 0:  # flat Gaussians on planar patches; the grid samples the rest
+        patches = surface_patches(
+            img,
+            d,
+            m,
+            K,
+            T,
+            patch_px=params.patch_px,
+            min_patch_px=params.patch_min_px,
+            rel_tol=params.patch_rel_tol,
+            max_color_std=params.patch_max_color_std,
+            sigma_frac=params.patch_sigma_frac,
+            thickness=params.patch_thickness,
+            max_footprint_rad=params.max_footprint_rad,
+        )
+        m = m & ~patches.covered
     s = _stride_map(d, c, params, img)  # planarity from the whole depth map, not only the mask
     f = math.sqrt(K[0, 0] * K[1, 1])
     s = np.minimum(s, max(params.stride_px, int(params.max_footprint_rad * f)))
@@ -303,14 +341,20 @@ def sample_gaussians(
     p_cam = np.stack([x_n * z, y_n * z, z], -1)
     p_world = p_cam @ T[:3, :3].T + T[:3, 3]
     sigma = params.scale_factor * s[v, u] * z / math.sqrt(fx * fy)
-    n = len(z)
-    logit = math.log(params.opacity_init / (1 - params.opacity_init))
-    quats = np.zeros((n, 4), np.float32)
+    quats = np.zeros((len(z), 4))
     quats[:, 0] = 1
+    scales = np.log(sigma)[:, None].repeat(3, 1)
+    colors = img[v, u].astype(np.float32) / 255.0
+    if patches is not None:
+        p_world = np.concatenate([patches.means_world, p_world])
+        quats = np.concatenate([patches.quats_wxyz, quats])
+        scales = np.concatenate([np.log(patches.scales_m), scales])
+        colors = np.concatenate([patches.colors_rgb, colors])
+    logit = math.log(params.opacity_init / (1 - params.opacity_init))
     return {
         "means": torch.as_tensor(p_world, dtype=torch.float32),
-        "quats_wxyz": torch.as_tensor(quats),
-        "log_scales": torch.as_tensor(np.log(sigma)[:, None].repeat(3, 1), dtype=torch.float32),
-        "opacity_logit": torch.full((n,), logit, dtype=torch.float32),
-        "colors": torch.as_tensor(img[v, u].astype(np.float32) / 255.0),
+        "quats_wxyz": torch.as_tensor(quats, dtype=torch.float32),
+        "log_scales": torch.as_tensor(scales, dtype=torch.float32),
+        "opacity_logit": torch.full((len(p_world),), logit, dtype=torch.float32),
+        "colors": torch.as_tensor(colors),
     }

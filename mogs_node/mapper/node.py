@@ -82,6 +82,8 @@ class MapperNodeParams:
     background_depth_m: float = 0.0  # far-sphere Gaussians where the depth has none (0: off)
     insertion_confidence: float = -1.0  # the confidence insertion reads wherever there is depth
     # (-1: the source's own; InsertionParams.fixed_confidence)
+    insertion_patch_px: int = 0  # object-guided insertion: flat Gaussians on planar depth
+    # patches up to this size (0: off; InsertionParams.patch_px, docs/mapper.md)
     final_refine_iters: int = 0  # at the end of the drive: iterations over every keyframe
     final_refine_downsample: int = 1  # ... at 1/n of the resolution (GaussianMapper.refine)
     final_refine_chunk: int = 5  # refinement iterations per timer tick (heartbeats go on)
@@ -169,6 +171,7 @@ class MapperNodeParams:
             insertion=InsertionParams(
                 background_depth_m=self.background_depth_m,
                 fixed_confidence=self.insertion_confidence,
+                patch_px=self.insertion_patch_px,
             ),
         )
 

@@ -192,3 +192,42 @@ def test_the_bench_replays_each_runs_journal_after_the_live_runs(tmp_path, monke
     assert res["target_psnr_db"] == 20.0 and res["inits"]["random"]["iters_to_target"] == 2.0
     assert res["inits"]["mogs"]["fixed_view"]["iters_to_target"] == 6
     assert res["ratios"]["iters_to_target_mogs_over_random"] == 0.25
+
+
+def test_a_policy_table_replays_all_three_inits_with_the_same_core(tmp_path, monkeypatch) -> None:
+    """``--all-inits``: each init's journal (random: the mogs run's, regenerated) replayed with
+    the one ``core`` policy; the target, medians and ratios as the bench's."""
+    import bench.table2_convergence as tc
+
+    calls = []
+    curves = {
+        "mogs": conv([[19.0, 20.0], [20.0]], start=100),
+        "prior_global": conv([[18.0, 19.5, 20.0], [20.0]], start=120),
+        "random": conv([[15.0, 17.0, 18.5]] * 2, start=400),
+    }
+
+    def measure(journal, launch, init, stop_db, cap, min_move_m, core):  # noqa: ANN001
+        calls.append((journal.parent.parent.name, init, core))
+        held = {"mogs": 20.1, "prior_global": 19.7, "random": 16.2}[init]
+        return {
+            **curves[init],
+            "replay_report_heldout_psnr_db": held,
+            "replay_gaussians": 7,
+            "replay_inserted_pruned": [9, 2],
+        }
+
+    monkeypatch.setattr(tc, "measure", measure)
+    core = {"insertion.patch_px": 32}
+    res = tc.policy_table(tmp_path, core)
+    assert calls == [
+        ("mogs", "mogs", core),
+        ("prior_global", "prior_global", core),
+        ("mogs", "random", core),
+    ]
+    assert res["target_psnr_db"] == 18.5  # random never reaches 20 dB: the highest common one
+    assert res["inits"]["mogs"]["gaussians_at_target"] == pytest.approx((100 + 110) / 2)
+    r = res["ratios"]
+    assert r["gaussians_at_target_mogs_over_random"] == round(105 / ((402 + 412) / 2), 3)
+    assert r["iters_to_target_mogs_over_random"] == 0.0
+    assert r["replay_heldout_mogs_minus_prior_global_db"] == pytest.approx(0.4)
+    assert r["keyframes_both_reach"] == 2
