@@ -159,6 +159,9 @@ class PriorHistory:
             is verified against (photometrically), besides ``references``.
         ground_heights_m: earlier keyframes' measurements of the camera height
             (``road.auto_height`` with no ``flow.camera_height_m`` given).
+        far_field_reference: ``(image, T_world_cam)`` of a reference farther back for the pixels
+            below the nearest pair's parallax gate
+            (:func:`~mogs_node.depth_prior.flow_prior.choose_far_field_reference`), or None.
     """
 
     references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = ()
@@ -166,6 +169,7 @@ class PriorHistory:
     previous_prior: tuple | None = None
     road_references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]] = ()
     ground_heights_m: Sequence[float] = ()
+    far_field_reference: tuple[NDArray[np.uint8], NDArray[np.float64]] | None = None
 
 
 @dataclass
@@ -526,7 +530,9 @@ def compute_dense_prior(
     H, W = grey.shape
     K = check_array("K", K, shape=(3, 3), finite=True)
     Tk = check_array("T_world_cam_k", T_world_cam_k, shape=(4, 4), finite=True)
-    flow = compute_flow_prior(grey, K, Tk, references, flow_params)
+    flow = compute_flow_prior(
+        grey, K, Tk, references, flow_params, far_field=past.far_field_reference
+    )
     stats: dict[str, float] = {}
     height_m = flow_params.camera_height_m
     if road_params.enabled:

@@ -18,6 +18,10 @@ The reference keyframe is chosen by distance, not frame count: the nearest earli
 range. Where two pairs both give a depth they must agree within ``max_pair_disagreement``
 (relative); they are then averaged by confidence, otherwise the pixel gets none (an independently
 moving object is triangulated differently from two baselines). Elsewhere the one valid pair counts.
+With ``far_field_baseline_m`` a reference farther back (:func:`choose_far_field_reference`) gives
+depth only where the nearest pair measured the motion (forward-backward consistent) but its
+parallax stayed below the gate and no pair gave depth: far objects near the focus of expansion,
+whose parallax grows with the baseline.
 
 Confidence models the relative depth error of a triangulation: a match error of ``sigma`` pixels on
 a parallax of ``p`` pixels gives a relative depth error of about ``sigma / p``; we take
@@ -44,6 +48,7 @@ __all__ = [
     "FlowPrior",
     "FlowPriorParams",
     "TwoViewDepth",
+    "choose_far_field_reference",
     "choose_references",
     "compute_flow_prior",
     "detect_sky",
@@ -90,6 +95,11 @@ class FlowPriorParams:
     # the first keyframe after a standstill has no earlier keyframe, but the frames in which the
     # car started moving have parallax; keyframes 3 m apart get a nearer reference
     frame_references: int = 0
+    # far field (0: off): a reference about this far back, tried only where the nearest pair
+    # measured the motion (forward-backward consistent) but its parallax was below the gate
+    # (far objects near the focus of expansion): parallax grows with the baseline
+    far_field_baseline_m: float = 0.0
+    max_far_field_baseline_m: float = 8.0  # ... and never further back than this
 
     def __post_init__(self) -> None:
         if self.dis_preset not in _DIS_PRESETS:
@@ -103,6 +113,10 @@ class FlowPriorParams:
         if self.max_depth_m <= 0 or self.ground_margin < 1 or self.rel_err_ref <= 0:
             raise ConfigError(
                 "FlowPriorParams: need max_depth_m > 0, ground_margin >= 1, rel_err_ref > 0"
+            )
+        if not (0 <= self.far_field_baseline_m <= self.max_far_field_baseline_m < float("inf")):
+            raise ConfigError(
+                "FlowPriorParams: need 0 <= far_field_baseline_m <= max_far_field_baseline_m < inf"
             )
         if self.frame_references < 0:
             raise ConfigError("FlowPriorParams.frame_references: must be >= 0")
@@ -433,12 +447,64 @@ def choose_references(
     return refs
 
 
+def choose_far_field_reference(
+    T_world_cam_k: NDArray[np.float64],
+    T_world_cam_history: NDArray[np.float64],
+    references: Sequence[int],
+    params: FlowPriorParams = FlowPriorParams(),
+) -> int | None:
+    """Index into ``T_world_cam_history`` ``[N, 4, 4]`` of the far-field reference, or None.
+
+    The entry whose distance is closest to ``far_field_baseline_m``, farther than 1.5x every
+    chosen reference (``references``, from :func:`choose_references`) and at most
+    ``max_far_field_baseline_m`` back. None when off (``far_field_baseline_m`` 0), without
+    references or without such an entry.
+    """
+    if params.far_field_baseline_m <= 0 or not references:
+        return None
+    Tk = check_array("T_world_cam_k", T_world_cam_k, shape=(4, 4), finite=True)
+    Th = check_array("T_world_cam_history", T_world_cam_history, shape=(None, 4, 4), finite=True)
+    dist = np.linalg.norm(Th[:, :3, 3] - Tk[:3, 3], axis=1)
+    lo = 1.5 * float(dist[list(references)].max())
+    cand = np.flatnonzero((dist >= lo) & (dist <= params.max_far_field_baseline_m))
+    if cand.size == 0:
+        return None
+    return int(cand[np.argmin(np.abs(dist[cand] - params.far_field_baseline_m))])
+
+
+def _far_field_pair(
+    grey: NDArray[np.uint8],
+    K: NDArray[np.float64],
+    T_world_cam_k: NDArray[np.float64],
+    far_field: tuple[NDArray[np.uint8], NDArray[np.float64]],
+    nearest: TwoViewDepth,
+    params: FlowPriorParams,
+    bound: NDArray[np.float32],
+) -> tuple[TwoViewDepth, NDArray[np.bool_]]:
+    """The far-field pair and where it may give depth: pixels whose nearest pair was
+    forward-backward consistent (the motion was measured) but below the parallax gate."""
+    image_r, T_world_cam_r = far_field
+    Tr = check_array("far_field.T_world_cam", T_world_cam_r, shape=(4, 4), finite=True)
+    pair = two_view_depth(
+        grey,
+        _grey(image_r, "far_field.image"),
+        K,
+        se3_inverse(Tr) @ T_world_cam_k,
+        params,
+        depth_bound_m=bound,
+    )
+    slow = np.isfinite(nearest.parallax_deg) & (nearest.parallax_deg <= params.min_parallax_deg)
+    return pair, slow & (pair.confidence > 0)
+
+
 def compute_flow_prior(
     image_k: NDArray[np.uint8],
     K: NDArray[np.float64],
     T_world_cam_k: NDArray[np.float64],
     references: Sequence[tuple[NDArray[np.uint8], NDArray[np.float64]]],
     params: FlowPriorParams = FlowPriorParams(),
+    *,
+    far_field: tuple[NDArray[np.uint8], NDArray[np.float64]] | None = None,
 ) -> FlowPrior:
     """Depth prior of keyframe ``k`` from one or more reference keyframes.
 
@@ -486,6 +552,13 @@ def compute_flow_prior(
         depth = np.where(rejected, 0.0, depth).astype(np.float32)
         conf = np.where(rejected, 0.0, conf).astype(np.float32)
         pairs.append(pair)
+    n_far = 0
+    if far_field is not None and pairs:
+        far, take = _far_field_pair(grey, K, Tk, far_field, pairs[0], params, bound)
+        take &= (conf == 0) & ~rejected
+        depth[take] = far.depth_m[take]
+        conf[take] = far.confidence[take]
+        n_far = int(take.sum())
     depth[sky] = 0.0
     conf[sky] = 0.0
     stats = {
@@ -493,6 +566,7 @@ def compute_flow_prior(
         "sky_fraction": float(np.mean(sky)),
         "n_references": float(len(pairs)),
         "pair_disagreement_fraction": float(np.mean(rejected)),
+        "far_field_fraction": n_far / float(H * W),
     }
     for i, p in enumerate(pairs):
         stats[f"baseline_m_{i}"] = p.baseline_m

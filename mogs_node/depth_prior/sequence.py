@@ -22,7 +22,12 @@ from mogs_node.depth_prior.dense_prior import (
     PriorHistory,
     compute_dense_prior,
 )
-from mogs_node.depth_prior.flow_prior import FlowPriorParams, _grey, choose_references
+from mogs_node.depth_prior.flow_prior import (
+    FlowPriorParams,
+    _grey,
+    choose_far_field_reference,
+    choose_references,
+)
 from mogs_node.depth_prior.road import RoadPriorParams
 from mogs_node.geometry import check_array
 
@@ -119,9 +124,12 @@ class PriorSequence:
 
     def _references(
         self, stamp_ns: int | None, T_world_cam: NDArray, past: list[_Past], shape: tuple
-    ) -> tuple[list[tuple[NDArray, NDArray]], list[int], list[tuple[NDArray, NDArray]]]:
-        """Flow references (grey, pose), their keyframe ids (-1: a frame) and the road's extra
-        references, chosen among the earlier keyframes and the kept frames before ``stamp_ns``."""
+    ) -> tuple[
+        list[tuple[NDArray, NDArray]], list[int], list[tuple[NDArray, NDArray]], tuple | None
+    ]:
+        """Flow references (grey, pose), their keyframe ids (-1: a frame), the road's extra
+        references and the far-field reference (or None), chosen among the earlier keyframes and
+        the kept frames before ``stamp_ns``."""
         pool = [(p.stamp_ns, p.grey, p.T_world_cam, p.keyframe_id) for p in past]
         if stamp_ns is not None and self.frames:
             seen = {p.stamp_ns for p in past}
@@ -135,10 +143,12 @@ class PriorSequence:
         Th = np.array([e[2] for e in pool]) if pool else np.zeros((0, 4, 4))
         refs = choose_references(T_world_cam, Th, self.flow)
         road = self._road_references(refs)
+        far = choose_far_field_reference(T_world_cam, Th, refs, self.flow)
         return (
             [(pool[j][1], pool[j][2]) for j in refs],
             [pool[j][3] for j in refs],
             [(pool[j][1], pool[j][2]) for j in road],
+            None if far is None else (pool[far][1], pool[far][2]),
         )
 
     def add_metrized(self, keyframe_id: int, depth_m: NDArray, confidence: NDArray) -> bool:
@@ -185,7 +195,9 @@ class PriorSequence:
         grey = _grey(image, "image")
         self._check_camera(K, grey.shape)
         past = list(self.history)
-        references, ref_ids, road_refs = self._references(stamp_ns, T_world_cam, past, grey.shape)
+        references, ref_ids, road_refs, far_ref = self._references(
+            stamp_ns, T_world_cam, past, grey.shape
+        )
         earlier = [
             (p.metrized[0], p.metrized[1], p.T_world_cam, p.grey)
             for p in reversed(past)
@@ -195,7 +207,9 @@ class PriorSequence:
         carried = None
         if last is not None and last.prior is not None:
             carried = (last.prior[0], last.prior[1], last.T_world_cam, last.grey)
-        past_in = PriorHistory(references, earlier, carried, road_refs, self.ground_heights_m)
+        past_in = PriorHistory(
+            references, earlier, carried, road_refs, self.ground_heights_m, far_ref
+        )
         prior = compute_dense_prior(
             grey,
             K,

@@ -326,7 +326,13 @@ def _plane_pass(
         )
         gap = p.confident_plane_max_gap * W
         select = PlaneSelect(
-            fr.conf.reshape(H, W), p.confident_plane_fit_conf, p.confident_plane_replace_below, gap
+            fr.conf.reshape(H, W),
+            p.confident_plane_fit_conf,
+            p.confident_plane_replace_below,
+            gap,
+            colour_gap_px=p.confident_plane_colour_gap * W,
+            colour_share=p.confident_plane_colour_share,
+            image_rgb=fr.image,
         )
     else:
         share, inl, min_depth, min_px = (
@@ -335,7 +341,12 @@ def _plane_pass(
             p.mask_plane_min_depth_m,
             30,
         )
-        select = None
+        select = PlaneSelect(
+            max_gap_px=p.mask_plane_max_gap * W,
+            colour_gap_px=p.mask_plane_colour_gap * W,
+            colour_share=p.confident_plane_colour_share,
+            image_rgb=fr.image,
+        )
     return complete_planar_masks(
         depth.reshape(H, W),
         out_conf.reshape(H, W),

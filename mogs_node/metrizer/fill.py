@@ -13,8 +13,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mogs_node.geometry import check_array
+
 __all__ = [
     "PlaneSelect",
+    "colour_share_of",
     "complete_planar_masks",
     "consistent_seeds",
     "edge_aware_fill",
@@ -176,6 +179,35 @@ class PlaneSelect:
     fit_min_conf: float = 0.0
     replace_below: float = 0.0
     max_gap_px: float = 0.0  # > 0: only pixels this close to an inlier of their object
+    # ... or, farther but within colour_gap_px (> 0), pixels whose colour the object's inliers
+    # have (at least colour_share of them in the pixel's colour bin of image_rgb [H, W, 3]
+    # uint8): a plane does not cross into a surface of other colours (a bonnet below the
+    # background its object was fitted to, the background seen between a tree's leaves)
+    colour_gap_px: float = 0.0
+    colour_share: float = 0.1
+    image_rgb: NDArray[np.uint8] | None = None
+
+
+COLOUR_LEVELS = 6  # colour bins per channel of :func:`colour_share_of`
+
+
+def colour_share_of(
+    image_rgb: NDArray[np.uint8],
+    reference: tuple[NDArray[np.intp], NDArray[np.intp]],
+    query: tuple[NDArray[np.intp], NDArray[np.intp]],
+    n_objects: int,
+) -> NDArray[np.float64]:
+    """For each ``query`` pixel (flat index, object), the share of its object's ``reference``
+    pixels (flat index, object) whose colour falls in the query's colour bin (``COLOUR_LEVELS``
+    per channel of ``image_rgb`` ``[H, W, 3]`` uint8); 0 for an object without references."""
+    rgb = np.asarray(image_rgb).reshape(-1, 3)
+    n_bins = COLOUR_LEVELS**3
+    q = (rgb.astype(np.intp) * COLOUR_LEVELS) // 256
+    bins = (q[:, 0] * COLOUR_LEVELS + q[:, 1]) * COLOUR_LEVELS + q[:, 2]
+    (r_idx, r_obj), (q_idx, q_obj) = reference, query
+    counts = np.bincount(r_obj * n_bins + bins[r_idx], minlength=n_objects * n_bins)
+    n_ref = np.bincount(r_obj, minlength=n_objects)[:n_objects]
+    return counts[q_obj * n_bins + bins[q_idx]] / np.maximum(n_ref[q_obj], 1)
 
 
 def _near_own_inliers(
@@ -183,11 +215,12 @@ def _near_own_inliers(
     pixels: tuple[NDArray[np.intp], NDArray[np.intp]],
     hw: tuple[int, int],
     max_gap_px: float,
-) -> NDArray[np.bool_]:
+) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
     """Whether each of ``pixels`` (flat index, object) lies within ``max_gap_px`` of one of the
     ``inliers`` (flat index, object) of its own object: the nearest inlier's object, by one
-    labelled distance transform. A plane is not carried across an object to pixels far from
-    what it was fitted to (an under-segmented object: its confident pixels on the background)."""
+    labelled distance transform; and the distance to it [px]. A plane is not carried across an
+    object to pixels far from what it was fitted to (an under-segmented object: its confident
+    pixels on the background)."""
     (in_idx, in_obj), (idx, obj) = inliers, pixels
     H, W = hw
     free = np.ones(H * W, np.uint8)
@@ -202,7 +235,30 @@ def _near_own_inliers(
     pix_obj[in_idx] = in_obj
     owner[1 : len(order) + 1] = pix_obj[order]
     near = owner[lab.ravel()[idx]]
-    return (near == obj) & (dist.ravel()[idx] <= max_gap_px)
+    gap = dist.ravel()[idx]
+    return (near == obj) & (gap <= max_gap_px), gap
+
+
+def _reachable(
+    sel: PlaneSelect,
+    inliers: tuple[NDArray[np.intp], NDArray[np.intp]],
+    pixels: tuple[NDArray[np.intp], NDArray[np.intp]],
+    hw: tuple[int, int],
+    n_objects: int,
+) -> NDArray[np.bool_]:
+    """Which ``pixels`` (flat index, object) a plane fitted to ``inliers`` may reach: nearest to
+    an inlier of their own object, within ``sel.max_gap_px`` of it, or within
+    ``sel.colour_gap_px`` and of a colour the inliers have (:func:`colour_share_of`)."""
+    with_colour = sel.colour_gap_px > 0 and sel.image_rgb is not None
+    reach = max(sel.max_gap_px, sel.colour_gap_px if with_colour else 0.0)
+    own, gap = _near_own_inliers(inliers, pixels, hw, reach)
+    far = own & (gap > sel.max_gap_px)
+    if far.any():
+        img = check_array("image_rgb", sel.image_rgb, shape=(*hw, 3), dtype=np.uint8)
+        (idx, obj) = pixels
+        share = colour_share_of(img, inliers, (idx[far], obj[far]), n_objects)
+        own[far] = share >= sel.colour_share
+    return own
 
 
 def complete_planar_masks(
@@ -308,8 +364,8 @@ def complete_planar_masks(
         z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0)
     keep = (z >= zlo[hg] / extrapolation) & (z <= zhi[hg] * extrapolation)
     keep &= (z >= min_out_m) & (z <= max_depth_m) & (z > 0)
-    if sel.max_gap_px > 0:
-        keep &= _near_own_inliers((idx[inl], g[inl]), (hidx, hg), (H, W), sel.max_gap_px)
+    if sel.max_gap_px > 0 or (sel.colour_gap_px > 0 and sel.image_rgb is not None):
+        keep &= _reachable(sel, (idx[inl], g[inl]), (hidx, hg), (H, W), G)
     depth_m.ravel()[hidx[keep]] = z[keep].astype(np.float32)
     confidence.ravel()[hidx[keep]] = conf_g[hg[keep]].astype(np.float32)
     return int(keep.sum())

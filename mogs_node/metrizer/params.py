@@ -49,6 +49,9 @@ class MetrizerParams:
     mask_plane_min_share: float = 0.3  # ... at least this share of the object has a depth
     mask_plane_inlier_rel: float = 0.02  # ... half of those within this relative depth of it
     mask_plane_min_depth_m: float = 5.0  # ... and their (geometric) mean depth at least this
+    mask_plane_max_gap: float = 0.0  # > 0: as confident_plane_max_gap, for this pass
+    mask_plane_colour_gap: float = 0.0  # > 0: as confident_plane_colour_gap, for this pass
+    # (with mask_plane_max_gap 0: every filled pixel needs the inliers' colour)
     confident_planes: bool = False  # departure (issue 16): before that, an object's plane
     # fitted to its pixels of prior confidence >= confident_plane_fit_conf replaces its pixels
     # below confident_plane_replace_below and fills its holes (fill.PlaneSelect), when at least
@@ -59,6 +62,10 @@ class MetrizerParams:
     confident_plane_inlier_rel: float = 0.03  # ... half of them within this of the plane
     confident_plane_max_gap: float = 0.0  # > 0: only pixels within this fraction of the image
     # width of an inlier of their object get its plane
+    confident_plane_colour_gap: float = 0.0  # > 0 (issue 16, session 16): pixels farther than
+    # that but within this fraction of the width get it where their colour is one of the
+    # inliers' (at least confident_plane_colour_share of them in its bin, fill.colour_share_of)
+    confident_plane_colour_share: float = 0.1  # (the whole-mask pass's colour test too)
     road_camera_height_m: float = float("nan")  # departure (issue 16): > 0 the camera's height
     # above a planar road; with the keyframe's pose (MetrizerInputs.T_world_cam) the road plane
     # then gives depth to road objects and objects standing on the road (ground.py)
@@ -183,6 +190,19 @@ class MetrizerParams:
             )
         if not 0 <= self.sky_anchor < float("inf"):
             raise ConfigError(f"MetrizerParams: finite sky_anchor >= 0, got {self.sky_anchor}")
+        gaps = (
+            self.confident_plane_max_gap,
+            self.confident_plane_colour_gap,
+            self.mask_plane_max_gap,
+            self.mask_plane_colour_gap,
+        )
+        if not (
+            all(0 <= g < float("inf") for g in gaps) and 0 < self.confident_plane_colour_share <= 1
+        ):
+            raise ConfigError(
+                "MetrizerParams: finite *_max_gap / *_colour_gap >= 0 and "
+                "confident_plane_colour_share in (0, 1] required"
+            )
         if not 0 <= self.road_snap_rel < 1:
             raise ConfigError(f"MetrizerParams: road_snap_rel in [0, 1), got {self.road_snap_rel}")
         if not (self.mask_split_rel > 0 and self.mask_split_radius >= 0):

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from mogs_node.depth_prior.flow_prior import (
     FlowPriorParams,
+    choose_far_field_reference,
     choose_references,
     compute_flow_prior,
     detect_sky,
@@ -252,3 +253,48 @@ def test_motion_boundary_gate_removes_pixels_at_depth_edges(views) -> None:
     edge = np.abs(cv2.Laplacian(np.log(d1), cv2.CV_64F)) > 0.05
     near_edge = cv2.dilate(edge.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
     assert near_edge[removed].mean() > near_edge[plain.valid].mean()
+
+
+def test_choose_far_field_reference() -> None:
+    """The entry nearest ``far_field_baseline_m`` back, beyond 1.5x every chosen reference and
+    within ``max_far_field_baseline_m``; None when off, without references or without one."""
+    z = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 4.6])
+    hist = make_T(np.eye(3)[None].repeat(len(z), 0), np.stack([0 * z, 0 * z, z], -1))
+    Tk = make_T(np.eye(3), np.array([0.0, 0.0, 5.0]))  # distances 5, 4, 3, 2, 1, 0.4
+    on = FlowPriorParams(far_field_baseline_m=3.0)
+    assert choose_far_field_reference(Tk, hist, [5, 4], on) == 2
+    assert choose_far_field_reference(Tk, hist, [4], replace(on, far_field_baseline_m=4.4)) == 1
+    # 1.5x the farthest chosen reference (2 m -> 3 m) rules out the nearer entries
+    assert choose_far_field_reference(Tk, hist, [3], replace(on, far_field_baseline_m=2.0)) == 2
+    assert choose_far_field_reference(Tk, hist, [5], replace(on, max_far_field_baseline_m=3.5)) == 2
+    assert (
+        choose_far_field_reference(Tk, hist, [2], replace(on, max_far_field_baseline_m=4.0)) is None
+    )
+    assert choose_far_field_reference(Tk, hist, [], on) is None
+    assert choose_far_field_reference(Tk, hist, [5], FlowPriorParams()) is None  # off
+    with pytest.raises(ConfigError, match="far_field"):
+        FlowPriorParams(far_field_baseline_m=9.0, max_far_field_baseline_m=8.0)
+    with pytest.raises(ConfigError, match="far_field"):
+        FlowPriorParams(far_field_baseline_m=-1.0)
+
+
+def test_far_field_reference_fills_only_where_the_nearest_pair_was_below_the_gate(views) -> None:
+    """A near reference 0.4 m back leaves part of the scene below a 1 deg parallax gate
+    (forward-backward consistent: the motion was measured); the far-field reference 1.4 m back
+    gives it depth there, accurate, and changes nothing where the near pair had depth."""
+    (i0, _), (i2, d2) = views["0"], views["2"]
+    T_near = make_T(so3_exp(np.array([0.0, 0.03, 0.0])), np.array([0.15, 0.0, 1.0]))
+    i_near, _ = render(T_near)
+    p = FlowPriorParams(sky_mask=False, min_parallax_deg=1.0)
+    near = compute_flow_prior(i2, CAM.K, T2, [(i_near, T_near)], p)
+    both = compute_flow_prior(i2, CAM.K, T2, [(i_near, T_near)], p, far_field=(i0, T0))
+    slow = np.isfinite(near.pairs[0].parallax_deg) & (near.pairs[0].parallax_deg <= 1.0)
+    new = (both.confidence > 0) & (near.confidence == 0)
+    assert new.mean() > 0.1 and not np.any(new & ~slow)
+    had = near.confidence > 0
+    assert had.mean() > 0.2
+    np.testing.assert_array_equal(both.depth_m[had], near.depth_m[had])
+    np.testing.assert_array_equal(both.confidence[had], near.confidence[had])
+    assert both.stats["far_field_fraction"] == pytest.approx(new.mean())
+    assert near.stats["far_field_fraction"] == 0.0
+    assert np.median(_absrel(both.depth_m, d2, new)) < 0.03

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mogs_node.metrizer.fill import PlaneSelect, complete_planar_masks
+from mogs_node.metrizer.fill import PlaneSelect, colour_share_of, complete_planar_masks
 
 H, W = 60, 80
 K = np.array([[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]])
@@ -187,3 +187,97 @@ def test_max_gap_keeps_a_plane_off_the_far_part_of_an_under_segmented_object():
     n = complete_planar_masks(d1, prior_conf * 0.5, objects, 1, select=sel, **kw)
     assert n == 5 * W  # rows 20-24: within 5 px of row 19
     assert np.all(d1[25:] == 0) and np.all(d1[20:25] > 0)
+
+
+def _wall_over_bonnet(bonnet_rgb: tuple[int, int, int]):
+    """One object: a confident wall 10 m away (rows 0-19, two colours) over a bonnet without
+    depth (rows 20-59) of colour ``bonnet_rgb``."""
+    truth = plane_depth(np.array([0.0, 0.0, 1.0]), 10.0)
+    depth = truth.copy()
+    depth[20:] = 0
+    prior_conf = np.where(depth > 0, 0.8, 0.0).astype(np.float32)
+    image = np.zeros((H, W, 3), np.uint8)
+    image[:20, : W // 2] = (200, 200, 200)
+    image[:20, W // 2 :] = (90, 90, 90)
+    image[20:] = bonnet_rgb
+    return depth, prior_conf, image
+
+
+@pytest.mark.parametrize(
+    ("bonnet_rgb", "filled_rows"), [((200, 30, 30), 5), ((90, 90, 90), 15), ((95, 88, 92), 15)]
+)
+def test_colour_gap_reaches_farther_only_over_the_inliers_colours(bonnet_rgb, filled_rows):
+    """Beyond ``max_gap_px`` (5 px) and within ``colour_gap_px`` (15 px) only pixels of a colour
+    the plane's inliers have get the plane: a red bonnet stays empty, a bonnet of the wall's grey
+    (the same colour bin, not the same value) is filled up to the colour gap."""
+    depth, prior_conf, image = _wall_over_bonnet(bonnet_rgb)
+    objects = np.zeros((H, W), np.int32)
+    sel = PlaneSelect(prior_conf, 0.4, 0.3, max_gap_px=5.0, colour_gap_px=15.0, image_rgb=image)
+    kw = dict(min_depth_m=0.0, min_share=0.02, inlier_rel=0.03, extrapolation=10.0)
+    n = complete_planar_masks(depth, prior_conf * 0.5, objects, 1, select=sel, **kw)
+    assert n == filled_rows * W
+    assert np.all(depth[20 : 20 + filled_rows] > 0) and np.all(depth[20 + filled_rows :] == 0)
+    # without an image the colour gap is not used; a colour gap alone needs the colour everywhere
+    depth2, _, _ = _wall_over_bonnet(bonnet_rgb)
+    no_img = PlaneSelect(prior_conf, 0.4, 0.3, max_gap_px=5.0, colour_gap_px=15.0)
+    assert complete_planar_masks(depth2, prior_conf * 0.5, objects, 1, select=no_img, **kw) == 5 * W
+    depth3, _, _ = _wall_over_bonnet(bonnet_rgb)
+    alone = PlaneSelect(prior_conf, 0.4, 0.3, colour_gap_px=15.0, image_rgb=image)
+    n3 = complete_planar_masks(depth3, prior_conf * 0.5, objects, 1, select=alone, **kw)
+    assert n3 == (15 * W if filled_rows == 15 else 0)
+
+
+def test_colour_share_of_exact():
+    """Shares of the reference pixels per object in the query pixel's colour bin."""
+    image = np.zeros((1, 6, 3), np.uint8)
+    image[0] = [(0, 0, 0), (10, 10, 10), (250, 0, 0), (0, 0, 0), (255, 0, 0), (0, 0, 0)]
+    ref = (np.array([0, 1, 2, 3]), np.array([0, 0, 0, 1]))  # object 0: 2 black, 1 red
+    query = (np.array([4, 5, 5, 2]), np.array([0, 0, 1, 2]))
+    share = colour_share_of(image, ref, query, 3)
+    np.testing.assert_allclose(share, [1 / 3, 2 / 3, 1.0, 0.0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    n_ref=st.integers(0, 300),
+    n_objects=st.integers(1, 6),
+    flat=st.booleans(),
+)
+def test_colour_share_of_is_a_distribution(seed, n_ref, n_objects, flat):
+    """Any image (random or one flat colour), any references: shares in [0, 1]; querying every
+    reference pixel's own bin gives each object's shares summing to 1 over its distinct bins;
+    an object without references has share 0."""
+    rng = np.random.default_rng(seed)
+    image = rng.integers(0, 256, (7, 9, 3)).astype(np.uint8)
+    if flat:
+        image[:] = image[0, 0]
+    idx = rng.integers(0, 63, n_ref)
+    obj = rng.integers(0, n_objects, n_ref)
+    share = colour_share_of(image, (idx, obj), (idx, obj), n_objects + 1)
+    assert np.all((share >= 0) & (share <= 1))
+    if n_ref:
+        assert np.all(share > 0)
+        q = (image.reshape(-1, 3).astype(int) * 6) // 256
+        bins = (q[:, 0] * 6 + q[:, 1]) * 6 + q[:, 2]
+        for g in np.unique(obj):
+            m = obj == g
+            _, first = np.unique(bins[idx[m]], return_index=True)
+            assert share[m][first].sum() == pytest.approx(1.0)
+    empty = colour_share_of(image, (idx, obj), (np.arange(5), np.full(5, n_objects)), n_objects + 1)
+    assert not empty.any()
+
+
+def test_plane_gap_params_are_checked():
+    from mogs_node.errors import ConfigError
+    from mogs_node.metrizer.params import MetrizerParams
+
+    for bad in (
+        {"confident_plane_colour_gap": -0.1},
+        {"mask_plane_max_gap": float("inf")},
+        {"mask_plane_colour_gap": float("nan")},
+        {"confident_plane_colour_share": 0.0},
+        {"confident_plane_colour_share": 1.5},
+    ):
+        with pytest.raises(ConfigError, match="colour"):
+            MetrizerParams(**bad)
