@@ -1,11 +1,12 @@
-"""The previous keyframes' sparse points in a new keyframe (pure; rounds 7, 8 and 13).
+"""The previous keyframes' sparse points in a new keyframe (pure; rounds 7, 8, 13 and 14).
 
 - :func:`carry_forward`: a keyframe with too few fresh points (standstill) takes the previous
   keyframe's points moved into its camera frame.
 - :func:`reobserved_points`: while moving, the last keyframes' points that the new keyframe still
   sees (their patch, moved by the relative pose and scaled by the depth ratio, still matches: not
-  occluded, not out of view) join the fresh ones (map points re-observed, as a keyframe-based
-  SLAM tracks its local map), in one pass; :func:`reproject_points` + :func:`merge_points` are the
+  occluded, not out of view; optionally it keeps its contrast: a flat occluder, round 14) join
+  the fresh ones (map points re-observed, as a keyframe-based SLAM tracks its local map), in
+  one pass; :func:`reproject_points` + :func:`merge_points` are the
   same for one keyframe at a time.
 
 Split from :mod:`mogs_node.frontend.track_points` (round 13). No I/O, no bus.
@@ -24,7 +25,7 @@ from mogs_node.frontend.track_points import (
     KeyframePoints,
     TrackPointsParams,
     edge_flags,
-    patch_zncc,
+    patch_match,
 )
 from mogs_node.geometry import PinholeCamera, check_array, se3_inverse, transform_points
 
@@ -66,14 +67,16 @@ def reproject_points(
     ``T_cur_prev`` [4, 4] as in :func:`carry_forward`; ``image_prev``, ``image_cur`` [H, W] the
     two keyframes' undistorted grey images. A point is kept when it lands in the image in front
     of the camera and the patch around its new pixel matches the patch around its old one
-    (:func:`patch_zncc`, scaled by the depth ratio) with a ZNCC of at least ``min_zncc``: an
+    (:func:`patch_match`, scaled by the depth ratio) with a ZNCC of at least ``min_zncc``: an
     occluder that moved over it, or a point on a moving object, fails.
     """
     keep, moved = _moved(prev, T_cur_prev, camera)
     idx = np.flatnonzero(keep)
     z_prev = np.maximum(prev.xyz_cam_m[idx, 2].astype(np.float64), 1e-9)
     scale = moved.xyz_cam_m[idx, 2] / z_prev
-    zncc = patch_zncc(image_cur, moved.uv_px[idx], image_prev, prev.uv_px[idx], scale, radius_px)
+    zncc, _ = patch_match(
+        image_cur, moved.uv_px[idx], image_prev, prev.uv_px[idx], scale, radius_px
+    )
     keep[idx] = zncc >= min_zncc
     return moved.subset(keep)
 
@@ -122,9 +125,11 @@ def reobserved_points(
     (its id) and no newer keyframe's point (only the newest keyframe's copy of a track is
     tested: one patch test per track, where merging keyframe by keyframe tested every copy), lies at
     least ``params.min_distance_px`` from every fresh point and from every joining point of a
-    newer keyframe, its patch still matches (:func:`patch_zncc` against its own keyframe's image,
-    at least ``params.reproject_min_zncc``), and no close neighbour in the union contradicts
-    its depth (the edge rule of ``params``; fresh points are kept as they are)."""
+    newer keyframe, its patch still matches (:func:`patch_match` against its own keyframe's
+    image: a ZNCC of at least ``params.reproject_min_zncc``, and at least
+    ``params.reproject_min_contrast`` of the grey-level spread it had there, since a flat
+    occluder hides it; round 14), and no close neighbour in the union contradicts its depth (the
+    edge rule of ``params``; fresh points are kept as they are)."""
     T_cam_world = se3_inverse(check_array("T_world_cam", T_world_cam, shape=(4, 4), finite=True))
     image = np.asarray(image, np.float32)  # converted once, not per patch test
     groups = []  # newest keyframe first: (points, T_cur_prev, image, index of kept, pixels, z)
@@ -151,7 +156,7 @@ def reobserved_points(
     for k, (prev, _, image_prev, idx, g_uv, g_xyz) in enumerate(groups):  # per keyframe image
         loc = np.flatnonzero(ok[offset[k] : offset[k + 1]])
         z_prev = np.maximum(prev.xyz_cam_m[idx[loc], 2].astype(np.float64), 1e-9)
-        zncc = patch_zncc(
+        zncc, contrast = patch_match(
             image,
             g_uv[loc],
             image_prev,
@@ -159,7 +164,9 @@ def reobserved_points(
             g_xyz[loc, 2] / z_prev,
             params.patch_radius_px,
         )
-        ok[offset[k] + loc] = zncc >= params.reproject_min_zncc
+        ok[offset[k] + loc] = (zncc >= params.reproject_min_zncc) & (
+            contrast >= params.reproject_min_contrast
+        )
     # a joining point close to one of a newer keyframe's (earlier in the order) gives way
     cand = np.flatnonzero(ok)
     if len(cand) > 1:

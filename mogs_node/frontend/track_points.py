@@ -20,7 +20,9 @@ poses:
    expansion, where they seldom triangulate.
 
 The previous keyframes' points (carried at standstill, re-observed while moving) are in
-:mod:`mogs_node.frontend.reobserve`. :class:`TrackHistory` keeps the observations and poses of the last frames. No I/O, no bus.
+:mod:`mogs_node.frontend.reobserve`; :func:`patch_match` (ZNCC and contrast ratio of two
+patches) serves both. :class:`TrackHistory` keeps the observations and poses of the last frames.
+No I/O, no bus.
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ __all__ = [
     "unsupported_depth_flags",
     "gate_points",
     "keyframe_points",
-    "patch_zncc",
+    "patch_match",
     "refine_points",
     "triangulate_dlt",
     "triangulate_on_ray",
@@ -117,6 +119,8 @@ class TrackPointsParams:
     reproject_keyframes: int = 3  # the last keyframes whose points join a new keyframe's fresh
     # ones where they still match (0: none)
     reproject_min_zncc: float = 0.9  # their patch against the previous keyframe's, at least this
+    reproject_min_contrast: float = 0.0  # ... and at least this share of its grey-level spread
+    # there (a textured point behind a flat occluder leaves a flat patch; round 14; 0: off)
     carry_min_points: int = 30  # fewer fresh points: the previous keyframe's are carried forward,
     carry_max_motion_m: float = 0.25  # if the camera moved less than this since (standstill:
     # moving on, occluders move over the old points and they no longer hold)
@@ -143,6 +147,10 @@ class TrackPointsParams:
             raise ConfigError("points: epipole_radius_deg >= 0, 0 <= epipole_cap_share <= 1")
         if not 0 < self.suspect_weight <= 1:
             raise ConfigError("points: 0 < suspect_weight <= 1")
+        if not self.reproject_min_contrast >= 0:
+            raise ConfigError(
+                f"points.reproject_min_contrast: >= 0, got {self.reproject_min_contrast!r}"
+            )
         if (
             min(self.bucket_cols, self.bucket_rows, self.gn_iterations, self.reproject_keyframes)
             < 0
@@ -312,24 +320,30 @@ def edge_flags(params: TrackPointsParams) -> Callable[..., NDArray[np.bool_]]:
     return unsupported_depth_flags if params.edge_rule == "unsupported" else depth_edge_flags
 
 
-def patch_zncc(
+def patch_match(
     image_ref: NDArray,
     uv_ref_px: NDArray,
     image_view: NDArray,
     uv_view_px: NDArray,
     scale: NDArray,
     radius_px: int,
-) -> NDArray[np.float64]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Zero-mean normalised cross-correlation [N] of a ``(2r+1)^2`` patch around each point in
     the reference image with the patch around its observation in another view, sampled at
     ``scale`` [N] times the offsets (a fronto-parallel patch at the point's depth: ``z_ref /
-    z_view``). Images are [H, W] grey (float32 ones are sampled without a copy); pixels [N, 2].
-    A patch with no texture gives 0."""
+    z_view``), and the contrast ratio [N] (the reference patch's grey-level standard deviation
+    over the view's; inf where the view's patch is flat). Images are [H, W] grey (float32 ones
+    are sampled without a copy); pixels [N, 2]. A patch with no texture gives a ZNCC of 0.
+
+    Why the contrast: a textured point hidden behind a flat occluder leaves a near-flat patch
+    whose few grey levels of shading can still correlate with the old texture (round 14: the
+    demo's re-observed points behind the gate's columns, 4-8x their true depth, at ZNCC
+    0.70-0.96 and a contrast ratio of 0.03-0.35)."""
     uv_r = check_array("uv_ref_px", uv_ref_px, shape=(None, 2)).astype(np.float32)
     uv_v = check_array("uv_view_px", uv_view_px, shape=(len(uv_r), 2)).astype(np.float32)
     s = check_array("scale", scale, shape=(len(uv_r),)).astype(np.float32)
     if len(uv_r) == 0:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros(0)
     o = np.arange(-radius_px, radius_px + 1, dtype=np.float32)
     ox, oy = np.meshgrid(o, o)
     ox, oy = ox.ravel()[None], oy.ravel()[None]  # [1, P]
@@ -345,8 +359,12 @@ def patch_zncc(
     b = sample(image_view, uv_v, np.where(np.isfinite(s), s, 1.0))
     a -= a.mean(axis=1, keepdims=True)
     b -= b.mean(axis=1, keepdims=True)
-    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
-    return np.where(den > 1e-6, (a * b).sum(axis=1) / np.maximum(den, 1e-6), 0.0)
+    aa, bb = (a * a).sum(axis=1), (b * b).sum(axis=1)
+    den = np.sqrt(aa * bb)
+    zncc = np.where(den > 1e-6, (a * b).sum(axis=1) / np.maximum(den, 1e-6), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = np.where(bb > 0, np.sqrt(aa / np.where(bb > 0, bb, 1.0)), np.inf)
+    return zncc, contrast
 
 
 @dataclass
@@ -439,7 +457,7 @@ def _patch_scores(
     T_ref_cams: NDArray,
     params: TrackPointsParams,
 ) -> NDArray[np.float64]:
-    """ZNCC [N] of each point's keyframe patch with its oldest view's (:func:`patch_zncc`);
+    """ZNCC [N] of each point's keyframe patch with its oldest view's (:func:`patch_match`);
     1 where there is no image to compare."""
     score = np.ones(len(uv))
     img_ref = views.images[-1]
@@ -455,9 +473,9 @@ def _patch_scores(
             continue
         z_view = transform_points(T_cam_ref[f], xyz_ref_m[sel])[:, 2]
         scale = xyz_ref_m[sel, 2] / np.maximum(z_view, 1e-9)
-        score[sel] = patch_zncc(
+        score[sel] = patch_match(
             img_ref, uv[sel, -1], img, uv[sel, f], scale, params.patch_radius_px
-        )
+        )[0]
     return score
 
 

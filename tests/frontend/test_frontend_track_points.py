@@ -27,7 +27,7 @@ from mogs_node.frontend.track_points import (
     epipole_cell_caps,
     gate_points,
     keyframe_points,
-    patch_zncc,
+    patch_match,
     refine_points,
     triangulate_dlt,
     triangulate_on_ray,
@@ -172,7 +172,7 @@ def test_patch_check_rejects_a_patch_across_a_depth_edge():
     view = np.where(np.arange(621)[None] < 294, np.roll(fg, -6, 1), np.roll(bg, -1, 1))
     uv_ref = np.array([[250.0, 90.0], [299.0, 90.0], [300.0, 60.0]])
     uv_view = uv_ref - [6.0, 0.0]  # all tracked with the foreground's motion
-    z = patch_zncc(ref, uv_ref, view, uv_view, np.ones(3), 3)
+    z = patch_match(ref, uv_ref, view, uv_view, np.ones(3), 3)[0]
     assert z[0] > 0.99
     assert z[1] < 0.8 and z[2] < 0.8
 
