@@ -56,11 +56,9 @@ class MetrizerParams:
     mask_plane_max_gap: float = 0.0  # > 0: as confident_plane_max_gap, for this pass
     mask_plane_colour_gap: float = 0.0  # > 0: as confident_plane_colour_gap, for this pass
     # (with mask_plane_max_gap 0: every filled pixel needs the inliers' colour)
-    mask_plane_support: str = "all"  # which depth pixels this pass fits, counts and reaches
+    mask_plane_support: str = "no_point_fills"  # which depth pixels it fits, counts, reaches
     # from (issue 16, session 17): "all"; "measured" (the prior's); "no_point_fills" (all but
     # the fills near sparse points, fill_holes, that no plane pass replaced)
-    mask_plane_measured_only: bool = False  # (issue 16, session 17) fit, count and reach from
-    # the pixels with a prior only, not from the metrizer's own fills near features or planes
     confident_planes: bool = False  # departure (issue 16): before that, an object's plane
     # fitted to its pixels of prior confidence >= confident_plane_fit_conf replaces its pixels
     # below confident_plane_replace_below and fills its holes (fill.PlaneSelect), when at least
