@@ -373,3 +373,25 @@ def test_mask_plane_support_is_checked():
         assert MetrizerParams(mask_plane_support=name).mask_plane_support == name
     with pytest.raises(ConfigError, match="mask_plane_support"):
         MetrizerParams(mask_plane_support="measures")
+
+
+def test_mask_plane_support_leaves_out_the_point_fills_no_plane_replaced():
+    """compose's support of the whole-mask pass: the prior's pixels ("measured"), or every pixel
+    but fill_holes' that still hold their fill ("no_point_fills"; one a plane pass replaced holds
+    that plane's depth and is support again), or None ("all")."""
+    from mogs_node.metrizer.compose import _mask_plane_support
+    from mogs_node.metrizer.params import MetrizerParams
+
+    has_prior = np.array([True, True, False, False, False, False])
+    depth = np.array([5.0, 6.0, 9.0, 9.5, 0.0, 7.0], np.float32)
+    point_fills = np.array([2, 3, 5])
+    point_fill_m = np.array([9.0, 9.5, 6.0], np.float32)  # pixel 5: replaced 6 -> 7 since
+
+    def support(name):
+        return _mask_plane_support(
+            MetrizerParams(mask_plane_support=name), has_prior, point_fills, point_fill_m, depth
+        )
+
+    assert support("all") is None
+    np.testing.assert_array_equal(support("measured"), has_prior)
+    np.testing.assert_array_equal(support("no_point_fills"), [1, 1, 0, 0, 1, 1])
