@@ -309,12 +309,17 @@ def apply_residual_field(
 
 
 def _plane_pass(
-    fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.float32], confident: bool
+    fr: Frame,
+    depth: NDArray[np.float32],
+    out_conf: NDArray[np.float32],
+    confident: bool,
+    support: NDArray[np.bool_] | None = None,
 ) -> int:
     """One :func:`~mogs_node.metrizer.fill.complete_planar_masks` pass over the merged objects
     (``depth`` / ``out_conf`` flat, changed in place): the confident-pixel pass
     (``confident_plane_*``) or the whole-mask pass (``mask_plane_*``). Returns the pixels it
-    gave a depth."""
+    gave a depth. ``support`` (flat bool): the pixels the whole-mask pass may fit and reach
+    from (:class:`~mogs_node.metrizer.fill.PlaneSelect`)."""
     p: MetrizerParams = fr.p
     H, W = fr.H, fr.W
     if confident:
@@ -346,6 +351,7 @@ def _plane_pass(
             colour_gap_px=p.mask_plane_colour_gap * W,
             colour_share=p.confident_plane_colour_share,
             image_rgb=fr.image,
+            support=None if support is None else support.reshape(H, W),
         )
     return complete_planar_masks(
         depth.reshape(H, W),
@@ -360,6 +366,26 @@ def _plane_pass(
         min_out_m=p.d_min_m,
         select=select,
     )
+
+
+def _mask_plane_support(
+    p: MetrizerParams,
+    has_prior: NDArray[np.bool_],
+    point_fills: NDArray[np.intp],
+    point_fill_m: NDArray[np.float32],
+    depth: NDArray[np.float32],
+) -> NDArray[np.bool_] | None:
+    """The pixels (flat bool, or None: all) the whole-mask pass fits, counts and reaches from
+    (``MetrizerParams.mask_plane_support``; docs/metrizer.md "Planes from measured support
+    only"). ``point_fills`` / ``point_fill_m``: fill_holes' pixels and the depth it gave them;
+    one a plane pass has replaced since holds that plane's depth and is support again."""
+    if p.mask_plane_support == "measured":
+        return has_prior
+    if p.mask_plane_support == "no_point_fills":
+        support = np.ones(len(depth), bool)
+        support[point_fills[depth[point_fills] == point_fill_m]] = False
+        return support
+    return None
 
 
 def _road_passes(fr: Frame, depth: NDArray[np.float32], out_conf: NDArray[np.float32]) -> tuple:
@@ -422,6 +448,7 @@ def compose(
     out_conf = fr.per_pixel(q_g.astype(np.float32))
     out_conf *= conf
     n_model_px = n_model_fill = n_edge_fill = 0
+    point_fills = np.zeros(0, np.intp)  # fill_holes' pixels (flat)
     sky_pix = fr.per_pixel(sky) if sky.any() else None
     special = None if sky_pix is None else sky_pix.copy()
     if not fr.all_prior:
@@ -460,6 +487,8 @@ def compose(
         out_conf[holes] = 0.0
         if holes.any() and not global_only:
             n_model_fill, n_edge_fill = fill_holes(fr, models, holes, depth, out_conf)
+            point_fills = np.flatnonzero(holes & (depth > 0))
+    point_fill_m = depth[point_fills]  # a copy: the plane passes may replace them
     n_conf_plane = n_plane_fill = n_road = n_contact = 0
     if not global_only:  # departures: docs/metrizer.md, "Whole objects from the confident
         # pixels" (weak pixels and holes), then "Whole masks" (holes)
@@ -468,7 +497,8 @@ def compose(
         if fr.up_cam is not None:
             n_road, n_contact = _road_passes(fr, depth, out_conf)
         if p.mask_plane_fill and special is not None:
-            n_plane_fill = _plane_pass(fr, depth, out_conf, confident=False)
+            support = _mask_plane_support(p, has_prior, point_fills, point_fill_m, depth)
+            n_plane_fill = _plane_pass(fr, depth, out_conf, confident=False, support=support)
     n_snap = 0
     if p.edge_snap and not global_only:  # departure: docs/metrizer.md "Depth edges snapped"
         objects = gobj.reshape(H, W)

@@ -186,6 +186,11 @@ class PlaneSelect:
     colour_gap_px: float = 0.0
     colour_share: float = 0.1
     image_rgb: NDArray[np.uint8] | None = None
+    # [H, W] bool: only these pixels are fitted, count for min_share and are inliers a plane
+    # reaches from (None: every pixel with a depth). A plane fitted to depth the metrizer itself
+    # extrapolated from a few points carries that extrapolation on, across the object's depth
+    # jumps (docs/metrizer.md "Planes from measured support only")
+    support: NDArray[np.bool_] | None = None
 
 
 COLOUR_LEVELS = 6  # colour bins per channel of :func:`colour_share_of`
@@ -314,6 +319,8 @@ def complete_planar_masks(
     fit = (d > 0) & (d >= min_depth_m * 0.5) & (d <= max_depth_m)
     if sel.fit_min_conf > 0:
         fit &= pc >= sel.fit_min_conf
+    if sel.support is not None:
+        fit &= check_array("support", sel.support, shape=(H, W), dtype=np.bool_).ravel()
     idx = np.flatnonzero(fit)
     n_fit = np.bincount(obj[idx], minlength=G)[:G]
     cand = (n_fit >= min_pixels) & (n_fit >= min_share * n_obj) & has_hole

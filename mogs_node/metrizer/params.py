@@ -12,12 +12,16 @@ from mogs_node.errors import ConfigError
 from mogs_node.metrizer.consensus import ConsensusParams
 from mogs_node.metrizer.refinement import CdrParams
 
-__all__ = ["MODES", "MetrizedDepth", "MetrizerNodeParams", "MetrizerParams"]
+__all__ = ["MASK_PLANE_SUPPORTS", "MODES", "MetrizedDepth", "MetrizerNodeParams", "MetrizerParams"]
 
 F64 = NDArray[np.float64]
 
 
 MODES = ("full", "no_msc", "no_msc_cdr")  # see docs/metrizer.md, ablation modes
+# which depth pixels the whole-mask plane pass fits and reaches from (docs/metrizer.md, "Planes
+# from measured support only"): every pixel with a depth, the prior's pixels, or all but the
+# metrizer's own fills near sparse points
+MASK_PLANE_SUPPORTS = ("all", "measured", "no_point_fills")
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,9 @@ class MetrizerParams:
     mask_plane_max_gap: float = 0.0  # > 0: as confident_plane_max_gap, for this pass
     mask_plane_colour_gap: float = 0.0  # > 0: as confident_plane_colour_gap, for this pass
     # (with mask_plane_max_gap 0: every filled pixel needs the inliers' colour)
+    mask_plane_support: str = "no_point_fills"  # which depth pixels it fits, counts, reaches
+    # from (issue 16, session 17): "all"; "measured" (the prior's); "no_point_fills" (all but
+    # the fills near sparse points, fill_holes, that no plane pass replaced)
     confident_planes: bool = False  # departure (issue 16): before that, an object's plane
     # fitted to its pixels of prior confidence >= confident_plane_fit_conf replaces its pixels
     # below confident_plane_replace_below and fills its holes (fill.PlaneSelect), when at least
@@ -202,6 +209,11 @@ class MetrizerParams:
             raise ConfigError(
                 "MetrizerParams: finite *_max_gap / *_colour_gap >= 0 and "
                 "confident_plane_colour_share in (0, 1] required"
+            )
+        if self.mask_plane_support not in MASK_PLANE_SUPPORTS:
+            raise ConfigError(
+                f"MetrizerParams: mask_plane_support must be one of {MASK_PLANE_SUPPORTS}, "
+                f"got {self.mask_plane_support!r}"
             )
         if not 0 <= self.road_snap_rel < 1:
             raise ConfigError(f"MetrizerParams: road_snap_rel in [0, 1), got {self.road_snap_rel}")

@@ -281,3 +281,117 @@ def test_plane_gap_params_are_checked():
     ):
         with pytest.raises(ConfigError, match="colour"):
             MetrizerParams(**bad)
+
+
+def _beam_over_facade():
+    """One object of one colour spanning a depth jump: a facade 10 m away measured by the prior
+    (rows 30-59), the metrizer's own fill near a few points on it (rows 15-29, the facade's
+    depth: correct but not measured) and a near beam without any depth (rows 0-14, 1.4 m in
+    truth)."""
+    truth = plane_depth(np.array([0.0, 0.0, 1.0]), 10.0)
+    depth = truth.copy()
+    depth[:15] = 0
+    measured = np.zeros((H, W), bool)
+    measured[30:] = True
+    conf = np.where(measured, 0.8, np.where(depth > 0, 0.1, 0.0)).astype(np.float32)
+    image = np.full((H, W, 3), 120, np.uint8)  # the beam has the facade's grey
+    sel = dict(colour_gap_px=15.0, image_rgb=image)
+    kw = dict(min_depth_m=0.0, extrapolation=10.0)
+    return depth, conf, measured, sel, kw
+
+
+def test_support_keeps_a_plane_off_a_depth_jump_its_measurements_do_not_reach():
+    """The beam is within the colour reach of the point fill but not of the measured facade:
+    fitted to every depth pixel the plane covers the beam at the facade's 10 m; with the support
+    restricted to the measured pixels it stays empty, and the measured plane is unchanged."""
+    objects = np.zeros((H, W), np.int32)
+    depth, conf, measured, sel, kw = _beam_over_facade()
+    n_all = complete_planar_masks(depth, conf, objects, 1, select=PlaneSelect(**sel), **kw)
+    assert n_all == 15 * W  # rows 0-14: within 15 px of the fill's inliers (rows 15-29)
+    np.testing.assert_allclose(depth[:15], 10.0, rtol=1e-4)
+    depth, conf, measured, sel, kw = _beam_over_facade()
+    before = depth.copy()
+    sel_m = PlaneSelect(support=measured, **sel)
+    assert complete_planar_masks(depth, conf, objects, 1, select=sel_m, **kw) == 0
+    np.testing.assert_array_equal(depth, before)
+    # the share test counts the support only: 50 % measured passes 0.3, not 0.6
+    depth, conf, measured, sel, kw = _beam_over_facade()
+    kw_share = dict(kw, min_share=0.6)
+    assert complete_planar_masks(depth, conf, objects, 1, select=PlaneSelect(**sel), **kw_share)
+    depth, conf, measured, sel, kw = _beam_over_facade()
+    assert complete_planar_masks(depth, conf, objects, 1, select=sel_m, **kw_share) == 0
+
+
+def test_support_of_the_wrong_shape_is_one_clear_error():
+    from mogs_node.errors import MogsError
+
+    depth, conf, measured, sel, kw = _beam_over_facade()
+    with pytest.raises(MogsError, match="support"):
+        complete_planar_masks(
+            depth, conf, np.zeros((H, W), np.int32), 1, select=PlaneSelect(support=measured[1:])
+        )
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    support_share=st.floats(0.0, 1.0),
+    scale=st.sampled_from([1e-3, 1.0, 1e3]),
+    colour=st.booleans(),
+)
+def test_support_subset_fills_a_subset_of_the_holes(seed, support_share, scale, colour):
+    """Any support: only holes get a depth, finite and positive; the full support is the same as
+    none and an empty one fills nothing; a depth field with NaN / inf is tolerated."""
+    rng = np.random.default_rng(seed)
+    objects = rng.integers(0, 3, (H, W)).astype(np.int32)
+    truth = plane_depth(np.array([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0]), 10.0)
+    depth0 = (truth * scale).astype(np.float32)
+    depth0[rng.random((H, W)) < 0.4] = 0
+    depth0[0, 0], depth0[0, 1] = np.nan, np.inf
+    conf0 = np.where(depth0 > 0, 0.8, 0.0).astype(np.float32)
+    support = rng.random((H, W)) < support_share
+    img = rng.integers(0, 256, (H, W, 3)).astype(np.uint8) if colour else None
+    sel = dict(colour_gap_px=10.0, image_rgb=img)
+    kw = dict(min_depth_m=0.0, max_depth_m=72.0 * scale, min_share=0.1)
+    outs = []
+    for sup in (support, None, np.ones((H, W), bool), np.zeros((H, W), bool)):
+        d, c = depth0.copy(), conf0.copy()
+        n = complete_planar_masks(d, c, objects, 3, select=PlaneSelect(support=sup, **sel), **kw)
+        changed = ~((d == depth0) | (np.isnan(d) & np.isnan(depth0)))
+        assert n == changed.sum() and np.all(depth0[changed] == 0)
+        assert np.all(np.isfinite(d[changed]) & (d[changed] > 0)) and np.all(c[changed] >= 0)
+        outs.append(d)
+    np.testing.assert_array_equal(outs[1], outs[2])
+    assert np.array_equal(outs[3], depth0, equal_nan=True)
+
+
+def test_mask_plane_support_is_checked():
+    from mogs_node.errors import ConfigError
+    from mogs_node.metrizer.params import MASK_PLANE_SUPPORTS, MetrizerParams
+
+    for name in MASK_PLANE_SUPPORTS:
+        assert MetrizerParams(mask_plane_support=name).mask_plane_support == name
+    with pytest.raises(ConfigError, match="mask_plane_support"):
+        MetrizerParams(mask_plane_support="measures")
+
+
+def test_mask_plane_support_leaves_out_the_point_fills_no_plane_replaced():
+    """compose's support of the whole-mask pass: the prior's pixels ("measured"), or every pixel
+    but fill_holes' that still hold their fill ("no_point_fills"; one a plane pass replaced holds
+    that plane's depth and is support again), or None ("all")."""
+    from mogs_node.metrizer.compose import _mask_plane_support
+    from mogs_node.metrizer.params import MetrizerParams
+
+    has_prior = np.array([True, True, False, False, False, False])
+    depth = np.array([5.0, 6.0, 9.0, 9.5, 0.0, 7.0], np.float32)
+    point_fills = np.array([2, 3, 5])
+    point_fill_m = np.array([9.0, 9.5, 6.0], np.float32)  # pixel 5: replaced 6 -> 7 since
+
+    def support(name):
+        return _mask_plane_support(
+            MetrizerParams(mask_plane_support=name), has_prior, point_fills, point_fill_m, depth
+        )
+
+    assert support("all") is None
+    np.testing.assert_array_equal(support("measured"), has_prior)
+    np.testing.assert_array_equal(support("no_point_fills"), [1, 1, 0, 0, 1, 1])
