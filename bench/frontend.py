@@ -474,7 +474,8 @@ def points_only(
             "the speed tables above it are from their own run."
         )
         update_markdown_section(
-            "frontend", new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1)
+            "frontend",
+            new.replace(POINTS_HEAD, "\n" + note + "\n" + POINTS_HEAD, 1).lstrip("\n"),
         )
     print(json.dumps(figures, indent=1, default=float))
     return 0
