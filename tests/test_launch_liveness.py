@@ -34,9 +34,11 @@ def test_a_step_three_times_the_heartbeat_timeout_is_not_killed(
             {
                 "name": "sink",
                 "class": "mogs_node.demo_nodes:Recorder",
-                # every keyframe takes 3 s of work: three times the heartbeat timeout
-                "params": {"topics": ["/frontend/keyframe"], "delay_ms": 3000.0},
-                "heartbeat_timeout_s": 1.0,
+                # every keyframe takes 6 s of work: three times the heartbeat timeout (2 s:
+                # twice the heartbeat period, so that a beat sent late on a loaded 2-core CI
+                # machine is not taken for silence; at 1 s it flaked once)
+                "params": {"topics": ["/frontend/keyframe"], "delay_ms": 6000.0},
+                "heartbeat_timeout_s": 2.0,
                 "progress_timeout_s": 30.0,
                 "respawn_delay_s": 0.2,
             },
@@ -49,7 +51,7 @@ def test_a_step_three_times_the_heartbeat_timeout_is_not_killed(
         # three steps later: the same process, heartbeats all along
         last = _diag_until(sub, lambda d: d.node == "sink" and d.counters["progress"] >= 4, 60)
         assert last.pid == first.pid
-        # its thread beat during each 3 s step: about one period (1 s) between two heartbeats
+        # its thread beat during each 6 s step: about one period (1 s) between two heartbeats
         assert last.counters["heartbeat_gap_max_s"] < 2.0
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=20)
