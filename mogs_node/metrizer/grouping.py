@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.depth_kind import DepthKind
+from mogs_node.group_stats import group_medians
 from mogs_node.metrizer.association import boundary_pairs, region_adjacency
 from mogs_node.metrizer.frame import far_and_norm
 from mogs_node.metrizer.global_fit import GlobalFit
@@ -121,10 +122,5 @@ def sky_value(
     keep = n_g[g] >= 5
     if not keep.any():
         return None
-    g, x = g[keep], x[keep]
-    order = np.lexsort((x, g))
-    g, x = g[order], x[order]
-    start = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    cnt = np.diff(np.r_[start, len(g)])
-    med = 0.5 * (x[start + (cnt - 1) // 2] + x[start + cnt // 2])
-    return float(med.min())
+    cnt, med = group_medians(g[keep], x[keep], ms.G)
+    return float(med[cnt > 0].min())

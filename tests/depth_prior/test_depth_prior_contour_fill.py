@@ -9,7 +9,6 @@ from hypothesis import strategies as st
 
 from mogs_node.depth_prior.contour_fill import (
     ContourFillParams,
-    _group_median,
     contour_fill,
     flat_regions,
 )
@@ -106,22 +105,6 @@ def test_flat_regions_and_bad_parameters() -> None:
         ContourFillParams(min_inlier_share=1.5)
 
 
-@settings(max_examples=40, deadline=None)
-@given(
-    keys=st.lists(st.integers(0, 5), min_size=0, max_size=40),
-    data=st.data(),
-)
-def test_group_median_matches_numpy(keys: list[int], data) -> None:
-    x = np.array(data.draw(st.lists(st.floats(-1e6, 1e6), min_size=len(keys), max_size=len(keys))))
-    k = np.array(keys, np.intp)
-    med = _group_median(k, x, 7)
-    for g in range(7):
-        if (k == g).any():
-            assert med[g] == pytest.approx(np.median(x[k == g]))
-        else:
-            assert np.isnan(med[g])
-
-
 @settings(max_examples=25, deadline=None)
 @given(
     scale=st.floats(1e-2, 1e3),
@@ -149,34 +132,3 @@ def test_any_input_finite_and_only_where_allowed(
     if fill.any():
         lo, hi = edge[edge > 0].min(), edge[edge > 0].max()
         assert fill[fill > 0].min() >= lo * (1 - 1e-5) and fill[fill > 0].max() <= hi * (1 + 1e-5)
-
-
-@settings(max_examples=300, deadline=None)
-@given(
-    n=st.integers(1, 8),
-    values=st.lists(
-        st.one_of(
-            st.floats(allow_nan=True, allow_infinity=True),
-            st.floats(-1e-300, 1e-300),
-            st.sampled_from([0.0, -0.0, 1.0, 2.0]),
-        ),
-        min_size=0,
-        max_size=60,
-    ),
-    dtype=st.sampled_from([np.float64, np.float32]),
-    seed=st.integers(0, 2**31 - 1),
-)
-def test_group_median_is_bit_identical_to_the_metrizers(n, values, dtype, seed) -> None:
-    """contour_fill's _group_median and merging.group_medians give the same bits (issue 19: one
-    of them goes), keys in ``0..n-1`` in any order, values with NaN / inf / ties / subnormals."""
-    from mogs_node.metrizer.merging import group_medians
-
-    with np.errstate(over="ignore", invalid="ignore"):
-        x = np.asarray(values, np.float64).astype(dtype)
-    k = np.random.default_rng(seed).integers(0, n, len(x)).astype(np.intp)
-    with np.errstate(over="ignore", invalid="ignore"):
-        ours = _group_median(k, x, n)
-        counts, theirs = group_medians(k, x, n)
-    assert ours.dtype == theirs.dtype and ours.shape == theirs.shape == (n,)
-    assert ours.tobytes() == theirs.tobytes()
-    assert np.array_equal(counts, np.bincount(k, minlength=n))
