@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from mogs_node.depth_prior.edge_stereo import EdgeStereoParams, edge_stereo_depth
 from mogs_node.errors import ConfigError
+from mogs_node.group_stats import group_medians
 
 __all__ = [
     "ContourFillParams",
@@ -134,22 +135,6 @@ def assign_to_regions(
     return np.concatenate(out_i), np.concatenate(out_l)
 
 
-def _group_median(keys: NDArray[np.intp], x: NDArray[np.float64], n: int) -> NDArray[np.float64]:
-    """Median of ``x`` per key ``0..n-1`` (NaN for an empty key); vectorised by one lexsort."""
-    med = np.full(n, np.nan)
-    if len(x) == 0:
-        return med
-    order = np.lexsort((x, keys))
-    ks, xs = keys[order], x[order]
-    start = np.searchsorted(ks, np.arange(n), "left")
-    cnt = np.bincount(ks, minlength=n)[:n]
-    has = cnt > 0
-    lo = start[has] + (cnt[has] - 1) // 2
-    hi = start[has] + cnt[has] // 2
-    med[has] = 0.5 * (xs[lo] + xs[hi])
-    return med
-
-
 def contour_fill(
     grey: NDArray[np.uint8],
     edge_depth: F32,
@@ -182,18 +167,17 @@ def contour_fill(
     if len(idx) == 0:
         return fill, err, stats
     lz = np.log(z[idx])
-    med = _group_median(lab, lz, n)
+    cnt, med = group_medians(lab, lz, n)
     dev = np.abs(lz - med[lab])
-    cnt = np.bincount(lab, minlength=n)[:n]
     inl = np.bincount(lab, dev <= np.log1p(params.inlier_rel), minlength=n)[:n]
-    mad = _group_median(lab, dev, n)
+    _, mad = group_medians(lab, dev, n)
     ok = (cnt >= params.min_samples) & (inl >= params.min_inlier_share * np.maximum(cnt, 1))
     # the depth the region already has must agree (an edge given to the wrong side)
     flat = labels.ravel()
     has = (flat >= 0) & (depth.ravel() > 0)
     size = np.bincount(flat[flat >= 0], minlength=n)[:n]
     n_known = np.bincount(flat[has], minlength=n)[:n]
-    known_med = _group_median(flat[has], np.log(depth.ravel()[has].astype(np.float64)), n)
+    _, known_med = group_medians(flat[has], np.log(depth.ravel()[has].astype(np.float64)), n)
     checked = n_known >= np.maximum(10, params.min_known_share * size)
     agree = ~checked | (np.abs(known_med - med) <= np.log1p(params.known_agree))
     ok &= agree & np.isfinite(med)

@@ -1,6 +1,7 @@
 """The residual rows of CDR (paper III-C) that the pipeline builds from MSC's results: eq. (7)
-geometric rows (model depth of accepted shapes, else the object's sparse features) and the
-eq. (8) anchor target (the locally aligned prior, departure 13)."""
+geometric rows (model depth of accepted shapes, else the object's sparse features), the
+eq. (8) anchor target (the locally aligned prior, departure 13) and, stage 7, the border rows of
+eqs. (9)-(10) with the solve (:func:`refine_objects`)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ from numpy.typing import NDArray
 
 from mogs_node.metrizer.alignment import space_from_depth
 from mogs_node.metrizer.fill import smooth_field
-from mogs_node.metrizer.frame import Frame
+from mogs_node.metrizer.frame import Frame, ShapeModels, far_and_norm
+from mogs_node.metrizer.refinement import CdrProblem, solve_cdr
 
-__all__ = ["FeatureRows", "SampleRows", "geo_rows", "local_anchor_target"]
+__all__ = ["FeatureRows", "SampleRows", "geo_rows", "local_anchor_target", "refine_objects"]
 
 F64 = NDArray[np.float64]
 
@@ -108,3 +110,75 @@ def geo_rows(
         np.concatenate([mt, ftt]),
         np.concatenate([mw, fw]),
     )
+
+
+def refine_objects(
+    fr: Frame,
+    samples: SampleRows,
+    features: FeatureRows,
+    models: ShapeModels,
+    pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
+    snorm: F64,
+    d_glob: F64,
+    fd_glob: F64,
+) -> tuple[F64, dict[str, int]]:
+    """Stage 7, CDR (III-C): the per-object affine of eq. (6) minimising eq. (11) by IRLS.
+
+    Rows of eq. (7) from :func:`geo_rows`; eq. (8) anchors each sample to ``snorm`` (the globally
+    aligned prior there, ``d_glob`` in depth), or to the locally aligned prior
+    (:func:`local_anchor_target`, departure 13; ``fd_glob``: the global depth at the features);
+    eqs. (9)-(10) over the border pixel pairs ``pairs`` between different objects. Returns
+    ``theta`` ``[G, 2]`` and the row counts.
+    """
+    p, G, gobj, sky, prior, theta0 = fr.p, fr.G, fr.gobj, fr.sky, fr.prior, fr.theta0
+    prior_kind, image, has_prior = fr.prior_kind, fr.image, fr.has_prior
+    sidx, sg, sx, sc = samples.idx, samples.obj, samples.x, samples.conf
+    mok, mdepth = samples.model_ok, samples.model_depth_m
+    geo = geo_rows(fr, samples, features, models.kind, models.conf)
+    if p.local_anchor:
+        snorm = local_anchor_target(fr, sidx, mok, mdepth, d_glob, fd_glob, snorm)
+    nfc_w = sc / np.maximum(np.bincount(sg, sc, minlength=G), 1e-12)[sg]
+    pp, qq = pairs
+    gp, gq = gobj[pp], gobj[qq]
+    keep = (gp != gq) & ~sky[gp] & ~sky[gq]
+    if not fr.all_prior:
+        keep &= has_prior[pp] & has_prior[qq]
+    pp, qq, gp, gq = pp[keep], qq[keep], gp[keep], gq[keep]
+    if image is not None:  # eq. (10)
+        img = image.reshape(-1, 3)
+        dc = img[pp].astype(np.float32) - img[qq].astype(np.float32)
+        w_edge = np.exp(-np.einsum("ij,ij->i", dc, dc) / np.float32(2.0 * p.cdr.sigma_color**2))
+    else:
+        w_edge = np.ones(len(pp), np.float32)
+    # eq. (9) as a per-object mean over its border pairs (see refinement.py)
+    n_border = np.maximum(np.bincount(gp, minlength=G) + np.bincount(gq, minlength=G), 1.0)
+    sm_w = w_edge / (0.5 * (n_border[gp] + n_border[gq]))
+    xp, xq = prior[pp].astype(np.float64), prior[qq].astype(np.float64)
+    _, norm_p = far_and_norm(theta0[0] * xp + theta0[1], prior_kind, p)
+    _, norm_q = far_and_norm(theta0[0] * xq + theta0[1], prior_kind, p)
+    prob = CdrProblem(
+        n=G,
+        theta0=np.tile(theta0, (G, 1)),
+        geo_obj=geo[0],
+        geo_x=geo[1],
+        geo_t=geo[2],
+        geo_w=geo[3],
+        nfc_obj=sg,
+        nfc_x=sx,
+        nfc_t=snorm,
+        nfc_w=nfc_w,
+        sm_k=gp,
+        sm_l=gq,
+        sm_xk=xp,
+        sm_xl=xq,
+        sm_g=0.5 * (norm_p + norm_q),
+        sm_w=sm_w.astype(np.float64),
+    )
+    # no feature with a prior: no metric evidence to calibrate with, every object keeps the global
+    # affine (the identity then; shapes and the fill of pixels without prior still apply)
+    n_global = fr.stats["n_features_global"]
+    theta = solve_cdr(prob, p.cdr) if n_global > 0 else np.tile(theta0, (G, 1))
+    # a non-finite or sign-flipping calibration (an inverted prior) falls back to the global one
+    theta[~np.all(np.isfinite(theta), axis=1) | (theta[:, 0] <= 0)] = theta0
+    n_rows = {"n_geo_rows": int(len(geo[0])), "n_nfc_rows": int(len(sg)), "n_sm_rows": int(len(gp))}
+    return theta, n_rows

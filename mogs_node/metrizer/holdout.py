@@ -20,9 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mogs_node.depth_kind import DepthKind
+from mogs_node.group_stats import group_medians
 from mogs_node.metrizer.alignment import depth_from_space
 from mogs_node.metrizer.frame import Frame, ShapeModels, model_depth
-from mogs_node.metrizer.merging import group_medians
 
 __all__ = ["drop_unsupported_shapes", "shapes_explain_prior"]
 

@@ -16,7 +16,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["absorb_into_models", "group_medians", "merge_undersupported"]
+from mogs_node.group_stats import group_medians
+
+__all__ = ["absorb_into_models", "merge_undersupported"]
 
 Idx = NDArray[np.intp]
 Pairs = tuple[Idx, Idx]  # two aligned index arrays: edges (k, l) or candidate pairs (g, u)
@@ -29,23 +31,6 @@ def _find_all(parent: NDArray[np.intp]) -> NDArray[np.intp]:
         if np.array_equal(nxt, parent):
             return parent
         parent = nxt
-
-
-def group_medians(
-    group_of_feat: NDArray[np.intp], z: NDArray[np.float64], n_groups: int
-) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Feature count ``[G]`` and median depth ``[G]`` (NaN without features) per group."""
-    counts = np.bincount(group_of_feat, minlength=n_groups)
-    med = np.full(n_groups, np.nan)
-    if len(z):
-        order = np.lexsort((z, group_of_feat))
-        zs = z[order]
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        has = counts > 0
-        lo = start[has] + (counts[has] - 1) // 2
-        hi = start[has] + counts[has] // 2
-        med[has] = 0.5 * (zs[lo] + zs[hi])
-    return counts, med
 
 
 def merge_undersupported(

@@ -9,7 +9,6 @@ from hypothesis import strategies as st
 
 from mogs_node.depth_prior.contour_fill import (
     ContourFillParams,
-    _group_median,
     contour_fill,
     flat_regions,
 )
@@ -104,22 +103,6 @@ def test_flat_regions_and_bad_parameters() -> None:
         ContourFillParams(min_samples=0)
     with pytest.raises(ConfigError):
         ContourFillParams(min_inlier_share=1.5)
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    keys=st.lists(st.integers(0, 5), min_size=0, max_size=40),
-    data=st.data(),
-)
-def test_group_median_matches_numpy(keys: list[int], data) -> None:
-    x = np.array(data.draw(st.lists(st.floats(-1e6, 1e6), min_size=len(keys), max_size=len(keys))))
-    k = np.array(keys, np.intp)
-    med = _group_median(k, x, 7)
-    for g in range(7):
-        if (k == g).any():
-            assert med[g] == pytest.approx(np.median(x[k == g]))
-        else:
-            assert np.isnan(med[g])
 
 
 @settings(max_examples=25, deadline=None)

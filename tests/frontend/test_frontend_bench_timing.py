@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from bench.frontend import bench_command, parse_args, speed_lines, sweep_lines, timing_figures
+from bench.frontend import bench_command, parse_args, timing_figures
+from bench.frontend_tables import speed_lines, sweep_lines
 from mogs_node.eval.frontend_runs import RunResult
 from mogs_node.frontend.frontend_types import FrameOutput
 

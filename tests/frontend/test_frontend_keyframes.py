@@ -129,7 +129,7 @@ def test_edge_figures_tell_a_silhouette_corner_from_a_straddling_point():
 def test_the_bench_replaces_the_points_block_and_its_note_once():
     """``bench/frontend.py --write-points-docs`` keeps the speed tables and replaces the points
     block with the previous run's note (it used to keep every old note)."""
-    from bench.frontend import with_new_points
+    from bench.frontend_tables import with_new_points
 
     section = (
         "\n## Frontend\n\nSpeed table.\n\nSparse points block: old run.\n"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mogs_node.group_stats import group_medians
 from mogs_node.metrizer import shapes
 from mogs_node.metrizer.association import (
     associate_features,
@@ -12,7 +13,7 @@ from mogs_node.metrizer.association import (
     region_adjacency,
 )
 from mogs_node.metrizer.consensus import ConsensusParams, fit_object
-from mogs_node.metrizer.merging import group_medians, merge_undersupported
+from mogs_node.metrizer.merging import merge_undersupported
 
 PARAMS = ConsensusParams(t_rel=0.01, tau=0.6)  # 0.3% noise in these scenes
 
@@ -171,12 +172,6 @@ def test_merging_is_repeated_until_supported():
     counts, _ = group_medians(group[feat_obj], z, int(group.max()) + 1)
     assert counts.min() >= 9 or len(counts) == 1
     assert merges >= 2
-
-
-def test_group_medians():
-    counts, med = group_medians(np.array([1, 1, 1, 0, 1]), np.array([3.0, 1.0, 2.0, 7.0, 9.0]), 3)
-    assert counts.tolist() == [1, 4, 0]
-    assert med[0] == 7.0 and med[1] == 2.5 and np.isnan(med[2])
 
 
 def test_batched_kernel_matches_per_object_reference():

@@ -11,29 +11,10 @@ from hypothesis import strategies as st
 from mogs_node.metrizer.alignment import fit_global_affine, metric_affine_earned
 from mogs_node.metrizer.frame import ShapeModels
 from mogs_node.metrizer.holdout import shapes_explain_prior
-from mogs_node.metrizer.merging import group_medians
 from mogs_node.metrizer.pipeline import MetrizerParams, metrize_depth
 
 W, H = 64, 48
 K = np.array([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    st.integers(1, 6),
-    st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=0, max_size=60),
-    st.integers(0, 2**31 - 1),
-)
-def test_group_medians_match_numpy(n_groups, values, seed):
-    v = np.asarray(values, np.float64)
-    g = np.random.default_rng(seed).integers(0, n_groups, len(v))
-    counts, got = group_medians(g, v, n_groups)
-    assert np.array_equal(counts, np.bincount(g, minlength=n_groups))
-    for k in range(n_groups):
-        if (g == k).any():
-            assert got[k] == pytest.approx(np.median(v[g == k]), rel=1e-12, abs=1e-12)
-        else:
-            assert np.isnan(got[k])
 
 
 def _plane_at(z0: float) -> ShapeModels:
