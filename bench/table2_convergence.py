@@ -20,7 +20,11 @@ Per init: ``iters_to_target`` is the median over the scored keyframes of the ite
 the target (0: the insertion alone reaches it; a keyframe that does not reach it within ``cap``
 counts as never, above every count, so the median is ``None`` when half of them never do),
 ``gaussians_at_target`` the median number of Gaussians in the map at that iteration over the
-keyframes reaching it. Keyframes whose held-out frame is less than ``min_move_m`` from the
+held-out views that **every** init reaches (:func:`common_view_gaussians`; issue 17: "until a
+fixed held-out view reaches 20 dB, Gaussians at that point", i.e. the same views for all). The
+median over each init's own reaching views (``gaussians_at_target_own_views``, the headline until
+session 17) compared random's early views, the only ones it reaches, with MOGS's late ones, where
+every map is larger. Keyframes whose held-out frame is less than ``min_move_m`` from the
 keyframe (the static start: the same view) are not scored.
 
     python bench/table2_convergence.py RUN_DIR --init mogs [--json PATH]
@@ -217,6 +221,41 @@ def common_target(convs: dict[str, dict[str, Any]], cap_db: float = STOP_DB) -> 
     return None
 
 
+def common_view_gaussians(
+    convs: dict[str, dict[str, Any]], target_db: float
+) -> tuple[list[int], dict[str, float | None]]:
+    """The keyframes whose held-out view every init in ``convs`` reaches at ``target_db``, and per
+    init the median Gaussians in its map when it does (``None``: no such keyframe). The same views
+    for every init: a fixed view's "Gaussians at that point" (issue 17)."""
+    per = {k: {kf["keyframe_id"]: kf for kf in c["keyframes"]} for k, c in convs.items()}
+    hit = {
+        k: {
+            i: n
+            for i, kf in p.items()
+            if (n := iterations_to(kf["psnr_db"], target_db)) is not None
+        }
+        for k, p in per.items()
+    }
+    ids = sorted(set.intersection(*(set(h) for h in hit.values()))) if hit else []
+    med = {
+        k: float(np.median([per[k][i]["gaussians"][hit[k][i]] for i in ids])) if ids else None
+        for k in per
+    }
+    return ids, med
+
+
+def _common_views_figures(
+    inits: dict[str, dict[str, Any]], convs: dict[str, dict[str, Any]], target_db: float
+) -> None:
+    """``gaussians_at_target`` of each init in ``inits`` over the views every init reaches (the
+    own-views median kept as ``gaussians_at_target_own_views``)."""
+    ids, med = common_view_gaussians(convs, target_db)
+    for init, r in inits.items():
+        r["gaussians_at_target_own_views"] = r["gaussians_at_target"]
+        r["gaussians_at_target"] = med.get(init)
+        r["keyframes_every_init_reaches"] = ids
+
+
 def paired_ratios(convs: dict[str, dict[str, Any]], target_db: float) -> dict[str, Any]:
     """Per keyframe both MOGS and random reach the target: median of MOGS / random iterations
     (each + 1: a keyframe reached by its insertion alone counts as one step) and Gaussians."""
@@ -257,6 +296,7 @@ def apply(res: dict[str, Any], convs: dict[str, dict[str, Any]], auto: bool) -> 
         r["fixed_view"]["view_frame"] = r.pop("view_frame", None)
         r.update(figures(conv, target))
         r["convergence"] = conv
+    _common_views_figures(res["inits"], convs, target)
     from bench.pipeline_table2 import ratios  # the same ratios as the first definition's
 
     res["ratios"] = {
@@ -293,6 +333,7 @@ def policy_table(
         }
         for init, c in convs.items()
     }
+    _common_views_figures(inits, convs, target)
     m, r, g = inits["mogs"], inits["random"], inits["prior_global"]
 
     def div(a: float | None, b: float | None) -> float | None:
@@ -332,6 +373,7 @@ def markdown(cmd: str, res: dict[str, Any], machine: str, notes: str = "") -> st
             f"{_f(r['gaussians_at_target'], '.0f')} | {_f(r['psnr_after_insertion_db_median'])} | "
             f"{_f(r['psnr_at_budget_db'])} | {_f(r['ssim_at_budget'], '.3f')} | "
             f"{r['gaussians_at_budget']} | {r['gaussians_inserted']} | {r['gaussians_pruned']} | "
+            f"{_f(r.get('gaussians_at_target_own_views'), '.0f')} | "
             f"{_f(fv.get('iters_to_target'), 'd')} |"
         )
     rt = res["ratios"]
@@ -348,11 +390,13 @@ loop until the held-out view next to it (the nearest frame within 2 that is not 
 ground truth the recorded camera image, pose from the frontend) reaches {t:g} dB, counted iteration by
 iteration on a copy of the live map (the run's journal replayed, `bench/table2_convergence.py`;
 at most {conv["cap"]}), median over the {next(iter(res["inits"].values()))["keyframes_scored"]}
-keyframes after the car drives off. **Gaussians at target**: in the map then (median over the
-keyframes reaching it). **At the budget**: the run report's held-out frames after the drive.
+keyframes after the car drives off. **Gaussians at target**: in the map then, median over the
+{len(next(iter(res["inits"].values())).get("keyframes_every_init_reaches", []))} keyframes whose view
+every init reaches (the same views for all; over each init's own reaching keyframes in the last
+column but one). **At the budget**: the run report's held-out frames after the drive.
 
-| init | iterations to {t:g} dB (median) | keyframes reaching it | Gaussians at target | PSNR after insertion [dB] | held-out PSNR at budget [dB] | held-out SSIM | Gaussians at budget | inserted | pruned | first definition: iterations to {res.get("fixed_view_target_psnr_db", 0):g} dB at frame {res.get("view_frame")} |
-| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
+| init | iterations to {t:g} dB (median) | keyframes reaching it | Gaussians at target | PSNR after insertion [dB] | held-out PSNR at budget [dB] | held-out SSIM | Gaussians at budget | inserted | pruned | Gaussians at target, own keyframes | first definition: iterations to {res.get("fixed_view_target_psnr_db", 0):g} dB at frame {res.get("view_frame")} |
+| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |
 {chr(10).join(rows)}
 
 Ratios: MOGS / random iterations to {t:g} dB {_f(rt["iters_to_target_mogs_over_random"], ".3f")}

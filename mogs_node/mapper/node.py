@@ -84,6 +84,10 @@ class MapperNodeParams:
     # (-1: the source's own; InsertionParams.fixed_confidence)
     insertion_patch_px: int = 0  # object-guided insertion: flat Gaussians on planar depth
     # patches up to this size (0: off; InsertionParams.patch_px, docs/mapper.md)
+    insertion_color_tol: float = 0.0  # also insert where the map draws the wrong colour: mean
+    # |rendered - image| above this (0: off; InsertionParams.color_tol)
+    insertion_disagree_color_tol: float = 0.0  # a depth disagreement inserts only where the
+    # rendered colour is off by more than this (0: always; InsertionParams.disagree_color_tol)
     final_refine_iters: int = 0  # at the end of the drive: iterations over every keyframe
     final_refine_downsample: int = 1  # ... at 1/n of the resolution (GaussianMapper.refine)
     final_refine_chunk: int = 5  # refinement iterations per timer tick (heartbeats go on)
@@ -172,6 +176,8 @@ class MapperNodeParams:
                 background_depth_m=self.background_depth_m,
                 fixed_confidence=self.insertion_confidence,
                 patch_px=self.insertion_patch_px,
+                color_tol=self.insertion_color_tol,
+                disagree_color_tol=self.insertion_disagree_color_tol,
             ),
         )
 

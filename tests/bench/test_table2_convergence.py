@@ -13,6 +13,7 @@ import torch
 from bench.table2_convergence import (
     apply,
     common_target,
+    common_view_gaussians,
     converge,
     figures,
     heldout_views,
@@ -104,6 +105,22 @@ def test_the_common_target_and_the_paired_ratios() -> None:
     r = paired_ratios(convs, 18.5)
     assert r["keyframes_both_reach"] == 2 and r["iters_plus1_mogs_over_random_median"] == 0.333
     assert paired_ratios({"mogs": convs["mogs"]}, 18.5) == {}
+
+
+def test_gaussians_at_target_are_counted_on_the_views_every_init_reaches() -> None:
+    """Random reaches only the first view: every init's Gaussians are its map's there, not a
+    median over its own (later, larger) views."""
+    convs = {
+        "mogs": conv([[20.5], [19.0, 20.0], [20.0]], start=100),  # 100, 111, 120
+        "prior_global": conv([[20.0], [20.0], [19.0]], start=200),  # 200, 210, never
+        "random": conv([[19.0, 19.5, 20.0], [15.0], [16.0]], start=300),  # 302, never, never
+    }
+    assert figures(convs["mogs"], 20.0)["gaussians_at_target"] == 111.0  # own views: 100, 111, 120
+    ids, med = common_view_gaussians(convs, 20.0)
+    assert ids == [0] and med == {"mogs": 100.0, "prior_global": 200.0, "random": 302.0}
+    ids, med = common_view_gaussians(convs, 21.0)  # nobody reaches 21 dB
+    assert ids == [] and med == {"mogs": None, "prior_global": None, "random": None}
+    assert common_view_gaussians({}, 20.0) == ([], {})
 
 
 def test_apply_keeps_the_first_definition_and_writes_the_table() -> None:
