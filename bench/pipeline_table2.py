@@ -309,11 +309,14 @@ def common_target(
     return None
 
 
-def sim_images(frames: int, indices: list[int]) -> dict[int, np.ndarray]:
-    """Ground-truth RGB of the demo drive's frames ``indices`` (the player's sim, re-rendered)."""
+def sim_images(
+    frames: int, indices: list[int], sim_set: dict[str, Any] | None = None
+) -> dict[int, np.ndarray]:
+    """Ground-truth RGB of the demo drive's frames ``indices`` (the player's sim, re-rendered;
+    ``sim_set``: a ``--set player.sim=...`` override, e.g. another seed)."""
     demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
     player = next(n for n in demo["nodes"] if n["name"] == "player")
-    sim = {**player["params"]["sim"], "n_frames": frames}
+    sim = {**player["params"]["sim"], **(sim_set or {}), "n_frames": frames}
     seq = make_sequence(parse_params(SimConfig, sim, where="sim"))
     return {i: seq.render(i).rgb for i in indices}
 
@@ -490,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
     candidates = list(range(args.candidates_from, args.frames, args.candidate_step))
     if args.view_frame is not None and args.view_frame not in candidates:
         candidates.append(args.view_frame)
-    gt_images = sim_images(args.frames, candidates)
+    gt_images = sim_images(args.frames, candidates, args.overrides.get("player", {}).get("sim"))
     root = Path(tempfile.mkdtemp(prefix="mogs-bench-table2-"))
     demo = yaml.safe_load((REPO_ROOT / "launch" / "demo.yaml").read_text())
     mapper = next(n for n in demo["nodes"] if n["name"] == "mapper")

@@ -199,7 +199,7 @@ def test_the_bench_replays_each_runs_journal_after_the_live_runs(tmp_path, monke
         return conv([[20.0], [19.0, 20.0]] if init == "mogs" else [[15.0, 19.0, 20.0]] * 2)
 
     monkeypatch.setattr(t2, "run_init", run_init)
-    monkeypatch.setattr(t2, "sim_images", lambda frames, idx: {})
+    monkeypatch.setattr(t2, "sim_images", lambda frames, idx, sim=None: {})
     monkeypatch.setattr(t2.convergence, "measure", measure)
     out = tmp_path / "t2.json"
     assert t2.main(["--target-db", "auto", "--no-docs", "--json", str(out)]) == 0
