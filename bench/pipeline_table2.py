@@ -59,62 +59,21 @@ import zmq
 if not __package__:  # run as a script (python bench/pipeline_table2.py): the repo root holds bench/
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench import table2_convergence as convergence  # noqa: E402
+from bench.table2_random import RANDOM_TOPIC  # noqa: E402
 from mogs_node import msgs
 from mogs_node.bus import Subscriber
 from mogs_node.commands.launch import parse_overrides
 from mogs_node.eval.bench_docs import REPO_ROOT, machine_line, update_markdown_section, write_json
 from mogs_node.launch import Launcher, load_launch_file
-from mogs_node.mapper.insertion import InsertionParams, random_depth
+from mogs_node.mapper.insertion import InsertionParams
 from mogs_node.mapper.insertion import _stride_map as stride_map
 from mogs_node.mapper.rasterizer import RasterParams
-from mogs_node.node import Node, parse_params
+from mogs_node.node import parse_params
 from mogs_node.report.node import NOT_ESTIMATED
 from mogs_node.report.views import MapReplica, render_map_view, score_view
 from mogs_node.sim import SimConfig, make_sequence
 
 INITS = ("mogs", "prior_global", "random")
-RANDOM_TOPIC = "/table2/random_depth"
-
-
-@dataclass(frozen=True)
-class RandomDepthParams:
-    d_min_m: float = 1.0  # random depth range
-    d_max_m: float = 50.0
-    seed: int = 0  # depth of keyframe k: random_depth(..., seed * 1000 + k)
-    same_pixels: bool = True  # random values only where the metrizer's depth has one (False:
-    # on every pixel, the sky included: session 13's table)
-    in_topic: str = "/metrizer/depth"
-    out_topic: str = RANDOM_TOPIC
-
-
-class RandomDepthNode(Node):
-    """Re-publishes each metrized depth map as random depth with zero confidence (Table II's
-    random initialisation, in the live pipeline)."""
-
-    Params = RandomDepthParams
-
-    def setup(self) -> None:
-        self.subscribe(self.params.in_topic, self.on_depth, msg_type=msgs.DepthMap)
-
-    def on_depth(self, m: msgs.DepthMap) -> None:
-        self.publish(self.params.out_topic, random_depth_msg(m, self.params))
-
-
-def random_depth_msg(m: msgs.DepthMap, p: RandomDepthParams | None = None) -> msgs.DepthMap:
-    """Keyframe ``m``'s random depth (what :class:`RandomDepthNode` publishes for it)."""
-    p = p or RandomDepthParams()
-    d = random_depth(m.depth.shape, p.d_min_m, p.d_max_m, p.seed * 1000 + m.keyframe_id)
-    if p.same_pixels:
-        d = np.where(np.isfinite(m.depth) & (m.depth > 0), d, np.float32(0.0))
-    return msgs.DepthMap(
-        stamp_ns=m.stamp_ns,
-        frame_id=m.frame_id,
-        keyframe_id=m.keyframe_id,
-        kind="metric",
-        depth=d,
-        confidence=np.zeros_like(d),
-        source="random",
-    )
 
 
 def launch_dict(
@@ -141,7 +100,7 @@ def launch_dict(
         launch["nodes"].append(
             {
                 "name": "randomizer",
-                "class": "bench.pipeline_table2:RandomDepthNode",
+                "class": "bench.table2_random:RandomDepthNode",
                 "env": {"PYTHONPATH": path},  # bench/ is importable from the repository root
                 "params": dict(randomizer),
             }

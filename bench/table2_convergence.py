@@ -8,7 +8,7 @@ measured mostly *when* that view entered the map, in steps of ``iters_per_keyfra
 run's journal (kept by ``bench/pipeline_table2.py``) is replayed through the mapper core
 (:func:`bench.mapper_replay.replay`: the live mapper's map, byte for byte, with ``--threads 1``),
 with the depth that run's mapper got (random depth regenerated exactly as
-:class:`bench.pipeline_table2.RandomDepthNode` published it). After each keyframe's insertion
+:class:`bench.table2_random.RandomDepthNode` published it). After each keyframe's insertion
 a copy of the map is optimised by the mapper's own loop (:meth:`GaussianMapper.optimize`, the
 same view sampling and learning rates, ``converge_rel`` 0) and scored after every iteration at
 the keyframe's held-out view: the nearest frame (within 2 frames) that is not a keyframe and has
@@ -39,7 +39,7 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -50,13 +50,11 @@ if (
 ):  # run as a script (python bench/table2_convergence.py): the repo root holds bench/
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.mapper_replay import _camera_rgb, mapper_params, read_journal, replay, score  # noqa: E402
+from bench.table2_random import RandomDepthParams, random_depth_msg  # noqa: E402
 from mogs_node.eval.bench_docs import write_json
 from mogs_node.mapper.image_metrics import psnr_db
 from mogs_node.mapper.mapper import GaussianMapper
 from mogs_node.params import parse_params
-
-if TYPE_CHECKING:
-    from bench.pipeline_table2 import RandomDepthParams
 
 STOP_DB = 20.0  # issue 17's target: the copy stops once the view reaches it
 CAP = 40  # iterations at most per keyframe (~7x the demo's 6 per keyframe; CPU time)
@@ -96,7 +94,6 @@ def heldout_views(
 def random_params(launch: Path) -> RandomDepthParams:
     """The random run's :class:`RandomDepthParams` (its launch file's ``randomizer`` node; the
     defaults where it has none, e.g. the launch file of another init's run)."""
-    from bench.pipeline_table2 import RandomDepthParams  # (it imports this module)
 
     spec = yaml.safe_load(Path(launch).read_text())
     node = next((n for n in spec.get("nodes", []) if n.get("name") == "randomizer"), {})
@@ -145,8 +142,6 @@ def measure(
     torch.set_num_threads(1)  # as the live mapper (launch/demo.yaml threads: 1): the same map
     data = read_journal(journal)
     if init == "random":
-        from bench.pipeline_table2 import random_depth_msg  # (it imports this module)
-
         rp = random_params(launch)
         data["/metrizer/depth"] = [random_depth_msg(d, rp) for d in data["/metrizer/depth"]]
     p = mapper_params(str(launch), {})

@@ -12,20 +12,18 @@ import pytest
 import yaml
 
 from bench.pipeline_table2 import (
-    RANDOM_TOPIC,
     HeldOutViews,
-    RandomDepthParams,
     assemble,
     choose_view,
     common_target,
     depth_statistics,
     launch_dict,
-    random_depth_msg,
     ratios,
     reached,
     runs_from_json,
 )
 from bench.table2_convergence import random_params
+from bench.table2_random import RANDOM_TOPIC, RandomDepthParams, random_depth_msg
 from mogs_node import msgs
 from mogs_node.geometry import make_T, so3_exp
 from mogs_node.mapper.rasterizer import RasterParams
