@@ -20,6 +20,7 @@ memory of every node and of the broker is sampled all along. Asserted:
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +104,78 @@ def _sim_calibration(n_frames: int) -> dict:
     }
 
 
+def _publish_burst(
+    pub: Publisher, drive: tuple, loop_ns: int, t_burst: float, duration_s: float
+) -> tuple[int, int]:
+    """Publish the drive's images and IMU at ``RATE`` x real time from ``t_burst`` on, looping
+    (stamps shifted by ``loop_ns`` per loop) until ``duration_s`` has passed; (images, IMU) sent."""
+    events, images, gyro, accel = drive
+    n_img = n_imu = 0
+    loop = 0
+    t0_ns = events[0][0]
+    while time.monotonic() - t_burst < duration_s:
+        off = loop * loop_ns
+        for stamp, kind, k in events:
+            due = t_burst + (stamp + off - t0_ns) / 1e9 / RATE
+            wait = due - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            if kind == "imu":
+                g, a = gyro[k], accel[k]
+                pub.publish(
+                    "/imu",
+                    msgs.Imu(
+                        stamp_ns=stamp + off,
+                        frame_id="imu",
+                        gyro_rad_s=(float(g[0]), float(g[1]), float(g[2])),
+                        accel_m_s2=(float(a[0]), float(a[1]), float(a[2])),
+                    ),
+                )
+                n_imu += 1
+            else:
+                pub.publish(
+                    "/camera/image",
+                    msgs.Image(
+                        stamp_ns=stamp + off, frame_id="camera", encoding="rgb8", data=images[k]
+                    ),
+                )
+                n_img += 1
+            if time.monotonic() - t_burst >= duration_s and kind == "imu":
+                break
+        loop += 1
+    return n_img, n_imu
+
+
+def _drained(nodes: tuple[str, ...], n_imu: int) -> Callable[[Monitor], bool]:
+    """The drain test: every node but the mapper idle, and every keyframe and metrized depth
+    received by the mapper (reliable: queued or mapped). The mapper's own backlog is not awaited:
+    on 2 loaded cores it maps ~1 keyframe per 5-20 s (docs/reliability.md, "Burst")."""
+
+    def drained(m: Monitor) -> bool:
+        d = m.diag
+        if any(n not in d for n in nodes) or any(
+            d[n].counters.get("queue_depth", 1) for n in nodes if n != "mapper"
+        ):
+            return False
+        kf = d["frontend"].topics.get("/frontend/keyframe", {}).get("published", 0)
+        last = "mapper" if "mapper" in nodes else "metrizer"
+        topics = (
+            ("/frontend/keyframe", "/metrizer/depth")
+            if last == "mapper"
+            else ("/frontend/keyframe",)
+        )
+        # the metrizer waits for late priors (issue 28): every keyframe metrized, too
+        met = d.get("metrizer")
+        metrized = met.topics.get("/metrizer/depth", {}).get("published", -1) if met else -1
+        return (
+            all(d[last].topics.get(t, {}).get("received", -1) == kf for t in topics)
+            and d["frontend"].topics.get("/imu", {}).get("received", -1) == n_imu
+            and ("metrizer" not in nodes or metrized == kf)
+        )
+
+    return drained
+
+
 def run_burst(
     tmp_path: Path,
     duration_s: float,
@@ -111,7 +184,8 @@ def run_burst(
     drain_s: float = 300.0,
 ) -> dict:
     """Stream the drive at ``RATE`` x for ``duration_s`` through ``nodes``; the figures."""
-    events, images, gyro, accel = _drive(n_frames)
+    drive = _drive(n_frames)
+    events = drive[0]
     loop_ns = events[-1][0] - events[0][0] + 5_000_000
     bus = private_bus()
     procs = Procs(bus)
@@ -135,67 +209,10 @@ def run_burst(
         idle = rss.sample()
         rss.start()
         t_burst = time.monotonic()
-        n_img = n_imu = 0
-        loop = 0
-        t0_ns = events[0][0]
-        while time.monotonic() - t_burst < duration_s:
-            off = loop * loop_ns
-            for stamp, kind, k in events:
-                due = t_burst + (stamp + off - t0_ns) / 1e9 / RATE
-                wait = due - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-                if kind == "imu":
-                    g, a = gyro[k], accel[k]
-                    pub.publish(
-                        "/imu",
-                        msgs.Imu(
-                            stamp_ns=stamp + off,
-                            frame_id="imu",
-                            gyro_rad_s=(float(g[0]), float(g[1]), float(g[2])),
-                            accel_m_s2=(float(a[0]), float(a[1]), float(a[2])),
-                        ),
-                    )
-                    n_imu += 1
-                else:
-                    pub.publish(
-                        "/camera/image",
-                        msgs.Image(
-                            stamp_ns=stamp + off, frame_id="camera", encoding="rgb8", data=images[k]
-                        ),
-                    )
-                    n_img += 1
-                if time.monotonic() - t_burst >= duration_s and kind == "imu":
-                    break
-            loop += 1
+        n_img, n_imu = _publish_burst(pub, drive, loop_ns, t_burst, duration_s)
         burst_s = time.monotonic() - t_burst
 
-        # drain: every node but the mapper idle, and every keyframe and metrized depth received
-        # by the mapper (reliable: queued or mapped). The mapper's own backlog is not awaited: on
-        # 2 loaded cores it maps ~1 keyframe per 5-20 s (docs/reliability.md, "Burst").
-        def drained(m: Monitor) -> bool:
-            d = m.diag
-            if any(n not in d for n in nodes) or any(
-                d[n].counters.get("queue_depth", 1) for n in nodes if n != "mapper"
-            ):
-                return False
-            kf = d["frontend"].topics.get("/frontend/keyframe", {}).get("published", 0)
-            last = "mapper" if "mapper" in nodes else "metrizer"
-            topics = (
-                ("/frontend/keyframe", "/metrizer/depth")
-                if last == "mapper"
-                else ("/frontend/keyframe",)
-            )
-            # the metrizer waits for late priors (issue 28): every keyframe metrized, too
-            met = d.get("metrizer")
-            metrized = met.topics.get("/metrizer/depth", {}).get("published", -1) if met else -1
-            return (
-                all(d[last].topics.get(t, {}).get("received", -1) == kf for t in topics)
-                and d["frontend"].topics.get("/imu", {}).get("received", -1) == n_imu
-                and ("metrizer" not in nodes or metrized == kf)
-            )
-
-        drained_ok = mon.wait_for(drained, drain_s, 0.5)
+        drained_ok = mon.wait_for(_drained(nodes, n_imu), drain_s, 0.5)
         rss.stop()
         final_rss = rss.sample()
         codes = procs.stop_nodes(300)  # a mapper iteration may take a minute under load
