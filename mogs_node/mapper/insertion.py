@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from mogs_node.errors import ConfigError, ShapeError
-from mogs_node.geometry import check_array, pixel_to_normalized
+from mogs_node.geometry import check_array, pixel_to_normalized, transform_points
 from mogs_node.mapper.insertion_patches import surface_patches
 
 __all__ = [
@@ -336,11 +336,9 @@ def sample_gaussians(
     pick = m & (uu % s == offset % s) & (vv % s == offset % s)
     v, u = np.nonzero(pick)
     z = d[v, u]
-    fx, fy = K[0, 0], K[1, 1]
     x_n, y_n = pixel_to_normalized(K, u, v)
-    p_cam = np.stack([x_n * z, y_n * z, z], -1)
-    p_world = p_cam @ T[:3, :3].T + T[:3, 3]
-    sigma = params.scale_factor * s[v, u] * z / math.sqrt(fx * fy)
+    p_world = transform_points(T, np.stack([x_n * z, y_n * z, z], -1))
+    sigma = params.scale_factor * s[v, u] * z / f
     quats = np.zeros((len(z), 4))
     quats[:, 0] = 1
     scales = np.log(sigma)[:, None].repeat(3, 1)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mogs_node.geometry import pixel_to_normalized, quat_wxyz_from_rotmat
+from mogs_node.geometry import pixel_to_normalized, quat_wxyz_from_rotmat, transform_points
 
 __all__ = ["PatchGaussians", "PlanePatches", "plane_patches", "surface_patches"]
 
@@ -187,14 +187,14 @@ def _flat_gaussians(
     cov = sigma_frac**2 * (e_u[:, :, None] * e_u[:, None, :] + e_v[:, :, None] * e_v[:, None, :])
     s_plane = sigma_frac * 0.5 * (np.linalg.norm(e_u, axis=-1) + np.linalg.norm(e_v, axis=-1))
     cov += (thickness * s_plane)[:, None, None] ** 2 * (n[:, :, None] * n[:, None, :])
-    R_wc = np.asarray(T_world_cam[:3, :3], dtype=np.float64)
+    T_wc = np.asarray(T_world_cam, dtype=np.float64)
+    R_wc = T_wc[:3, :3]
     cov_w = R_wc @ cov @ R_wc.T
     eigval, eigvec = np.linalg.eigh(cov_w)
     eigvec = eigvec * np.where(np.linalg.det(eigvec) < 0, -1.0, 1.0)[:, None, None]  # proper
     sigmas = np.sqrt(np.maximum(eigval, 1e-20))
-    means = centre @ R_wc.T + np.asarray(T_world_cam[:3, 3], dtype=np.float64)
     return PatchGaussians(
-        means_world=means,
+        means_world=transform_points(T_wc, centre),
         quats_wxyz=quat_wxyz_from_rotmat(eigvec),
         scales_m=sigmas,
         colors_rgb=(rgb / 255.0).astype(np.float32),
